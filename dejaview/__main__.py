@@ -1,0 +1,3 @@
+from dejaview.cli import main
+
+main()

@@ -1,0 +1,47 @@
+"""Exception types shared by every part of DejaView."""
+
+from __future__ import annotations
+
+
+class DejaViewError(Exception):
+    """Base class of every error DejaView raises on purpose."""
+
+
+class SceneError(DejaViewError):
+    """A scene file (or scene text) that cannot be used.
+
+    The message always names where the problem is: ``file:line: <element>: reason``.
+
+    Attributes:
+        reason: the one-line reason, without location.
+        file: scene file name (or ``"<string>"``), may be None.
+        line: 1-based line number, may be None.
+        element: tag of the offending element, may be None.
+    """
+
+    def __init__(self, reason: str, file: str | None = None, line: int | None = None,
+                 element: str | None = None):
+        self.reason = reason
+        self.file = file
+        self.line = line
+        self.element = element
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        where = self.file or "<scene>"
+        if self.line is not None:
+            where += f":{self.line}"
+        elem = f" <{self.element}>" if self.element else ""
+        return f"{where}:{elem} {self.reason}".replace(": ", ": ", 1)
+
+
+class GeometryError(DejaViewError):
+    """A mesh or sphere packing that cannot be loaded or used."""
+
+
+class SimulationError(DejaViewError):
+    """Invalid simulation input (e.g. non-finite state) or settings."""
+
+
+class InferenceError(DejaViewError):
+    """Invalid inference settings or a problem that cannot be optimised."""

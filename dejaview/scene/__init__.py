@@ -1,0 +1,29 @@
+"""Scene format: dataclasses, hardened XML reading/writing and validation."""
+
+from dejaview.errors import SceneError
+from dejaview.scene.model import (
+    EVALUATES,
+    GRADIENTS,
+    LOSSES,
+    OPTIMIZERS,
+    SHAPES,
+    Exploration,
+    HeatmapSettings,
+    InferenceSettings,
+    Optimize,
+    Penalty,
+    Pose,
+    Scene,
+    SceneObject,
+    SimulationSettings,
+    StartArea,
+    Target,
+    Velocity,
+)
+
+__all__ = [
+    "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
+    "Exploration", "HeatmapSettings", "InferenceSettings", "Optimize", "Penalty",
+    "Pose", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
+    "Target", "Velocity",
+]

@@ -1,0 +1,257 @@
+"""Dataclasses of a DejaView scene (format version 1, see the scene-format spec).
+
+These are plain data: no torch, no trimesh. Reading and writing XML lives in
+``dejaview.scene.xml``; semantic checks in ``dejaview.scene.validate``.
+Vectors are tuples of floats; quaternions are ``(w, x, y, z)`` and normalised
+by the reader.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+SHAPES = ("plane", "box", "sphere", "cylinder")
+OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
+GRADIENTS = ("forward", "reverse")
+LOSSES = ("pose", "add", "position")
+EVALUATES = ("best", "final")
+
+DEFAULT_GRAVITY: Vec3 = (0.0, 0.0, -9.81)
+DEFAULT_DENSITY = 1000.0
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Position (m) and orientation quaternion (w x y z) of an object's frame."""
+
+    position: Vec3 = (0.0, 0.0, 0.0)
+    orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Velocity:
+    """Linear velocity (m/s) of the centre of mass and angular velocity (rad/s), world frame."""
+
+    linear: Vec3 = (0.0, 0.0, 0.0)
+    angular: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One rigid body of the scene.
+
+    Geometry is either a primitive (``shape`` with ``size``/``radius``/``height``)
+    or a mesh file (``mesh``). ``mesh`` and ``spheres`` are kept as written in
+    the file; ``Scene.resolve`` turns them into paths.
+    """
+
+    id: str
+    pose: Pose = field(default_factory=Pose)
+    velocity: Velocity = field(default_factory=Velocity)
+    shape: str | None = None
+    size: Vec3 | None = None
+    radius: float | None = None
+    height: float | None = None
+    mesh: str | None = None
+    spheres: str | None = None
+    fixed: bool = False
+    mass: float | None = None
+    density: float | None = None
+    friction: float | None = None
+    restitution: float | None = None
+    line: int | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def geometry_kind(self) -> str:
+        """``"mesh"`` or the primitive's shape name."""
+        return "mesh" if self.mesh is not None else str(self.shape)
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """``<simulation>``: step, duration and contact material defaults.
+
+    ``extra`` keeps backend-specific attributes (stiffness, damping, substeps...)
+    as strings, so they survive a round trip unchanged.
+    """
+
+    dt: float = 0.002
+    duration: float = 1.5
+    friction: float = 0.5
+    restitution: float = 0.2
+    extra: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        """Number of steps of length ``dt`` in ``duration`` (rounded)."""
+        return max(1, int(round(self.duration / self.dt)))
+
+
+@dataclass(frozen=True)
+class Target:
+    """``<target>``: the observed state of the source object."""
+
+    position: Vec3
+    orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+    linear_velocity: Vec3 | None = None
+    angular_velocity: Vec3 | None = None
+    time: float | None = None
+
+
+@dataclass(frozen=True)
+class Optimize:
+    """``<optimize>``: which parts of the source's initial state are free."""
+
+    position: bool = True
+    orientation: bool = True
+    linear_velocity: bool = True
+    angular_velocity: bool = True
+
+    def any(self) -> bool:
+        return self.position or self.orientation or self.linear_velocity or self.angular_velocity
+
+
+@dataclass(frozen=True)
+class StartArea:
+    """``<start-area>``: axis-aligned box bounding the initial position."""
+
+    min: Vec3
+    max: Vec3
+
+
+@dataclass(frozen=True)
+class Exploration:
+    """``<exploration>``: epsilon-greedy restarts."""
+
+    epsilon: float = 0.2
+    patience: int = 25
+
+
+@dataclass(frozen=True)
+class Penalty:
+    """``<penalty>``: pull objects ``between[0]`` and ``between[1]`` into contact."""
+
+    between: tuple[str, str]
+    weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class HeatmapSettings:
+    """``<heatmap>``: start-position heatmap over the start area's x-y extent."""
+
+    cells: tuple[int, int] = (16, 16)
+    samples: int = 4
+    sigma: float = 0.02
+
+
+@dataclass(frozen=True)
+class InferenceSettings:
+    """``<inference>``: what to infer and how."""
+
+    source: str
+    target: Target
+    iterations: int = 200
+    seed: int = 0
+    optimizer: str = "lbfgs"
+    gradient: str | None = None  # None: the faster for the problem
+    loss: str = "pose"
+    evaluate: str = "best"
+    optimize: Optimize = field(default_factory=Optimize)
+    start_area: StartArea | None = None
+    exploration: Exploration | None = None
+    penalties: tuple[Penalty, ...] = ()
+    heatmap: HeatmapSettings | None = None
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A whole scene file.
+
+    ``base_dir`` is the folder relative file names resolve against (the scene
+    file's folder); ``path`` the file it was read from. Neither takes part in
+    equality, so a scene read back from its own XML compares equal.
+    """
+
+    objects: tuple[SceneObject, ...]
+    version: int = 1
+    name: str | None = None
+    gravity: Vec3 = DEFAULT_GRAVITY
+    simulation: SimulationSettings = field(default_factory=SimulationSettings)
+    inference: InferenceSettings | None = None
+    base_dir: Path | None = field(default=None, compare=False, repr=False)
+    path: Path | None = field(default=None, compare=False, repr=False)
+
+    # -- construction and output (implemented in dejaview.scene.xml) --------
+    @classmethod
+    def from_xml(cls, path: str | Path, **kwargs) -> "Scene":
+        """Read, validate and return the scene in the XML file ``path``.
+
+        Raises:
+            SceneError: naming file, line and element of the first problem.
+        """
+        from dejaview.scene.xml import read_scene_file
+
+        return read_scene_file(path, **kwargs)
+
+    @classmethod
+    def from_string(cls, text: str | bytes, base_dir: str | Path | None = None,
+                    filename: str = "<string>", **kwargs) -> "Scene":
+        """Parse and validate scene XML text; relative files resolve against ``base_dir``."""
+        from dejaview.scene.xml import read_scene_string
+
+        return read_scene_string(text, base_dir=base_dir, filename=filename, **kwargs)
+
+    def to_xml(self) -> str:
+        """The scene as XML text (UTF-8 declaration included)."""
+        from dejaview.scene.xml import scene_to_xml
+
+        return scene_to_xml(self)
+
+    def write(self, path: str | Path) -> None:
+        """Write ``to_xml()`` to ``path``."""
+        Path(path).write_text(self.to_xml(), encoding="utf-8")
+
+    # -- queries -------------------------------------------------------------
+    def object(self, object_id: str) -> SceneObject:
+        """The object with id ``object_id`` (KeyError if absent)."""
+        for obj in self.objects:
+            if obj.id == object_id:
+                return obj
+        raise KeyError(object_id)
+
+    @property
+    def movable(self) -> tuple[SceneObject, ...]:
+        """Objects that are not fixed, in file order."""
+        return tuple(o for o in self.objects if not o.fixed)
+
+    @property
+    def fixed(self) -> tuple[SceneObject, ...]:
+        """Fixed (static) objects, in file order."""
+        return tuple(o for o in self.objects if o.fixed)
+
+    def resolve(self, name: str | None) -> Path | None:
+        """Resolve a file name from the scene (mesh, spheres) against ``base_dir``."""
+        if name is None:
+            return None
+        p = Path(name)
+        if not p.is_absolute() and self.base_dir is not None:
+            p = self.base_dir / p
+        return p
+
+    def replace(self, **changes) -> "Scene":
+        """A copy with some fields changed (dataclasses.replace)."""
+        return replace(self, **changes)
+
+    def with_object(self, obj: SceneObject) -> "Scene":
+        """A copy where the object with ``obj.id`` is replaced by ``obj``."""
+        objs = tuple(obj if o.id == obj.id else o for o in self.objects)
+        return replace(self, objects=objs)
+
+
+def dataclass_fields(cls) -> list[str]:
+    """Names of a dataclass's fields (used by the XML writer and tests)."""
+    return [f.name for f in fields(cls)]
