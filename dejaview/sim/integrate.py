@@ -1,0 +1,175 @@
+"""Time integration: ``step(world, state) -> state`` and rollouts.
+
+Each step of length ``world.dt`` runs ``world.substeps`` substeps of
+semi-implicit (symplectic) Euler, h = dt / substeps:
+
+    F, tau  = gravity + contact forces (dejaview.sim.contacts) at (x, q, v, w)
+    v'      = v + h F / m
+    w'      = w + h I_w^-1 (tau - w x (I_w w)),   I_w = R I_body R^T   (gyroscopic term)
+    x'      = x + h v'
+    q'      = normalise(exp(h w' / 2) * q)
+
+A rollout is a Python loop over ``step``; differentiation (autograd,
+``torch.func.jvp``/``jacfwd``), batching and compilation wrap it from outside.
+Reverse-mode memory can be bounded with activation checkpointing over chunks
+of steps (``checkpoint_every``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch.utils.checkpoint import checkpoint
+
+from dejaview.sim import contacts
+from dejaview.sim.rotation import integrate_quat, quat_to_matrix
+from dejaview.sim.state import State
+from dejaview.sim.world import World
+
+
+def _transforms_active() -> bool:
+    """True under torch.func transforms or torch.compile (no data-dependent branches then)."""
+    import torch._C._functorch as ft
+
+    return ft.peek_interpreter_stack() is not None or torch.compiler.is_compiling()
+
+
+def wrench(world: World, state: State, h: float, broadphase: bool | None = None):
+    """Total force and torque (gravity and contacts) on every body.
+
+    Args:
+        world: the World.
+        state: State (B, N, ...).
+        h: integration substep (s).
+        broadphase: skip body pairs whose bounding spheres are apart (a data-
+            dependent branch; default: on in eager mode, off under transforms).
+    Returns:
+        force (B, N, 3), torque (B, N, 3).
+    """
+    rot = quat_to_matrix(state.orientation)  # (B, N, 3, 3)
+    spheres = state.position.unsqueeze(-2) + world.centers @ rot.transpose(-1, -2)
+    force, torque = contacts.static_contact_wrench(world, state, spheres, h)
+    if world.pairs.shape[0] > 0:
+        if broadphase is None:
+            broadphase = not _transforms_active()
+        ids = None
+        if broadphase:
+            ids = contacts.pair_bounding_overlap(world, state).nonzero().flatten()
+        if ids is None or ids.numel() > 0:
+            f2, t2 = contacts.pair_contact_wrench(world, state, spheres, h, ids)
+            force = force + f2
+            torque = torque + t2
+    force = force + world.mass[:, None] * world.gravity
+    return force, torque, rot
+
+
+def substep(world: World, state: State, h: float, broadphase: bool | None = None) -> State:
+    """One semi-implicit Euler substep of length ``h``."""
+    force, torque, rot = wrench(world, state, h, broadphase)
+    v = state.linear_velocity + (h / world.mass)[:, None] * force
+    w = state.angular_velocity
+    inertia_w = rot @ world.inertia @ rot.transpose(-1, -2)  # (B, N, 3, 3)
+    inv_w = rot @ world.inv_inertia @ rot.transpose(-1, -2)
+    lw = (inertia_w @ w.unsqueeze(-1)).squeeze(-1)
+    gyro = torch.linalg.cross(w, lw, dim=-1)
+    w = w + h * (inv_w @ (torque - gyro).unsqueeze(-1)).squeeze(-1)
+    x = state.position + h * v
+    q = integrate_quat(state.orientation, w, h)
+    return State(x, q, v, w)
+
+
+def step(world: World, state: State, broadphase: bool | None = None) -> State:
+    """Advance ``state`` by one step ``world.dt`` (``world.substeps`` substeps).
+
+    Args:
+        world: the World.
+        state: State with batch dimension B.
+    Returns:
+        the State after dt.
+    """
+    h = world.dt / world.substeps
+    for _ in range(world.substeps):
+        state = substep(world, state, h, broadphase)
+    return state
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Recorded states of a rollout.
+
+    Attributes:
+        states: State whose tensors have a leading time dimension, (T, B, N, ...).
+        steps: (T,) step index of each record (0 is the initial state).
+        dt: step length, so the time of record t is ``steps[t] * dt``.
+    """
+
+    states: State
+    steps: torch.Tensor
+    dt: float
+
+    @property
+    def times(self) -> torch.Tensor:
+        """(T,) times in seconds."""
+        return self.steps.to(self.states.position.dtype) * self.dt
+
+    @property
+    def final(self) -> State:
+        """The last recorded State (B, N, ...)."""
+        return State(*(t[-1] for t in self.states.tensors()))
+
+    def __len__(self) -> int:
+        return self.steps.shape[0]
+
+
+def rollout(world: World, state: State, steps: int | None = None, record_every: int = 1,
+            checkpoint_every: int | None = None, step_fn=None,
+            broadphase: bool | None = None) -> Trajectory:
+    """Simulate ``steps`` steps from ``state`` and record every ``record_every``-th state.
+
+    Args:
+        world: the World.
+        state: initial State (B, N, ...).
+        steps: number of steps (default ``world.steps``).
+        record_every: record interval in steps; the initial and the final state
+            are always recorded.
+        checkpoint_every: if set, run chunks of this many steps under
+            ``torch.utils.checkpoint`` so reverse mode stores only chunk
+            boundaries (memory O(steps / chunk + chunk) instead of O(steps)).
+        step_fn: replacement for ``step`` (e.g. a compiled one), same signature.
+        broadphase: see ``wrench``.
+    Returns:
+        Trajectory with T = 1 + ceil(steps / record_every) records.
+    """
+    steps = world.steps if steps is None else int(steps)
+    if steps < 0:
+        raise ValueError("steps must be >= 0")
+    fn = step if step_fn is None else step_fn
+    records = [state]
+    record_steps = [0]
+    i = 0
+    use_ckpt = checkpoint_every is not None and checkpoint_every > 0 and torch.is_grad_enabled()
+    while i < steps:
+        if use_ckpt:
+            n = min(checkpoint_every, steps - i)
+
+            def chunk(*ts, n=n):
+                s = State(*ts)
+                outs = []
+                for _ in range(n):
+                    s = fn(world, s, broadphase) if step_fn is None else fn(world, s)
+                    outs.append(s)
+                return tuple(t for o in outs for t in o.tensors())
+
+            flat = checkpoint(chunk, *state.tensors(), use_reentrant=False)
+            chunk_states = [State(*flat[4 * j: 4 * j + 4]) for j in range(n)]
+        else:
+            n = 1
+            chunk_states = [fn(world, state, broadphase) if step_fn is None else fn(world, state)]
+        for s in chunk_states:
+            i += 1
+            if i % record_every == 0 or i == steps:
+                records.append(s)
+                record_steps.append(i)
+        state = chunk_states[-1]
+    return Trajectory(State.stack(records), torch.tensor(record_steps), world.dt)

@@ -1,0 +1,130 @@
+"""Signed distance functions of static geometry, in torch, with their gradients.
+
+Every function takes query points in the shape's own frame and returns the
+signed distance (negative inside) and its spatial gradient (the outward
+normal of the nearest surface). Gradients are written out analytically rather
+than taken with autograd, so the functions compose with ``torch.func`` and
+``torch.compile``; their own derivatives (needed for contact-force gradients)
+come from autograd through these expressions.
+
+Shapes: plane (z = 0, normal +z), box (half extents), sphere, cylinder (axis z)
+and a regular grid of samples with trilinear interpolation (meshes).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def _safe_normalize(v: torch.Tensor, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3) -> (unit vectors, norms (...)); zero vectors give a zero direction, no NaN."""
+    sq = (v * v).sum(-1)
+    norm = torch.sqrt(sq + eps * eps)
+    return v / norm.unsqueeze(-1), norm
+
+
+def sdf_plane(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Half-space z <= 0. p: (..., 3) -> distance (...), normal (..., 3)."""
+    n = torch.zeros_like(p)
+    n = n + p.new_tensor([0.0, 0.0, 1.0])
+    return p[..., 2], n
+
+
+def sdf_sphere(p: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sphere of ``radius`` at the origin. p: (..., 3) -> distance (...), normal (..., 3)."""
+    n, norm = _safe_normalize(p)
+    return norm - radius, n
+
+
+def sdf_box(p: torch.Tensor, half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Axis-aligned box with half extents ``half`` (3,) at the origin.
+
+    p: (..., 3) -> distance (...), normal (..., 3). Inside, the normal points
+    through the nearest face; outside, towards the point from the nearest
+    surface point.
+    """
+    sign = torch.where(p < 0, -1.0, 1.0).to(p.dtype)
+    q = p.abs() - half
+    outside = q.clamp(min=0.0)
+    out_dir, out_len = _safe_normalize(outside)
+    qmax, axis = q.max(dim=-1)
+    inside_dist = qmax.clamp(max=0.0)
+    is_out = qmax > 0
+    face = torch.nn.functional.one_hot(axis, 3).to(p.dtype)
+    normal = torch.where(is_out.unsqueeze(-1), out_dir, face) * sign
+    dist = torch.where(is_out, out_len, inside_dist)
+    return dist, normal
+
+
+def sdf_cylinder(p: torch.Tensor, radius: float, half_height: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solid cylinder along z, centred at the origin.
+
+    p: (..., 3) -> distance (...), normal (..., 3).
+    """
+    radial, rlen = _safe_normalize(torch.cat([p[..., :2], torch.zeros_like(p[..., :1])], -1))
+    dr = rlen - radius
+    dz = p[..., 2].abs() - half_height
+    zdir = torch.zeros_like(p)
+    zdir = zdir + p.new_tensor([0.0, 0.0, 1.0])
+    zdir = zdir * torch.where(p[..., 2:3] < 0, -1.0, 1.0).to(p.dtype)
+    # outside both: corner region, distance to the rim circle
+    corner = torch.stack([dr.clamp(min=0.0), dz.clamp(min=0.0)], -1)
+    cdir, clen = _safe_normalize(torch.cat([corner, torch.zeros_like(corner[..., :1])], -1))
+    corner_normal = radial * cdir[..., :1] + zdir * cdir[..., 1:2]
+    in_dist = torch.maximum(dr, dz).clamp(max=0.0)
+    in_normal = torch.where((dr > dz).unsqueeze(-1), radial, zdir)
+    is_out = (dr > 0) | (dz > 0)
+    dist = torch.where(is_out, clen, in_dist)
+    normal = torch.where(is_out.unsqueeze(-1), corner_normal, in_normal)
+    return dist, normal
+
+
+def sdf_grid(p: torch.Tensor, values: torch.Tensor, origin: torch.Tensor,
+             spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Trilinear interpolation of a sampled signed distance field, with its gradient.
+
+    Points outside the grid are clamped to it and the distance to the grid
+    box is added, so far-away points read as far away (never as inside).
+
+    Args:
+        p: (..., 3) query points in the grid's frame.
+        values: (nx, ny, nz) samples; node (i, j, k) sits at origin + spacing * (i, j, k).
+        origin: (3,) position of node (0, 0, 0).
+        spacing: node spacing in metres.
+    Returns:
+        distance (...), gradient (..., 3) (not normalised; close to unit length).
+    """
+    nx, ny, nz = values.shape
+    size = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=p.dtype, device=p.device)
+    u = (p - origin) / spacing
+    u_in = torch.minimum(torch.maximum(u, torch.zeros_like(u)), size)
+    excess = (u - u_in) * spacing
+    i0 = torch.minimum(u_in.detach().floor(), size - 1).clamp(min=0)
+    f = u_in - i0
+    idx = i0.long()
+    ix, iy, iz = idx[..., 0], idx[..., 1], idx[..., 2]
+    flat = values.reshape(-1)
+
+    def corner(dx: int, dy: int, dz: int) -> torch.Tensor:
+        return flat[((ix + dx) * ny + (iy + dy)) * nz + (iz + dz)]
+
+    c000, c100, c010, c110 = corner(0, 0, 0), corner(1, 0, 0), corner(0, 1, 0), corner(1, 1, 0)
+    c001, c101, c011, c111 = corner(0, 0, 1), corner(1, 0, 1), corner(0, 1, 1), corner(1, 1, 1)
+    fx, fy, fz = f[..., 0], f[..., 1], f[..., 2]
+    c00 = c000 + (c100 - c000) * fx
+    c10 = c010 + (c110 - c010) * fx
+    c01 = c001 + (c101 - c001) * fx
+    c11 = c011 + (c111 - c011) * fx
+    c0 = c00 + (c10 - c00) * fy
+    c1 = c01 + (c11 - c01) * fy
+    d = c0 + (c1 - c0) * fz
+    # analytic gradient of the trilinear interpolant
+    gx = ((c100 - c000) * (1 - fy) * (1 - fz) + (c110 - c010) * fy * (1 - fz)
+          + (c101 - c001) * (1 - fy) * fz + (c111 - c011) * fy * fz)
+    gy = (c10 - c00) * (1 - fz) + (c11 - c01) * fz
+    gz = c1 - c0
+    grad = torch.stack([gx, gy, gz], -1) / spacing
+    ex_dir, ex_len = _safe_normalize(excess)
+    outside = (ex_len > 1e-9).unsqueeze(-1)
+    grad = torch.where(outside, ex_dir, grad)
+    return d + ex_len, grad

@@ -1,0 +1,79 @@
+"""The changing part of a simulation: an immutable, batched rigid-body state."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+import torch.utils._pytree as pytree
+
+
+@dataclass(frozen=True)
+class State:
+    """Batched state of all movable bodies.
+
+    ``position`` is the centre of mass (not the object frame's origin; see
+    ``World.object_pose`` for the conversion), ``orientation`` rotates the
+    body frame (the object's axes) into the world, velocities are world-frame.
+
+    Attributes:
+        position: (B, N, 3) centre-of-mass positions, metres.
+        orientation: (B, N, 4) unit quaternions, w x y z.
+        linear_velocity: (B, N, 3) centre-of-mass velocities, m/s.
+        angular_velocity: (B, N, 3) angular velocities, world frame, rad/s.
+    """
+
+    position: torch.Tensor
+    orientation: torch.Tensor
+    linear_velocity: torch.Tensor
+    angular_velocity: torch.Tensor
+
+    def replace(self, **changes) -> "State":
+        """A copy with some fields replaced."""
+        return replace(self, **changes)
+
+    @property
+    def batch_size(self) -> int:
+        return self.position.shape[0]
+
+    @property
+    def num_bodies(self) -> int:
+        return self.position.shape[1]
+
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """The four fields in order (position, orientation, linear, angular)."""
+        return tuple(getattr(self, f.name) for f in fields(self))
+
+    def to(self, device=None, dtype=None) -> "State":
+        return State(*(t.to(device=device, dtype=dtype) for t in self.tensors()))
+
+    def detach(self) -> "State":
+        return State(*(t.detach() for t in self.tensors()))
+
+    def index(self, idx) -> "State":
+        """Select along the batch dimension (``idx`` an int, slice or index tensor)."""
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1)
+        return State(*(t[idx] for t in self.tensors()))
+
+    @staticmethod
+    def stack(states: list["State"], dim: int = 0) -> "State":
+        """Stack states along a new leading dimension (e.g. time): (T, B, N, ...)."""
+        return State(*(torch.stack(ts, dim=dim) for ts in zip(*(s.tensors() for s in states))))
+
+    @staticmethod
+    def cat(states: list["State"]) -> "State":
+        """Concatenate along the batch dimension."""
+        return State(*(torch.cat(ts, dim=0) for ts in zip(*(s.tensors() for s in states))))
+
+    def is_finite(self) -> torch.Tensor:
+        """(B,) bool: every number of the batch element is finite."""
+        return torch.stack([t.isfinite().flatten(1).all(1) for t in self.tensors()]).all(0)
+
+
+pytree.register_pytree_node(
+    State,
+    lambda s: (list(s.tensors()), None),
+    lambda children, _: State(*children),
+    serialized_type_name="dejaview.sim.state.State",
+)

@@ -1,0 +1,411 @@
+"""The static part of a simulation: bodies, sphere packings, static geometry, contact settings.
+
+A ``World`` is built once (``World.from_scene`` or ``World.build``) and never
+changes; ``step(world, state)`` reads it. Movable bodies are listed in scene
+order; their sphere packings are stored padded to a common count ``S`` with a
+mask, centred on each body's centre of mass.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+import torch
+
+from dejaview.errors import SimulationError
+from dejaview.sim import sdf as _sdf
+from dejaview.sim.rotation import quat_rotate
+from dejaview.sim.state import State
+
+STATIC_KINDS = ("plane", "box", "sphere", "cylinder", "grid")
+
+
+def _tensor_fields_to(obj, device=None, dtype=None):
+    changes = {}
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        if isinstance(v, torch.Tensor):
+            changes[f.name] = v.to(device=device, dtype=dtype if v.is_floating_point() else None)
+    return replace(obj, **changes)
+
+
+def quat_to_matrix_np(q) -> np.ndarray:
+    """(4,) w x y z quaternion -> (3, 3) rotation matrix (numpy, for building worlds)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+@dataclass(frozen=True)
+class StaticShape:
+    """A fixed piece of geometry queried through its signed distance.
+
+    Attributes:
+        name: object id.
+        kind: one of ``STATIC_KINDS``.
+        rotation: (3, 3) world-from-shape rotation.
+        translation: (3,) shape origin in the world.
+        half: (3,) box half extents (zeros otherwise).
+        radius: sphere / cylinder radius (0 otherwise).
+        half_height: cylinder half height (0 otherwise).
+        grid: (nx, ny, nz) sampled distances for ``kind == "grid"`` (else a 1-element dummy).
+        grid_origin: (3,) grid node (0, 0, 0) in the shape frame.
+        grid_spacing: grid node spacing.
+        friction, restitution: material of this shape.
+    """
+
+    name: str
+    kind: str
+    rotation: torch.Tensor
+    translation: torch.Tensor
+    friction: float
+    restitution: float
+    half: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    radius: float = 0.0
+    half_height: float = 0.0
+    grid: torch.Tensor = field(default_factory=lambda: torch.zeros(1, 1, 1, dtype=torch.float64))
+    grid_origin: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
+    grid_spacing: float = 1.0
+
+    @staticmethod
+    def make(name: str, kind: str, position=(0, 0, 0), orientation=(1, 0, 0, 0), friction=0.5,
+             restitution=0.2, **params) -> "StaticShape":
+        """Build a static shape from plain numbers (float64 tensors).
+
+        ``params``: ``half`` (box), ``radius`` (sphere, cylinder), ``half_height``
+        (cylinder), ``grid``/``grid_origin``/``grid_spacing`` (grid).
+        """
+        if kind not in STATIC_KINDS:
+            raise SimulationError(f"unknown static shape kind {kind!r}")
+        t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
+        kw = {}
+        for key in ("half", "grid", "grid_origin"):
+            if key in params:
+                kw[key] = t(params[key])
+        for key in ("radius", "half_height", "grid_spacing"):
+            if key in params:
+                kw[key] = float(params[key])
+        return StaticShape(name=name, kind=kind, rotation=t(quat_to_matrix_np(orientation)),
+                           translation=t(position), friction=float(friction),
+                           restitution=float(restitution), **kw)
+
+    def to(self, device=None, dtype=None) -> "StaticShape":
+        return _tensor_fields_to(self, device, dtype)
+
+    def distance(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Signed distance and outward normal at world points.
+
+        Args:
+            points: (..., 3) world positions.
+        Returns:
+            distance (...), unit-ish normal (..., 3) in the world frame.
+        """
+        local = (points - self.translation) @ self.rotation  # R^T (p - t)
+        if self.kind == "plane":
+            d, n = _sdf.sdf_plane(local)
+        elif self.kind == "box":
+            d, n = _sdf.sdf_box(local, self.half)
+        elif self.kind == "sphere":
+            d, n = _sdf.sdf_sphere(local, self.radius)
+        elif self.kind == "cylinder":
+            d, n = _sdf.sdf_cylinder(local, self.radius, self.half_height)
+        else:
+            d, n = _sdf.sdf_grid(local, self.grid, self.grid_origin, self.grid_spacing)
+        return d, n @ self.rotation.T
+
+
+@dataclass(frozen=True)
+class BodySpec:
+    """Plain-number description of one movable body, input of ``World.build``.
+
+    Attributes:
+        name: object id.
+        mass: kg.
+        inertia: (3, 3) inertia tensor about the centre of mass, object axes.
+        com: (3,) centre of mass in the object frame.
+        centers: (S, 3) sphere centres in the object frame.
+        radii: (S,) sphere radii.
+        friction, restitution: material (None: the scene's).
+    """
+
+    name: str
+    mass: float
+    inertia: np.ndarray
+    com: np.ndarray
+    centers: np.ndarray
+    radii: np.ndarray
+    friction: float | None = None
+    restitution: float | None = None
+
+
+@dataclass(frozen=True)
+class ContactSettings:
+    """Numbers of the contact model (see ``dejaview.sim.contacts``).
+
+    Attributes:
+        frequency: body-level contact natural frequency omega_0 (rad/s).
+        friction_velocity: minimum regularisation speed of Coulomb friction (m/s).
+        unload_velocity: speed over which a contact blends from loading to unloading stiffness (m/s).
+    """
+
+    frequency: float
+    friction_velocity: float = 0.01
+    unload_velocity: float = 0.01
+
+
+def _discrete_restitution(unload: float, omega_h: float) -> float:
+    """Restitution of one hysteretic spring contact under the simulator's integrator.
+
+    Unit mass, omega = 1, step ``omega_h``, approach speed 1, no gravity:
+    semi-implicit Euler of ``a = delta * (1 if approaching else unload)``
+    until separation; returns the separation speed.
+    """
+    x, v = 0.0, -1.0
+    for _ in range(100000):
+        depth = max(0.0, -x)
+        a = depth * (1.0 if v < 0.0 else unload)
+        v += omega_h * a
+        x += omega_h * v
+        if x >= 0.0 and v > 0.0:
+            return v
+    return 0.0
+
+
+@functools.lru_cache(maxsize=256)
+def restitution_to_unloading(e: float, omega_h: float = 0.5) -> float:
+    """Unloading stiffness factor phi that gives restitution ``e`` in simulation.
+
+    A contact is stiffer when loading (k) than when unloading (phi k), so it
+    gives back phi of the stored energy: in continuous time phi = e^2. The
+    value is corrected by bisection on the discrete contact integrated with
+    substep ``omega_h = omega_0 h`` so the simulated restitution of a head-on
+    impact is ``e``. Monotone in ``e``; ``e = 0`` gives 0.
+    """
+    if e <= 0.0:
+        return 0.0
+    lo, hi = 0.0, 1.0
+    if _discrete_restitution(hi, omega_h) <= e:
+        return hi
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if _discrete_restitution(mid, omega_h) < e:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@dataclass(frozen=True)
+class World:
+    """Static description of a scene for the sphere-packing simulator.
+
+    Attributes (N movable bodies, S spheres per body after padding, K static shapes):
+        names: (N,) body ids.
+        mass: (N,) kg.
+        inertia: (N, 3, 3) body-frame inertia about the centre of mass.
+        inv_inertia: (N, 3, 3) its inverse.
+        com: (N, 3) centre of mass in the object frame.
+        centers: (N, S, 3) sphere centres relative to the centre of mass, body axes.
+        radii: (N, S) sphere radii (0 for padding).
+        mask: (N, S) 1 for real spheres, 0 for padding.
+        bound: (N,) radius of a sphere about the centre of mass holding all spheres.
+        kappa: (N,) 1 + m r^2 / I_min, how much rotation lightens a contact's effective mass.
+        statics: K static shapes.
+        mu_static: (N, K) friction coefficient body vs static.
+        unload_static: (N, K) unloading stiffness factor body vs static (restitution).
+        pairs: (P, 2) movable body pairs checked for contact.
+        mu_pair, unload_pair, mass_pair: (P,) friction, unloading factor, reduced mass per pair.
+        kappa_pair: (P,) the larger kappa of the two bodies.
+        gravity: (3,) m/s^2.
+        dt: step (s); substeps: integration substeps per step; steps: default rollout length.
+        contact: contact model numbers.
+    """
+
+    names: tuple[str, ...]
+    mass: torch.Tensor
+    inertia: torch.Tensor
+    inv_inertia: torch.Tensor
+    com: torch.Tensor
+    centers: torch.Tensor
+    radii: torch.Tensor
+    mask: torch.Tensor
+    bound: torch.Tensor
+    kappa: torch.Tensor
+    statics: tuple[StaticShape, ...]
+    mu_static: torch.Tensor
+    unload_static: torch.Tensor
+    pairs: torch.Tensor
+    mu_pair: torch.Tensor
+    unload_pair: torch.Tensor
+    mass_pair: torch.Tensor
+    kappa_pair: torch.Tensor
+    gravity: torch.Tensor
+    dt: float
+    substeps: int
+    steps: int
+    contact: ContactSettings
+
+    # ---------------------------------------------------------------- build
+    @staticmethod
+    def build(bodies: list[BodySpec], statics: list[StaticShape], *, gravity=(0.0, 0.0, -9.81),
+              dt: float = 0.002, substeps: int = 2, steps: int | None = None,
+              duration: float | None = None, friction: float = 0.5, restitution: float = 0.2,
+              contact_frequency: float | None = None, friction_velocity: float = 0.01,
+              dtype: torch.dtype = torch.float64, device=None) -> "World":
+        """Assemble a world from body and static descriptions.
+
+        Args:
+            bodies: movable bodies (at least one).
+            statics: fixed shapes.
+            dt: step length; substeps: integration substeps per step.
+            steps / duration: default rollout length (steps wins).
+            friction, restitution: defaults for bodies and shapes without their own.
+            contact_frequency: omega_0 in rad/s (default ``0.5 / (dt / substeps)``).
+            friction_velocity: minimum friction regularisation speed (m/s).
+        """
+        if not bodies:
+            raise SimulationError("a world needs at least one movable body")
+        if not (dt > 0 and math.isfinite(dt)) or substeps < 1:
+            raise SimulationError(f"invalid time step dt={dt} substeps={substeps}")
+        n = len(bodies)
+        s_max = max(len(b.radii) for b in bodies)
+        centers = np.zeros((n, s_max, 3))
+        radii = np.zeros((n, s_max))
+        mask = np.zeros((n, s_max))
+        inertia = np.zeros((n, 3, 3))
+        com = np.zeros((n, 3))
+        bound = np.zeros(n)
+        kappa = np.zeros(n)
+        mass = np.zeros(n)
+        for i, b in enumerate(bodies):
+            if not (b.mass > 0 and math.isfinite(b.mass)):
+                raise SimulationError(f"body {b.name!r}: mass must be positive, got {b.mass}")
+            if len(b.radii) == 0:
+                raise SimulationError(f"body {b.name!r}: no spheres")
+            s = len(b.radii)
+            c = np.asarray(b.centers, dtype=np.float64) - np.asarray(b.com, dtype=np.float64)
+            centers[i, :s] = c
+            radii[i, :s] = b.radii
+            mask[i, :s] = 1.0
+            inertia[i] = b.inertia
+            com[i] = b.com
+            mass[i] = b.mass
+            bound[i] = float(np.max(np.linalg.norm(c, axis=1) + np.asarray(b.radii)))
+            i_min = float(np.linalg.eigvalsh(inertia[i]).min())
+            if not i_min > 0:
+                raise SimulationError(f"body {b.name!r}: inertia is not positive definite")
+            kappa[i] = 1.0 + b.mass * bound[i] ** 2 / i_min
+        mus = np.array([friction if b.friction is None else b.friction for b in bodies])
+        es = np.array([restitution if b.restitution is None else b.restitution for b in bodies])
+        h = dt / substeps
+        omega = float(contact_frequency or 0.5 / h)
+        unload = functools.partial(restitution_to_unloading, omega_h=omega * h)
+        k = len(statics)
+        mu_static = np.zeros((n, k))
+        unload_static = np.zeros((n, k))
+        for j, st in enumerate(statics):
+            mu_static[:, j] = np.sqrt(mus * st.friction)
+            unload_static[:, j] = [unload(0.5 * (e + st.restitution)) for e in es]
+        pairs = [(a, b) for a in range(n) for b in range(a + 1, n)]
+        mu_pair = np.array([math.sqrt(mus[a] * mus[b]) for a, b in pairs])
+        unload_pair = np.array([unload(0.5 * (es[a] + es[b])) for a, b in pairs])
+        mass_pair = np.array([mass[a] * mass[b] / (mass[a] + mass[b]) for a, b in pairs])
+        kappa_pair = np.array([max(kappa[a], kappa[b]) for a, b in pairs])
+        if steps is None:
+            steps = max(1, int(round((duration if duration is not None else 1.5) / dt)))
+        f = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
+        world = World(
+            names=tuple(b.name for b in bodies), mass=f(mass), inertia=f(inertia),
+            inv_inertia=f(np.linalg.inv(inertia)), com=f(com), centers=f(centers), radii=f(radii),
+            mask=f(mask), bound=f(bound), kappa=f(kappa), statics=tuple(statics),
+            mu_static=f(mu_static), unload_static=f(unload_static),
+            pairs=torch.as_tensor(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)),
+            mu_pair=f(mu_pair), unload_pair=f(unload_pair), mass_pair=f(mass_pair),
+            kappa_pair=f(kappa_pair), gravity=f(gravity), dt=float(dt), substeps=int(substeps),
+            steps=int(steps),
+            contact=ContactSettings(frequency=omega,
+                                    friction_velocity=float(friction_velocity)))
+        return world.to(device=device, dtype=dtype)
+
+    @staticmethod
+    def from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
+                   max_spheres: int = 256, sdf_spacing: float = 0.01, progress=None) -> "World":
+        """Build the world of a ``dejaview.scene.Scene`` (see ``dejaview.sim.build``)."""
+        from dejaview.sim.build import world_from_scene
+
+        return world_from_scene(scene, dtype=dtype, device=device, max_spheres=max_spheres,
+                                sdf_spacing=sdf_spacing, progress=progress)
+
+    def to(self, device=None, dtype=None) -> "World":
+        """Move every tensor (statics included) to ``device`` / floating ``dtype``."""
+        w = _tensor_fields_to(self, device, dtype)
+        return replace(w, statics=tuple(s.to(device, dtype) for s in self.statics))
+
+    # -------------------------------------------------------------- queries
+    @property
+    def num_bodies(self) -> int:
+        return len(self.names)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.mass.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.mass.device
+
+    def body_index(self, name: str) -> int:
+        """Index of the movable body called ``name``."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise SimulationError(f"no movable body {name!r} (movable: {', '.join(self.names)})") from None
+
+    def state(self, position, orientation=None, linear_velocity=None, angular_velocity=None,
+              batch_size: int | None = None) -> State:
+        """State from object-frame poses (as in a scene file) and velocities.
+
+        Args:
+            position: (B, N, 3) or (N, 3) object-frame origins.
+            orientation: (B, N, 4) or (N, 4) quaternions (normalised here); default identity.
+            linear_velocity, angular_velocity: (B, N, 3) or (N, 3); default zero.
+            batch_size: repeat unbatched inputs this many times (default 1).
+        Returns:
+            State with centre-of-mass positions.
+        """
+        n = self.num_bodies
+        kw = dict(dtype=self.dtype, device=self.device)
+
+        def prep(x, default):
+            x = torch.as_tensor(default if x is None else x, **kw)
+            if x.dim() == 2:
+                x = x.unsqueeze(0)
+            if x.shape[1] != n:
+                raise SimulationError(f"expected {n} bodies in the state, got shape {tuple(x.shape)}")
+            return x
+
+        pos = prep(position, None if position is not None else [[0.0] * 3] * n)
+        q = prep(orientation, [[1.0, 0.0, 0.0, 0.0]] * n)
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        v = prep(linear_velocity, [[0.0] * 3] * n)
+        w = prep(angular_velocity, [[0.0] * 3] * n)
+        b = max(pos.shape[0], q.shape[0], v.shape[0], w.shape[0], batch_size or 1)
+        pos, q, v, w = (t.expand(b, *t.shape[1:]) for t in (pos, q, v, w))
+        return State(pos + quat_rotate(q, self.com.expand_as(pos)), q, v, w)
+
+    def object_position(self, state: State) -> torch.Tensor:
+        """Object-frame origins of all bodies: (B, N, 3) (the COM minus the rotated offset)."""
+        return state.position - quat_rotate(state.orientation, self.com.expand_as(state.position))
+
+    def sphere_positions(self, state: State) -> torch.Tensor:
+        """World positions of every sphere centre: (B, N, S, 3)."""
+        from dejaview.sim.rotation import quat_to_matrix
+
+        rot = quat_to_matrix(state.orientation)  # (B, N, 3, 3)
+        return state.position.unsqueeze(-2) + self.centers @ rot.transpose(-1, -2)
