@@ -1,0 +1,33 @@
+"""Small worlds built in code for simulator tests."""
+
+import numpy as np
+import pytest
+
+from dejaview.sim import BodySpec, StaticShape, World
+
+
+def ball_body(name="ball", radius=0.05, mass=1.0, **kw) -> BodySpec:
+    """A solid ball as a single sphere (exact geometry)."""
+    inertia = 0.4 * mass * radius ** 2 * np.eye(3)
+    return BodySpec(name, mass, inertia, np.zeros(3), np.zeros((1, 3)), np.array([radius]), **kw)
+
+
+def box_body(name="box", size=(0.2, 0.15, 0.1), mass=1.0, per_axis=(4, 3, 2), **kw) -> BodySpec:
+    """A box packed with a regular grid of equal spheres touching its faces."""
+    size = np.asarray(size, dtype=float)
+    r = float(np.min(size / (2 * np.asarray(per_axis))))
+    axes = [np.linspace(-s / 2 + r, s / 2 - r, n) if n > 1 else np.zeros(1)
+            for s, n in zip(size, per_axis)]
+    centers = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    a, b, c = size
+    inertia = mass / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+    return BodySpec(name, mass, inertia, np.zeros(3), centers, np.full(len(centers), r), **kw)
+
+
+@pytest.fixture
+def floor():
+    return StaticShape.make("floor", "plane")
+
+
+def make_world(bodies, statics, **kw) -> World:
+    return World.build(bodies, statics, **kw)

@@ -1,0 +1,170 @@
+"""Forward and reverse gradients agree with each other and with finite differences."""
+
+import pytest
+import torch
+
+from dejaview.sim import StaticShape, World, rollout
+from dejaview.sim import contacts, sdf
+from dejaview.sim.gradients import forward_value_and_grad, reverse_value_and_grad
+from dejaview.sim.rotation import geodesic_angle, quat_multiply, rotvec_to_quat
+from tests.sim.conftest import box_body, make_world
+
+TARGET_Q = torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=torch.float64)
+TARGET_Q = TARGET_Q / TARGET_Q.norm()
+
+
+def loss_fn(world: World, x0: torch.Tensor, steps: int, target: torch.Tensor):
+    """Final pose error of body 0 from 12 initial-state parameters (position, rotvec, v, w)."""
+    q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+
+    def fn(x):
+        x = x0 + x
+        q = quat_multiply(rotvec_to_quat(x[..., 3:6]), q0)
+        state = world.state(x[..., None, 0:3], q[..., None, :], x[..., None, 6:9], x[..., None, 9:12])
+        final = rollout(world, state, steps=steps).final
+        d = final.position[:, 0] - target
+        ang = geodesic_angle(final.orientation[:, 0], TARGET_Q.expand_as(final.orientation[:, 0]))
+        return (d * d).sum(-1) + 0.1 * ang ** 2
+
+    return fn
+
+
+def central_difference(fn, x, eps=1e-6):
+    grads = []
+    for j in range(x.shape[-1]):
+        e = torch.zeros_like(x)
+        e[..., j] = eps
+        grads.append((fn(x + e) - fn(x - e)) / (2 * eps))
+    return torch.stack(grads, -1)
+
+
+def flight_case():
+    world = make_world([box_body()], [], dt=0.002, substeps=2)
+    x0 = torch.tensor([0.0, 0.0, 1.0, 0.1, -0.2, 0.3, 1.0, 0.5, 2.0, 3.0, -1.0, 2.0], dtype=torch.float64)
+    return loss_fn(world, x0, 100, torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64))
+
+
+def sliding_case():
+    floor = StaticShape.make("floor", "plane", friction=0.4)
+    world = make_world([box_body(friction=0.4)], [floor], dt=0.002, substeps=2, friction=0.4)
+    # start at the resting sink (mg / k = g / omega^2) so every bottom sphere is in contact
+    z = 0.05 - 9.81 / world.contact.frequency ** 2
+    x0 = torch.tensor([0.0, 0.0, z, 0.0, 0.0, 0.0, 2.0, 0.3, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    return loss_fn(world, x0, 80, torch.tensor([0.5, 0.1, 0.05], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("case", [flight_case, sliding_case], ids=["flight", "sliding"])
+def test_forward_equals_reverse_equals_finite_differences(case):
+    fn = case()
+    x = torch.zeros(1, 12, dtype=torch.float64)
+    v_rev, g_rev = reverse_value_and_grad(fn, x)
+    v_fwd, g_fwd = forward_value_and_grad(fn, x)
+    assert torch.allclose(v_rev, v_fwd, rtol=1e-12)
+    scale = g_rev.abs().max()
+    assert ((g_fwd - g_rev).abs().max() / scale) < 1e-6
+    g_fd = central_difference(fn, x)
+    assert ((g_fd - g_rev).abs().max() / scale) < 1e-4
+
+
+def test_batched_gradients_are_per_candidate():
+    """A batch of B candidates gives the same gradients as B single runs."""
+    fn = flight_case()
+    x = torch.randn(3, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 0.1
+    _, g_batch = forward_value_and_grad(fn, x)
+    for b in range(3):
+        _, g_one = reverse_value_and_grad(fn, x[b:b + 1])
+        assert torch.allclose(g_batch[b:b + 1], g_one, rtol=1e-8, atol=1e-10)
+
+
+def test_checkpointed_reverse_gradient_matches_plain():
+    floor = StaticShape.make("floor", "plane")
+    world = make_world([box_body()], [floor])
+    state0 = world.state([[0.0, 0.0, 0.3]], linear_velocity=[[1.0, 0.0, 0.0]])
+
+    def grad(ckpt):
+        v = state0.linear_velocity.clone().requires_grad_(True)
+        traj = rollout(world, state0.replace(linear_velocity=v), steps=120, checkpoint_every=ckpt)
+        traj.final.position.sum().backward()
+        return v.grad
+
+    assert torch.allclose(grad(None), grad(20), rtol=1e-10, atol=1e-12)
+
+
+def test_gradients_finite_at_zero_rotation_and_zero_velocity():
+    """Zero rotation vector, zero angular velocity, zero sliding speed: no NaN."""
+    floor = StaticShape.make("floor", "plane")
+    world = make_world([box_body()], [floor])
+    x0 = torch.tensor([0.0, 0.0, 0.05] + [0.0] * 9, dtype=torch.float64)
+    fn = loss_fn(world, x0, 30, torch.tensor([0.1, 0.0, 0.05], dtype=torch.float64))
+    x = torch.zeros(1, 12, dtype=torch.float64)
+    for mode in (forward_value_and_grad, reverse_value_and_grad):
+        _, g = mode(fn, x)
+        assert torch.isfinite(g).all()
+
+
+def _rand(*shape, seed=0):
+    return torch.rand(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+
+
+def test_gradcheck_normal_force():
+    depth = (_rand(2, 5) * 0.01 + 1e-3).requires_grad_(True)
+    vn = (_rand(2, 5, seed=1) - 0.5).requires_grad_(True)
+    stiff = torch.tensor(1e4, dtype=torch.float64)
+    unload = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda d, v, u: contacts.normal_force(d, v, stiff, u, 0.01),
+                                    (depth, vn, unload))
+
+
+def test_gradcheck_friction_force():
+    vt = (_rand(4, 3) - 0.5).requires_grad_(True)
+    fn = (_rand(4, seed=2) + 0.1).requires_grad_(True)
+    mu = torch.tensor(0.5, dtype=torch.float64)
+    eps = torch.tensor(0.01, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda v, f: contacts.friction_force(v, f, mu, eps), (vt, fn))
+
+
+def test_gradcheck_sdf_grid_lookup():
+    values = _rand(5, 6, 7, seed=3) - 0.5
+    origin = torch.tensor([-0.1, -0.2, 0.0], dtype=torch.float64)
+    # points strictly inside cells (trilinear interpolation is smooth there)
+    p = (origin + 0.1 * (torch.tensor([1.3, 2.6, 3.2]) + 0.4 * _rand(6, 3, seed=4))).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda q: sdf.sdf_grid(q, values, origin, 0.1), (p,))
+
+
+def test_sdf_grid_gradient_is_derivative_of_distance():
+    values = _rand(5, 6, 7, seed=5)
+    origin = torch.zeros(3, dtype=torch.float64)
+    p = (0.1 * (torch.tensor([1.3, 2.6, 3.2]) + 0.4 * _rand(6, 3, seed=6))).requires_grad_(True)
+    d, g = sdf.sdf_grid(p, values, origin, 0.1)
+    (auto,) = torch.autograd.grad(d.sum(), p)
+    assert torch.allclose(auto, g, atol=1e-10)
+
+
+@pytest.mark.parametrize("shape", ["box", "sphere", "cylinder"])
+def test_analytic_sdf_gradient_matches_autograd(shape):
+    p = ((_rand(50, 3, seed=7) - 0.5) * 0.8).requires_grad_(True)
+    if shape == "box":
+        d, n = sdf.sdf_box(p, torch.tensor([0.2, 0.1, 0.15], dtype=torch.float64))
+    elif shape == "sphere":
+        d, n = sdf.sdf_sphere(p, 0.2)
+    else:
+        d, n = sdf.sdf_cylinder(p, 0.15, 0.2)
+    (auto,) = torch.autograd.grad(d.sum(), p)
+    assert torch.allclose(auto, n, atol=1e-8)
+    assert torch.allclose(n.norm(dim=-1), torch.ones(50, dtype=torch.float64), atol=1e-8)
+
+
+def test_gradcheck_static_contact_wrench():
+    floor = StaticShape.make("floor", "plane")
+    world = make_world([box_body()], [floor])
+    base = world.state([[0.0, 0.0, 0.048]], orientation=[[0.999, 0.02, 0.03, 0.0]],
+                       linear_velocity=[[0.5, 0.1, -0.2]], angular_velocity=[[0.3, -0.2, 0.1]])
+
+    def f(x, v, w):
+        s = base.replace(position=x, linear_velocity=v, angular_velocity=w)
+        spheres = world.sphere_positions(s)
+        return contacts.static_contact_wrench(world, s, spheres, 0.001)
+
+    args = tuple(t.clone().requires_grad_(True) for t in (base.position, base.linear_velocity,
+                                                          base.angular_velocity))
+    assert torch.autograd.gradcheck(f, args)
