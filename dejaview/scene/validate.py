@@ -1,0 +1,374 @@
+"""Semantic checks of a scene: what the schema cannot say.
+
+The reader (:mod:`dejaview.scene.xml`) calls :func:`validate_scene` on every
+scene it builds, passing the line of each element; scenes built in Python can
+be checked the same way (errors then carry the object lines the scene has, or
+none).
+
+``lines`` keys name the elements: ``("scene",)``, ``("simulation",)``,
+``("object", i)``, ``("object", i, "pose")``, ``("object", i, "velocity")``,
+``("inference",)``, ``("target",)``, ``("optimize",)``, ``("start-area",)``,
+``("exploration",)``, ``("penalty", j)``, ``("heatmap",)``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import re
+from pathlib import Path
+
+from dejaview.errors import SceneError
+from dejaview.scene.model import (
+    EVALUATES,
+    GRADIENTS,
+    LOSSES,
+    OPTIMIZERS,
+    SHAPES,
+    Scene,
+    SceneObject,
+)
+
+__all__ = ["MESH_SUFFIXES", "scene_problems", "validate_scene"]
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
+"""Mesh file suffixes a scene may name (anything trimesh reads among them)."""
+
+# Attributes each primitive takes; the others do not apply to it.
+_SHAPE_ATTRS = {
+    "plane": (),
+    "box": ("size",),
+    "sphere": ("radius",),
+    "cylinder": ("radius", "height"),
+}
+_UNIT_QUAT_TOLERANCE = 1e-6
+_SIMULATION_ATTRS = ("dt", "duration", "friction", "restitution")
+# An XML attribute name (no namespace) or a Clark-notation namespaced one.
+_XML_NAME_RE = re.compile(r"(\{[^{}]+\})?[A-Za-z_][\w.\-]*\Z")
+
+Lines = dict[tuple, "int | None"]
+
+
+def validate_scene(scene: Scene, *, check_files: bool = True, lines: Lines | None = None,
+                   file: str | None = None) -> Scene:
+    """Check a scene's meaning and return it unchanged.
+
+    Args:
+        scene: the scene to check.
+        check_files: also check that mesh and sphere files exist (resolved
+            with ``scene.resolve``, i.e. against the scene's folder).
+        lines: line of each element, keyed as in the module docstring.
+        file: file name for messages (default: ``scene.path`` or ``<scene>``).
+    Returns:
+        ``scene``.
+    Raises:
+        SceneError: the first problem in file order.
+    """
+    problems = scene_problems(scene, check_files=check_files, lines=lines, file=file)
+    if problems:
+        raise problems[0]
+    return scene
+
+
+def scene_problems(scene: Scene, *, check_files: bool = True, lines: Lines | None = None,
+                   file: str | None = None) -> list[SceneError]:
+    """Every semantic problem of ``scene``, one :class:`SceneError` each, in file order.
+
+    Arguments as for :func:`validate_scene`.
+    """
+    if file is None:
+        file = str(scene.path) if scene.path is not None else "<scene>"
+    checker = _Checker(scene, file, lines or {}, check_files)
+    checker.run()
+    # Stable sort: by line, problems without a line last, otherwise in check order.
+    return sorted(checker.problems, key=lambda e: (e.line is None, e.line or 0))
+
+
+class _Checker:
+    def __init__(self, scene: Scene, file: str, lines: Lines, check_files: bool):
+        self.scene = scene
+        self.file = file
+        self.lines = lines
+        self.check_files = check_files
+        self.problems: list[SceneError] = []
+
+    # -- reporting -----------------------------------------------------------
+    def line(self, key: tuple) -> int | None:
+        if key in self.lines:
+            return self.lines[key]
+        if key[0] == "object":
+            objects = self.scene.objects
+            if 0 <= key[1] < len(objects) and objects[key[1]].line is not None:
+                return objects[key[1]].line
+            return self.lines.get(("scene",))
+        if key[0] in ("target", "optimize", "start-area", "exploration", "penalty", "heatmap"):
+            return self.lines.get(("inference",), self.lines.get(("scene",)))
+        return self.lines.get(("scene",))
+
+    def report(self, key: tuple, reason: str) -> None:
+        element = key[2] if key[0] == "object" and len(key) > 2 else key[0]
+        self.problems.append(SceneError(reason, self.file, self.line(key), element))
+
+    # -- value checks (each returns True when fine) ----------------------------
+    def number(self, key, name, value, *, positive=False, nonnegative=False,
+               unit_interval=False, optional=False) -> bool:
+        if value is None:
+            if not optional:
+                self.report(key, f"'{name}' is missing")
+            return False
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            self.report(key, f"'{name}' must be a number, not {type(value).__name__}")
+            return False
+        if not math.isfinite(value):
+            self.report(key, f"'{name}' is not finite ({value!r})")
+            return False
+        if positive and not value > 0:
+            self.report(key, f"'{name}' must be positive, got {value!r}")
+            return False
+        if nonnegative and not value >= 0:
+            self.report(key, f"'{name}' must be >= 0, got {value!r}")
+            return False
+        if unit_interval and not 0 <= value <= 1:
+            self.report(key, f"'{name}' must be between 0 and 1, got {value!r}")
+            return False
+        return True
+
+    def vector(self, key, name, value, n=3, *, positive=False, optional=False) -> bool:
+        if value is None:
+            if not optional:
+                self.report(key, f"'{name}' is missing")
+            return False
+        try:
+            count = len(value)
+        except TypeError:
+            self.report(key, f"'{name}' must be {n} numbers")
+            return False
+        if count != n:
+            self.report(key, f"'{name}' needs {n} numbers, got {count}")
+            return False
+        return all([self.number(key, name, v, positive=positive) for v in value])
+
+    def integer(self, key, name, value, minimum) -> bool:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            self.report(key, f"'{name}' must be an integer, got {value!r}")
+            return False
+        if value < minimum:
+            self.report(key, f"'{name}' must be >= {minimum}, got {value!r}")
+            return False
+        return True
+
+    def quaternion(self, key, name, q) -> None:
+        if not self.vector(key, name, q, 4):
+            return
+        n2 = sum(float(c) * float(c) for c in q)
+        if n2 == 0.0:
+            self.report(key, f"'{name}' is a zero quaternion")
+        elif abs(math.sqrt(n2) - 1.0) > _UNIT_QUAT_TOLERANCE:
+            self.report(key, f"'{name}' is not a unit quaternion (norm {math.sqrt(n2):.6g})")
+
+    def choice(self, key, name, value, allowed, optional=False) -> None:
+        if value is None and optional:
+            return
+        if value not in allowed:
+            self.report(key, f"{name} {value!r} is not one of {', '.join(allowed)}")
+
+    def file_exists(self, key, name, value) -> None:
+        if not isinstance(value, str) or not value.strip():
+            self.report(key, f"'{name}' names no file")
+            return
+        if not self.check_files:
+            return
+        path = self.scene.resolve(value)
+        try:
+            ok = Path(path).is_file()
+        except (OSError, ValueError):
+            ok = False
+        if not ok:
+            where = f" (looked for {path})" if str(path) != value else ""
+            self.report(key, f"{name} file {value!r} not found{where}")
+
+    # -- the checks ----------------------------------------------------------
+    def run(self) -> None:
+        scene = self.scene
+        root = ("scene",)
+        if scene.version != 1:
+            self.report(root, f"unknown scene version {scene.version!r} "
+                              "(this reader knows version 1)")
+        self.vector(root, "gravity", scene.gravity)
+        if not scene.objects:
+            self.report(root, "scene has no objects")
+        self.simulation()
+        first_line: dict[str, int] = {}
+        for i, obj in enumerate(scene.objects):
+            self.object(i, obj, first_line)
+        if scene.inference is not None:
+            self.inference()
+
+    def simulation(self) -> None:
+        s = self.scene.simulation
+        key = ("simulation",)
+        self.number(key, "dt", s.dt, positive=True)
+        self.number(key, "duration", s.duration, positive=True)
+        self.number(key, "friction", s.friction, nonnegative=True)
+        self.number(key, "restitution", s.restitution, unit_interval=True)
+        for name, value in s.extra.items():
+            if not isinstance(name, str) or not _XML_NAME_RE.match(name) or name in _SIMULATION_ATTRS:
+                self.report(key, f"extra setting name {name!r} is not a usable attribute name")
+            elif not isinstance(value, str):
+                self.report(key, f"extra setting '{name}' must be text, not {type(value).__name__}")
+
+    def object(self, i: int, obj: SceneObject, first_line: dict[str, int]) -> None:
+        key = ("object", i)
+        # identity
+        if not isinstance(obj.id, str) or not obj.id:
+            self.report(key, "'id' is empty")
+        elif any(c.isspace() for c in obj.id):
+            self.report(key, f"id {obj.id!r} contains whitespace (penalties list ids "
+                             "separated by spaces)")
+        elif obj.id in first_line:
+            seen = first_line[obj.id]
+            where = f" (first used on line {seen})" if seen is not None else ""
+            self.report(key, f"duplicate id {obj.id!r}{where}")
+        else:
+            first_line[obj.id] = self.line(key)
+
+        # geometry: exactly one of shape and mesh
+        if obj.shape is not None and obj.mesh is not None:
+            self.report(key, f"object {obj.id!r} has both shape and mesh; give one geometry")
+        elif obj.shape is None and obj.mesh is None:
+            self.report(key, f"object {obj.id!r} has no geometry; give shape=... or mesh=...")
+        elif obj.shape is not None:
+            self.primitive(key, obj)
+        else:
+            self.mesh(key, obj)
+        if obj.spheres is not None:
+            self.file_exists(key, "spheres", obj.spheres)
+
+        if not isinstance(obj.fixed, bool):
+            self.report(key, f"'fixed' must be a boolean, got {obj.fixed!r}")
+        self.number(key, "mass", obj.mass, positive=True, optional=True)
+        self.number(key, "density", obj.density, positive=True, optional=True)
+        self.number(key, "friction", obj.friction, nonnegative=True, optional=True)
+        self.number(key, "restitution", obj.restitution, unit_interval=True, optional=True)
+
+        pose_key = ("object", i, "pose")
+        self.vector(pose_key, "position", obj.pose.position)
+        self.quaternion(pose_key, "orientation", obj.pose.orientation)
+        vel_key = ("object", i, "velocity")
+        self.vector(vel_key, "linear", obj.velocity.linear)
+        self.vector(vel_key, "angular", obj.velocity.angular)
+
+    def primitive(self, key, obj: SceneObject) -> None:
+        if obj.shape not in SHAPES:
+            self.report(key, f"shape {obj.shape!r} is not one of {', '.join(SHAPES)}")
+            return
+        takes = _SHAPE_ATTRS[obj.shape]
+        for name in ("size", "radius", "height"):
+            value = getattr(obj, name)
+            if name not in takes:
+                if value is not None:
+                    self.report(key, f"'{name}' does not apply to a {obj.shape}")
+            elif value is None:
+                self.report(key, f"a {obj.shape} needs '{name}'")
+            elif name == "size":
+                self.vector(key, "size", value, positive=True)
+            else:
+                self.number(key, name, value, positive=True)
+        if obj.shape == "plane" and obj.fixed is not True:
+            self.report(key, f"plane {obj.id!r} must be fixed (add fixed=\"true\")")
+
+    def mesh(self, key, obj: SceneObject) -> None:
+        for name in ("size", "radius", "height"):
+            if getattr(obj, name) is not None:
+                self.report(key, f"'{name}' does not apply to a mesh (the mesh gives the size)")
+        if not isinstance(obj.mesh, str):
+            self.report(key, "'mesh' must be a file name")
+            return
+        suffix = Path(obj.mesh).suffix.lower()
+        if suffix not in MESH_SUFFIXES:
+            self.report(key, f"mesh {obj.mesh!r} has unsupported suffix {suffix or '(none)'!r} "
+                             f"(use one of {', '.join(MESH_SUFFIXES)})")
+            return
+        self.file_exists(key, "mesh", obj.mesh)
+
+    def inference(self) -> None:
+        inf = self.scene.inference
+        key = ("inference",)
+        ids = {o.id: o for o in self.scene.objects}
+        source = ids.get(inf.source)
+        if source is None:
+            self.report(key, f"source {inf.source!r} is not an object of the scene")
+        elif source.fixed:
+            self.report(key, f"source {inf.source!r} is fixed; the source must be movable")
+        self.integer(key, "iterations", inf.iterations, 1)
+        self.integer(key, "seed", inf.seed, 0)
+        self.choice(key, "optimizer", inf.optimizer, OPTIMIZERS)
+        self.choice(key, "gradient", inf.gradient, GRADIENTS, optional=True)
+        self.choice(key, "loss", inf.loss, LOSSES)
+        self.choice(key, "evaluate", inf.evaluate, EVALUATES)
+
+        t, tkey = inf.target, ("target",)
+        self.vector(tkey, "position", t.position)
+        self.quaternion(tkey, "orientation", t.orientation)
+        self.vector(tkey, "linear-velocity", t.linear_velocity, optional=True)
+        self.vector(tkey, "angular-velocity", t.angular_velocity, optional=True)
+        if self.number(tkey, "time", t.time, nonnegative=True, optional=True):
+            duration = self.scene.simulation.duration
+            if isinstance(duration, numbers.Real) and t.time > duration:
+                self.report(tkey, f"'time' {t.time!r} is after the end of the simulation "
+                                  f"(duration {duration!r})")
+
+        if not inf.optimize.any():
+            self.report(("optimize",), "nothing to optimize: every part of the initial "
+                                       "state is held fixed")
+
+        area = inf.start_area
+        if area is not None:
+            akey = ("start-area",)
+            min_ok = self.vector(akey, "min", area.min)
+            max_ok = self.vector(akey, "max", area.max)
+            if min_ok and max_ok:
+                bad = [ax for ax, lo, hi in zip("xyz", area.min, area.max) if lo > hi]
+                if bad:
+                    self.report(akey, f"'min' is greater than 'max' along {', '.join(bad)}")
+
+        if inf.exploration is not None:
+            xkey = ("exploration",)
+            self.number(xkey, "epsilon", inf.exploration.epsilon, unit_interval=True)
+            self.integer(xkey, "patience", inf.exploration.patience, 1)
+
+        for j, pen in enumerate(inf.penalties):
+            pkey = ("penalty", j)
+            if len(pen.between) != 2:
+                self.report(pkey, f"'between' needs two object ids, got {len(pen.between)}")
+            else:
+                a, b = pen.between
+                missing = [x for x in (a, b) if x not in ids]
+                if missing:
+                    self.report(pkey, "'between' names unknown object "
+                                      + ", ".join(repr(x) for x in missing))
+                elif a == b:
+                    self.report(pkey, f"'between' names {a!r} twice; give two distinct objects")
+            self.number(pkey, "weight", pen.weight, nonnegative=True)
+
+        if inf.heatmap is not None:
+            self.heatmap(area)
+
+    def heatmap(self, area) -> None:
+        h, key = self.scene.inference.heatmap, ("heatmap",)
+        if area is None:
+            self.report(key, "a heatmap needs a <start-area> to cover")
+        elif all(isinstance(v, numbers.Real) and math.isfinite(v) for v in (*area.min, *area.max)):
+            if not (area.max[0] > area.min[0] and area.max[1] > area.min[1]):
+                self.report(key, "the start area has no x-y extent to cover with a heatmap")
+        try:
+            cells = tuple(h.cells)
+        except TypeError:
+            cells = ()
+        if len(cells) != 2:
+            self.report(key, f"'cells' needs 2 integers, got {len(cells)}")
+        else:
+            for c in cells:
+                self.integer(key, "cells", c, 1)
+        self.integer(key, "samples", h.samples, 1)
+        self.number(key, "sigma", h.sigma, positive=True)
