@@ -53,7 +53,7 @@ def cli():
 def main(argv=None):
     """Console entry point: runs the CLI and turns DejaView errors into one line."""
     try:
-        cli.main(args=argv, prog_name="dejaview", standalone_mode=False)
+        rv = cli.main(args=argv, prog_name="dejaview", standalone_mode=False)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)
@@ -66,3 +66,5 @@ def main(argv=None):
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)
+    # standalone_mode=False hands back ctx.exit(n) codes instead of exiting
+    sys.exit(rv if isinstance(rv, int) else 0)

@@ -1,0 +1,1 @@
+"""Files DejaView writes and reads: trajectory CSV, heatmaps, result JSON."""

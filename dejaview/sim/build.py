@@ -1,0 +1,178 @@
+"""Build a ``World`` and its initial ``State`` from a ``Scene``.
+
+Movable objects become rigid bodies: mass properties from their mesh (or the
+closed forms of their primitive) and a sphere packing (the scene's
+``spheres=`` file, else one built and cached beside the mesh). Fixed objects
+become static shapes: analytic signed distances for primitives, a sampled
+grid (built from the mesh and cached) for meshes.
+
+Backend-specific ``<simulation>`` attributes read here:
+``substeps`` (int, default 2), ``contact-frequency`` (rad/s, default
+``0.5 / (dt / substeps)``), ``friction-velocity`` (m/s, default 0.01),
+``unload-velocity`` (m/s, default 0.01), ``sdf-spacing`` (m, default 0.01).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import torch
+
+from dejaview.errors import GeometryError, SceneError
+from dejaview.sim.state import State
+from dejaview.sim.world import BodySpec, ContactSettings, StaticShape, World
+
+SIM_EXTRAS = {
+    "substeps": int,
+    "contact-frequency": float,
+    "friction-velocity": float,
+    "unload-velocity": float,
+    "sdf-spacing": float,
+}
+
+
+def simulation_extras(scene) -> dict:
+    """The backend attributes of ``<simulation>`` this simulator understands, parsed.
+
+    Raises:
+        SceneError: a value that is not a positive number (unknown attributes are ignored:
+            they may belong to another backend).
+    """
+    out = {}
+    for key, kind in SIM_EXTRAS.items():
+        if key in scene.simulation.extra:
+            text = scene.simulation.extra[key]
+            try:
+                value = kind(text)
+            except ValueError:
+                value = None
+            if value is None or not math.isfinite(value) or value <= 0:
+                raise SceneError(f"simulation attribute {key}={text!r} must be a positive "
+                                 f"{'integer' if kind is int else 'number'}",
+                                 file=str(scene.path) if scene.path else None, element="simulation")
+            out[key] = value
+    return out
+
+
+@functools.lru_cache(maxsize=32)
+def _primitive_packing(shape: str, size, radius, height, max_spheres: int):
+    from dejaview.geometry.packing import SpherePacking
+
+    return SpherePacking.from_primitive(shape, size=size, radius=radius, height=height,
+                                        max_spheres=max_spheres)
+
+
+def _where(scene, obj) -> dict:
+    return dict(file=str(scene.path) if scene.path else None, line=obj.line, element="object")
+
+
+def body_from_object(scene, obj, max_spheres: int = 256) -> BodySpec:
+    """Mass properties and sphere packing of one movable scene object."""
+    from dejaview.geometry.mesh import load_mesh, mass_properties, primitive_mass_properties
+    from dejaview.geometry.packing import SpherePacking, load_or_build_packing
+
+    density = obj.density if obj.density is not None else 1000.0
+    try:
+        if obj.mesh is not None:
+            mesh_path = scene.resolve(obj.mesh)
+            props = mass_properties(load_mesh(mesh_path), mass=obj.mass, density=density)
+            packing = load_or_build_packing(mesh_path, scene.resolve(obj.spheres),
+                                            max_spheres=max_spheres)
+        else:
+            size = tuple(obj.size) if obj.size is not None else None
+            props = primitive_mass_properties(obj.shape, size=size, radius=obj.radius,
+                                              height=obj.height, mass=obj.mass, density=density)
+            if obj.spheres is not None:
+                packing = SpherePacking.read(scene.resolve(obj.spheres))
+            else:
+                packing = _primitive_packing(obj.shape, size, obj.radius, obj.height, max_spheres)
+    except GeometryError as exc:
+        raise SceneError(f"object {obj.id!r}: {exc}", **_where(scene, obj)) from exc
+    return BodySpec(name=obj.id, mass=props.mass, inertia=np.asarray(props.inertia),
+                    com=np.asarray(props.center_of_mass), centers=np.asarray(packing.centers),
+                    radii=np.asarray(packing.radii), friction=obj.friction,
+                    restitution=obj.restitution)
+
+
+def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:
+    """Static shape (analytic or grid signed distance) of one fixed scene object."""
+    sim = scene.simulation
+    common = dict(position=obj.pose.position, orientation=obj.pose.orientation,
+                  friction=sim.friction if obj.friction is None else obj.friction,
+                  restitution=sim.restitution if obj.restitution is None else obj.restitution)
+    if obj.mesh is None:
+        if obj.shape == "plane":
+            return StaticShape.make(obj.id, "plane", **common)
+        if obj.shape == "box":
+            return StaticShape.make(obj.id, "box", half=0.5 * np.asarray(obj.size), **common)
+        if obj.shape == "sphere":
+            return StaticShape.make(obj.id, "sphere", radius=obj.radius, **common)
+        return StaticShape.make(obj.id, "cylinder", radius=obj.radius, half_height=0.5 * obj.height,
+                                **common)
+    from dejaview.geometry.sdf import load_or_build_sdf
+
+    try:
+        grid = load_or_build_sdf(scene.resolve(obj.mesh), spacing=sdf_spacing)
+    except GeometryError as exc:
+        raise SceneError(f"object {obj.id!r}: {exc}", **_where(scene, obj)) from exc
+    return StaticShape.make(obj.id, "grid", grid=grid.values, grid_origin=grid.origin,
+                            grid_spacing=grid.spacing, **common)
+
+
+def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
+                     max_spheres: int = 256, sdf_spacing: float | None = None,
+                     progress=None) -> World:
+    """The simulator's World for a scene.
+
+    Args:
+        scene: a validated ``dejaview.scene.Scene``.
+        dtype, device: of every tensor.
+        max_spheres: sphere budget for packings built here.
+        sdf_spacing: grid spacing of mesh signed distance fields (default from
+            ``<simulation sdf-spacing>`` or 1 cm).
+        progress: optional callable(str) told what is being built.
+    Raises:
+        SceneError: no movable object, or a geometry problem (naming the object).
+    """
+    extras = simulation_extras(scene)
+    spacing = sdf_spacing or extras.get("sdf-spacing", 0.01)
+    say = progress or (lambda _msg: None)
+    bodies, statics = [], []
+    for obj in scene.objects:
+        if obj.fixed:
+            say(f"static {obj.id}")
+            statics.append(static_from_object(scene, obj, spacing))
+        else:
+            say(f"body {obj.id}")
+            bodies.append(body_from_object(scene, obj, max_spheres))
+    if not bodies:
+        raise SceneError("the scene has no movable object to simulate",
+                         file=str(scene.path) if scene.path else None, element="scene")
+    sim = scene.simulation
+    world = World.build(bodies, statics, gravity=scene.gravity, dt=sim.dt,
+                        substeps=extras.get("substeps", 2), duration=sim.duration,
+                        friction=sim.friction, restitution=sim.restitution,
+                        contact_frequency=extras.get("contact-frequency"),
+                        friction_velocity=extras.get("friction-velocity", 0.01),
+                        dtype=dtype, device=device)
+    if "unload-velocity" in extras:
+        from dataclasses import replace
+
+        world = replace(world, contact=ContactSettings(world.contact.frequency,
+                                                       world.contact.friction_velocity,
+                                                       extras["unload-velocity"]))
+    return world
+
+
+def initial_state(world: World, scene, batch_size: int = 1) -> State:
+    """State of the scene's movable objects as written in the file (poses and velocities).
+
+    Returns:
+        State (batch_size, N, ...).
+    """
+    objs = [scene.object(name) for name in world.names]
+    return world.state([o.pose.position for o in objs], [o.pose.orientation for o in objs],
+                       [o.velocity.linear for o in objs], [o.velocity.angular for o in objs],
+                       batch_size=batch_size)
