@@ -1,0 +1,11 @@
+"""Geometry: meshes, sphere packings and signed distance grids.
+
+Modules (import them directly; this package imports nothing, so that
+``import dejaview`` stays free of trimesh):
+
+* ``dejaview.geometry.mesh``: ``load_mesh``, ``primitive_mesh``,
+  ``mass_properties``, ``primitive_mass_properties``, ``file_hash``;
+* ``dejaview.geometry.packing``: ``SpherePacking``, ``load_or_build_packing``;
+* ``dejaview.geometry.sdf``: ``SignedDistanceGrid``, ``load_or_build_sdf``;
+* ``dejaview.geometry.distance``: inside tests and exact distances on lattices.
+"""
