@@ -1,0 +1,151 @@
+"""Contact penalties: how close two bodies come to touching during a rollout.
+
+``contact_penalty(world, traj, a, b)`` is the smallest surface gap between the
+sphere packings of ``a`` and ``b`` over all recorded states, clamped at zero
+once they touch: ``relu(min_t min_ij |c_i - c_j| - r_i - r_j)``. Against a
+fixed object (a static shape, not in the state) the gap of a sphere is the
+shape's signed distance at its centre minus its radius.
+
+The minimum is hard: the gradient flows through the closest sphere pair at the
+closest record only (a subgradient), and pulls that pair together. To keep
+memory moderate for long rollouts and large packings, the search for the
+closest pair runs without a graph, in chunks of records (at most
+``chunk_elements`` sphere pairs at a time, with a running minimum); only the
+chosen pair's distance is then recomputed differentiably, so reverse mode
+stores a (B,)-sized graph and forward mode carries tangents of (B,) values.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from dejaview.errors import InferenceError
+from dejaview.sim.integrate import Trajectory
+from dejaview.sim.rotation import quat_rotate
+
+DEFAULT_CHUNK_ELEMENTS = 1 << 20
+"""Sphere pairs the closest-pair search evaluates at once (~32 MiB of float64 temporaries)."""
+
+
+def _sphere_centres(world, body: int, position: torch.Tensor, orientation: torch.Tensor) -> torch.Tensor:
+    """World sphere centres of one body: position (..., 3), orientation (..., 4) -> (..., S, 3)."""
+    c = world.centers[body]
+    c = c.reshape(*([1] * (orientation.dim() - 1)), *c.shape)  # cross broadcasts, with equal ranks
+    return position.unsqueeze(-2) + quat_rotate(orientation.unsqueeze(-2), c)
+
+
+def _pick(x: torch.Tensor, t_idx: torch.Tensor) -> torch.Tensor:
+    """x (T, B, ...) and per-candidate record indices t_idx (B,) -> (B, ...)."""
+    idx = t_idx.reshape(1, -1, *([1] * (x.dim() - 2))).expand(1, *x.shape[1:])
+    return x.gather(0, idx)[0]
+
+
+def _resolve(world, name: str | int) -> tuple[str, int]:
+    """('body', index) for a movable body, ('static', index) for a static shape."""
+    if isinstance(name, int):
+        return "body", name
+    if name in world.names:
+        return "body", world.names.index(name)
+    for k, s in enumerate(world.statics):
+        if s.name == name:
+            return "static", k
+    raise InferenceError(f"penalty names {name!r}, which is neither a movable body "
+                         f"({', '.join(world.names)}) nor a fixed object "
+                         f"({', '.join(s.name for s in world.statics) or 'none'})")
+
+
+def contact_penalty(world, traj: Trajectory, body_a: str | int, body_b: str | int,
+                    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> torch.Tensor:
+    """Smallest surface gap between two bodies over a rollout, zero once they touch.
+
+    Args:
+        world: the World.
+        traj: Trajectory with states (T, B, N, ...).
+        body_a, body_b: names (or movable-body indices); at most one may be a
+            fixed object (a static shape of the world), in either position.
+        chunk_elements: sphere-pair distances per chunk of the closest-pair search.
+    Returns:
+        (B,) gaps in metres, ``>= 0``.
+    """
+    kind_a, a = _resolve(world, body_a)
+    kind_b, b = _resolve(world, body_b)
+    if kind_a == "static":
+        (kind_a, a), (kind_b, b) = (kind_b, b), (kind_a, a)
+    if kind_a == "static":
+        raise InferenceError(f"penalty between two fixed objects {body_a!r} and {body_b!r}")
+    if kind_b == "body" and a == b:
+        raise InferenceError(f"penalty between {body_a!r} and itself")
+    pos, quat = traj.states.position, traj.states.orientation  # (T, B, N, 3), (T, B, N, 4)
+    if kind_b == "body":
+        gap = _body_body_gap(world, pos, quat, a, b, chunk_elements)
+    else:
+        gap = _body_static_gap(world, pos, quat, a, world.statics[b], chunk_elements)
+    return torch.relu(gap)
+
+
+def _running_argmin(gaps_of_chunk, n_records: int, per_record: int, chunk_elements: int):
+    """Scan records in chunks: (best value (B,), record (B,), flat pair index (B,)), no graph."""
+    chunk = max(1, chunk_elements // max(1, per_record))
+    best = rec = pair = None
+    for t0 in range(0, n_records, chunk):
+        g = gaps_of_chunk(t0, min(n_records, t0 + chunk))  # (t, B, P)
+        value, flat = g.permute(1, 0, 2).reshape(g.shape[1], -1).min(dim=-1)
+        t_idx = flat // g.shape[2] + t0
+        p_idx = flat % g.shape[2]
+        if best is None:
+            best, rec, pair = value, t_idx, p_idx
+        else:
+            better = value < best
+            best = torch.where(better, value, best)
+            rec = torch.where(better, t_idx, rec)
+            pair = torch.where(better, p_idx, pair)
+    return best, rec, pair
+
+
+def _body_body_gap(world, pos, quat, a: int, b: int, chunk_elements: int) -> torch.Tensor:
+    ra, rb = world.radii[a], world.radii[b]
+    sb = rb.shape[0]
+    # padding pairs get -inf reach, so an infinite gap
+    reach = (ra[:, None] + rb[None, :]).masked_fill((world.mask[a][:, None] * world.mask[b][None, :]) <= 0,
+                                                   -float("inf"))
+    # the search only chooses indices: it runs on values without a graph
+    pos_d, quat_d = pos.detach(), quat.detach()
+
+    def gaps(t0, t1):
+        # relative to a's COM, |x|^2 + |y|^2 - 2 x.y stays accurate; the chosen pair is recomputed exactly
+        origin = pos_d[t0:t1, :, a].unsqueeze(-2)
+        ca = _sphere_centres(world, a, pos_d[t0:t1, :, a], quat_d[t0:t1, :, a]) - origin  # (t, B, Sa, 3)
+        cb = _sphere_centres(world, b, pos_d[t0:t1, :, b], quat_d[t0:t1, :, b]) - origin
+        sq = ((ca * ca).sum(-1).unsqueeze(-1) + (cb * cb).sum(-1).unsqueeze(-2)
+              - 2.0 * ca @ cb.transpose(-1, -2))  # (t, B, Sa, Sb) squared distances, one matmul
+        return (sq.clamp(min=0.0).sqrt() - reach).flatten(-2)  # (t, B, Sa * Sb)
+
+    _, rec, pair = _running_argmin(gaps, pos.shape[0], ra.shape[0] * sb, chunk_elements)
+    i, j = pair // sb, pair % sb
+    pa, qa = _pick(pos[:, :, a], rec), _pick(quat[:, :, a], rec)  # (B, 3), (B, 4)
+    pb, qb = _pick(pos[:, :, b], rec), _pick(quat[:, :, b], rec)
+    ca = pa + quat_rotate(qa, world.centers[a][i])
+    cb = pb + quat_rotate(qb, world.centers[b][j])
+    # the chosen spheres are distinct bodies' centres, never coincident while apart; the tiny
+    # floor only keeps the gradient finite for a (clamped-away) exact overlap
+    diff = ca - cb
+    dist = torch.sqrt((diff * diff).sum(-1) + torch.finfo(pos.dtype).tiny)
+    return dist - ra[i] - rb[j]
+
+
+def _body_static_gap(world, pos, quat, a: int, static, chunk_elements: int) -> torch.Tensor:
+    ra = world.radii[a]
+    far = torch.finfo(pos.dtype).max
+    invalid = world.mask[a] <= 0
+    pos_d, quat_d = pos.detach(), quat.detach()
+
+    def gaps(t0, t1):
+        ca = _sphere_centres(world, a, pos_d[t0:t1, :, a], quat_d[t0:t1, :, a])  # (t, B, Sa, 3)
+        d, _ = static.distance(ca)
+        return (d - ra).masked_fill(invalid, far)
+
+    _, rec, i = _running_argmin(gaps, pos.shape[0], ra.shape[0], chunk_elements)
+    pa, qa = _pick(pos[:, :, a], rec), _pick(quat[:, :, a], rec)
+    ca = pa + quat_rotate(qa, world.centers[a][i])
+    d, _ = static.distance(ca)
+    return d - ra[i]

@@ -1,0 +1,264 @@
+"""Losses of a whole rollout against the observed target state of one body.
+
+``trajectory_loss`` scores every recorded state of the source body against the
+scene's ``<target>`` with one of the per-record losses of ``LOSSES`` and
+reduces over time:
+
+- ``time`` given (argument, else ``target.time``): the record nearest that
+  moment (the observation is pinned; ``evaluate`` is ignored);
+- ``evaluate="final"``: the last record;
+- ``evaluate="best"``: the minimum over all records (step 0 included). The hard
+  minimum passes its gradient to the best record only (a subgradient);
+  ``softmin_temperature=T`` uses ``-T logsumexp(-l / T)`` instead, which mixes
+  the gradients of records within ~T of the best. It is smooth, lies at most
+  ``T log(records)`` below the hard minimum and tends to it as T -> 0.
+
+Frames: scene targets give the object frame's origin. The ``pose`` and ``add``
+losses compare centres of mass, converting the target with the world
+(``target COM = origin + R(target_q) com``): at zero error this is the same as
+comparing origins, and away from it the position term does not depend on the
+orientation. The ``position`` loss compares object origins, what was observed,
+so an orientation that is not part of the loss does not leak into it.
+
+Velocity terms (when the target has ``linear_velocity`` / ``angular_velocity``)
+are added per record: ``velocity_weight * |v - v*|`` (COM velocity, m/s) and
+``velocity_weight * orientation_weight * |w - w*|`` (world frame, rad/s).
+``velocity_weight`` (seconds) is the horizon over which a velocity error turns
+into a position error: the default 0.1 s makes 1 m/s cost 10 cm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from dejaview.errors import InferenceError
+from dejaview.losses.add import add_error
+from dejaview.losses.penalty import contact_penalty
+from dejaview.losses.pose import (DEFAULT_ORIENTATION_WEIGHT, SMOOTH_EPS, position_error, pose_error,
+                                  velocity_error)
+from dejaview.scene.model import InferenceSettings, Penalty, Target
+from dejaview.sim.integrate import Trajectory
+from dejaview.sim.rotation import normalize_quat, quat_rotate
+from dejaview.sim.state import State
+
+DEFAULT_VELOCITY_WEIGHT = 0.1
+"""Seconds: metres of loss per m/s of velocity error (times ``orientation_weight`` per rad/s)."""
+
+EVALUATES = ("best", "final")
+
+
+def _body_index(world, body: int | str) -> int:
+    return world.body_index(body) if isinstance(body, str) else int(body)
+
+
+def _target_tensors(world, target: Target) -> tuple[torch.Tensor, torch.Tensor]:
+    kw = dict(dtype=world.dtype, device=world.device)
+    origin = torch.as_tensor(target.position, **kw)
+    q = normalize_quat(torch.as_tensor(target.orientation, **kw))
+    return origin, q
+
+
+def pose_record_loss(world, body: int, states: State, target_position: torch.Tensor,
+                     target_orientation: torch.Tensor, *,
+                     orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
+                     points: torch.Tensor | None = None, eps: float = SMOOTH_EPS) -> torch.Tensor:
+    """``pose``: COM position error + ``orientation_weight`` x geodesic angle, per record.
+
+    Args:
+        world: the World.
+        body: index of the movable body.
+        states: State with leading dimensions (..., N, ...), e.g. (T, B, N, ...).
+        target_position: (3,) target object-frame origin.
+        target_orientation: (4,) target unit quaternion.
+        orientation_weight: metres per radian.
+        points: ignored (uniform signature of ``LOSSES``).
+        eps: smoothing scale (see ``dejaview.losses.pose``).
+    Returns:
+        (...) losses in metres.
+    """
+    target_com = target_position + quat_rotate(target_orientation, world.com[body])
+    return pose_error(states.position[..., body, :], states.orientation[..., body, :], target_com,
+                      target_orientation, orientation_weight, eps)
+
+
+def position_record_loss(world, body: int, states: State, target_position: torch.Tensor,
+                         target_orientation: torch.Tensor, *,
+                         orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
+                         points: torch.Tensor | None = None, eps: float = SMOOTH_EPS) -> torch.Tensor:
+    """``position``: distance between object-frame origins, per record (orientation ignored).
+
+    Same arguments as ``pose_record_loss`` (``orientation_weight`` and
+    ``points`` are ignored). Returns (...) losses in metres.
+    """
+    com = world.com[body].expand_as(states.position[..., body, :])
+    origin = states.position[..., body, :] - quat_rotate(states.orientation[..., body, :], com)
+    return position_error(origin, target_position, eps)
+
+
+def add_record_loss(world, body: int, states: State, target_position: torch.Tensor,
+                    target_orientation: torch.Tensor, *,
+                    orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
+                    points: torch.Tensor | None = None, eps: float = SMOOTH_EPS) -> torch.Tensor:
+    """``add``: average distance of model points, per record.
+
+    Same arguments as ``pose_record_loss``; ``points`` (M, 3) in the body's COM
+    frame (``model_points`` / ``body_model_points``; default: the centres of
+    its sphere packing, all of them);
+    ``orientation_weight`` is ignored. Returns (...) losses in metres.
+    """
+    weights = None
+    if points is None:  # the sphere centres, padding masked out by weight (no data-dependent shapes)
+        points, weights = world.centers[body], world.mask[body]
+    target_com = target_position + quat_rotate(target_orientation, world.com[body])
+    return add_error(states.position[..., body, :], states.orientation[..., body, :], target_com,
+                     target_orientation, points, eps, weights)
+
+
+LOSSES = {
+    "pose": pose_record_loss,
+    "add": add_record_loss,
+    "position": position_record_loss,
+}
+"""Per-record losses by scene name; each ``fn(world, body, states, target_position, target_orientation,
+*, orientation_weight, points, eps) -> (...)``."""
+
+
+def nearest_record(traj: Trajectory, time: float) -> int:
+    """Index of the record nearest ``time`` (seconds).
+
+    Raises:
+        InferenceError: if ``time`` lies outside the recorded span by more than half a step.
+    """
+    steps = traj.steps.tolist()
+    t = float(time) / traj.dt
+    if not (steps[0] - 0.5 <= t <= steps[-1] + 0.5):
+        raise InferenceError(f"target time {time} s is outside the trajectory "
+                             f"[{steps[0] * traj.dt:g}, {steps[-1] * traj.dt:g}] s")
+    return min(range(len(steps)), key=lambda k: abs(steps[k] - t))
+
+
+def softmin(losses: torch.Tensor, temperature: float | None = None, dim: int = 0) -> torch.Tensor:
+    """Hard (``temperature`` None or 0) or soft minimum ``-T logsumexp(-l / T)`` along ``dim``.
+
+    Args:
+        losses: (..., T, ...) values.
+        temperature: T in the unit of the losses.
+    Returns:
+        the values with ``dim`` reduced.
+    """
+    if not temperature:
+        return torch.amin(losses, dim=dim)
+    if temperature < 0:
+        raise ValueError(f"softmin temperature must be positive, got {temperature}")
+    return -temperature * torch.logsumexp(-losses / temperature, dim=dim)
+
+
+def trajectory_loss(world, traj: Trajectory, body: int | str, target: Target, kind: str = "pose",
+                    evaluate: str = "best", time: float | None = None,
+                    orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
+                    points: torch.Tensor | None = None,
+                    velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
+                    softmin_temperature: float | None = None,
+                    eps: float = SMOOTH_EPS) -> torch.Tensor:
+    """How far a rollout's ``body`` comes from the observed ``target`` (see the module docstring).
+
+    Args:
+        world: the World the trajectory was simulated in.
+        traj: Trajectory with states (T, B, N, ...).
+        body: index or name of the movable source body.
+        target: ``dejaview.scene.model.Target`` (position = object-frame origin).
+        kind: ``"pose"`` | ``"add"`` | ``"position"`` (``LOSSES``).
+        evaluate: ``"best"`` (minimum over records) | ``"final"``.
+        time: pin the comparison to the record nearest this time in seconds
+            (default ``target.time``); must lie within the trajectory.
+        orientation_weight: metres per radian (``pose`` and angular velocity).
+        points: (M, 3) model points in the COM frame for ``add``.
+        velocity_weight: seconds; weight of velocity terms when the target has
+            velocities (0 ignores them).
+        softmin_temperature: None for the hard minimum of ``best``, else the
+            soft-min temperature in metres of loss.
+        eps: smoothing scale of every distance.
+    Returns:
+        (B,) losses in metres.
+    """
+    if kind not in LOSSES:
+        raise InferenceError(f"unknown loss {kind!r}; choose one of {', '.join(LOSSES)}")
+    if evaluate not in EVALUATES:
+        raise InferenceError(f"unknown evaluate {evaluate!r}; choose one of {', '.join(EVALUATES)}")
+    i = _body_index(world, body)
+    origin, q_target = _target_tensors(world, target)
+    if time is None:
+        time = target.time
+    states = traj.states
+    if time is not None:
+        k = nearest_record(traj, time)
+        states = State(*(t[k:k + 1] for t in states.tensors()))
+    elif evaluate == "final":
+        states = State(*(t[-1:] for t in states.tensors()))
+    per_record = LOSSES[kind](world, i, states, origin, q_target, orientation_weight=orientation_weight,
+                              points=points, eps=eps)  # (T', B)
+    kw = dict(dtype=world.dtype, device=world.device)
+    if velocity_weight and target.linear_velocity is not None:
+        v_target = torch.as_tensor(target.linear_velocity, **kw)
+        per_record = per_record + velocity_weight * velocity_error(
+            states.linear_velocity[..., i, :], v_target, eps)
+    if velocity_weight and target.angular_velocity is not None:
+        w_target = torch.as_tensor(target.angular_velocity, **kw)
+        per_record = per_record + velocity_weight * orientation_weight * velocity_error(
+            states.angular_velocity[..., i, :], w_target, eps)
+    if per_record.shape[0] == 1:
+        return per_record[0]
+    return softmin(per_record, softmin_temperature, dim=0)
+
+
+@dataclass(frozen=True, eq=False)
+class TrajectoryLoss:
+    """The whole inference objective of a scene: target loss plus weighted contact penalties.
+
+    ``loss(world, traj) = trajectory_loss(...) + sum_k weight_k * contact_penalty(world, traj, a_k, b_k)``.
+
+    Attributes:
+        body: name of the source body.
+        target: the observed state.
+        kind, evaluate, orientation_weight, velocity_weight, softmin_temperature, eps:
+            see ``trajectory_loss``.
+        points: (M, 3) model points for ``add`` (None: sphere centres).
+        penalties: ``<penalty>`` terms.
+    """
+
+    body: str
+    target: Target
+    kind: str = "pose"
+    evaluate: str = "best"
+    orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT
+    velocity_weight: float = DEFAULT_VELOCITY_WEIGHT
+    softmin_temperature: float | None = None
+    eps: float = SMOOTH_EPS
+    points: torch.Tensor | None = None
+    penalties: tuple[Penalty, ...] = field(default=())
+
+    def __post_init__(self):
+        if self.kind not in LOSSES:
+            raise InferenceError(f"unknown loss {self.kind!r}; choose one of {', '.join(LOSSES)}")
+        if self.evaluate not in EVALUATES:
+            raise InferenceError(f"unknown evaluate {self.evaluate!r}; choose one of {', '.join(EVALUATES)}")
+
+    @classmethod
+    def from_inference(cls, inference: InferenceSettings, points: torch.Tensor | None = None,
+                       **options) -> "TrajectoryLoss":
+        """The objective of an ``<inference>`` element; ``options`` override the other fields."""
+        return cls(body=inference.source, target=inference.target, kind=inference.loss,
+                   evaluate=inference.evaluate, points=points, penalties=tuple(inference.penalties),
+                   **options)
+
+    def __call__(self, world, traj: Trajectory) -> torch.Tensor:
+        """Total loss. traj: states (T, B, N, ...) -> (B,) losses."""
+        total = trajectory_loss(world, traj, self.body, self.target, self.kind, self.evaluate,
+                                orientation_weight=self.orientation_weight, points=self.points,
+                                velocity_weight=self.velocity_weight,
+                                softmin_temperature=self.softmin_temperature, eps=self.eps)
+        for p in self.penalties:
+            total = total + p.weight * contact_penalty(world, traj, p.between[0], p.between[1])
+        return total
