@@ -16,8 +16,30 @@ from dejaview.errors import (  # noqa: E402
     SimulationError,
 )
 
+
+
+def __getattr__(name):
+    # heavy parts load on first use: ``dejaview.solve``, ``dejaview.Scene``, ``dejaview.World``
+    if name == "solve":
+        from dejaview.inference.solve import solve
+
+        return solve
+    if name == "Scene":
+        from dejaview.scene import Scene
+
+        return Scene
+    if name == "World":
+        from dejaview.sim import World
+
+        return World
+    raise AttributeError(f"module 'dejaview' has no attribute {name!r}")
+
+
 __all__ = [
     "__version__",
+    "Scene",
+    "World",
+    "solve",
     "DejaViewError",
     "GeometryError",
     "InferenceError",

@@ -1,0 +1,53 @@
+"""``dejaview solve SCENE -o DIR``: infer the source's initial state."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dejaview.cli.options import common_options, configure_torch, show_progress
+
+
+@click.command("solve")
+@click.argument("scene", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              required=True, help="output folder (created)")
+@click.option("--multistart", type=int, default=1, show_default=True,
+              help="initial guesses run as one batch")
+@click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
+@click.option("--plot", is_flag=True, help="also write loss.png")
+@common_options
+def command(scene, out_dir, multistart, lr, plot, backend, iterations, optimizer, gradient, seed, quiet):
+    """Infer the initial state of SCENE's source object; write result.json, iterations.csv
+    and trajectory.csv (the best solution re-simulated) to DIR."""
+    from tqdm import tqdm
+
+    from dejaview.inference import solve
+    from dejaview.scene import Scene
+
+    configure_torch()
+    sc = Scene.from_xml(scene)
+    if sc.inference is None:
+        raise click.ClickException(f"{scene}: the scene has no <inference> section")
+    total = iterations if iterations is not None else sc.inference.iterations
+    bar = tqdm(total=total, desc="solve", unit="it", disable=not show_progress(quiet))
+
+    def progress(p):
+        bar.update(1)
+        bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
+
+    result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
+                   lr=lr, multistart=multistart, callback=progress)
+    bar.close()
+    paths = result.write(out_dir, plot=plot)
+    if not quiet:
+        s = result.initial_state
+        fmt = lambda v: "(" + ", ".join(f"{x:.3f}" for x in v) + ")"  # noqa: E731
+        end_pos, _ = result.final_pose()
+        click.echo(f"best loss {result.loss:.5g} after {len(result.iterations)} iterations "
+                   f"({result.settings['optimizer']}, {result.settings['gradient']} mode)")
+        click.echo(f"  start position   {fmt(s['position'])} m")
+        click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
+        click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")
+        click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))

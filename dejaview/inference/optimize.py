@@ -1,0 +1,203 @@
+"""One optimisation loop for every optimiser, gradient mode and restart strategy.
+
+Optimisers are resolved from strings in one place (``make_optimizer``):
+
+- ``gd``: ``torch.optim.SGD`` (plain gradient descent);
+- ``adam``: ``torch.optim.Adam``;
+- ``lbfgs``: ``torch.optim.LBFGS`` with a strong-Wolfe line search, history 10;
+- ``bfgs``: the same L-BFGS with a history at least the parameter count (with
+  that much memory it is BFGS whose inverse Hessian is rebuilt from the
+  stored pairs: full-rank, as in the original work's BFGS).
+
+Gradients come from the problem in forward or reverse mode; the optimiser
+sees them through ``param.grad`` set in its closure. Each ``step`` is one
+iteration (L-BFGS runs ``max_iter=1`` per step; its line search may call the
+closure more than once). The best loss is tracked over every evaluation,
+including line-search trials, and reported from inside the closure (LBFGS's
+``step`` returns the loss of its first evaluation only).
+
+Exploration (epsilon-greedy restarts): when the best loss of a candidate has
+not improved for ``patience`` iterations, with probability
+``epsilon_t = epsilon * (1 - t / iterations)`` (decaying to zero) the
+candidate restarts from a fresh random guess inside the start area and the
+velocity bounds, and the optimiser state is reset. The global best is kept.
+
+Multi-start: ``x0`` may hold K guesses (K, P); they run as one batch. Their
+losses are summed into one objective (they are independent, so the gradient
+of the sum is each candidate's own); L-BFGS then shares its line search
+across them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from dejaview.errors import InferenceError
+
+OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
+DEFAULT_LR = {"gd": 0.05, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}
+
+
+def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: float | None = None):
+    """The torch.optim optimiser called ``name`` (see module docstring)."""
+    lr = DEFAULT_LR.get(name) if lr is None else lr
+    if name == "gd":
+        return torch.optim.SGD(params, lr=lr)
+    if name == "adam":
+        return torch.optim.Adam(params, lr=lr)
+    if name in ("lbfgs", "bfgs"):
+        history = 10 if name == "lbfgs" else max(10, num_params)
+        return torch.optim.LBFGS(params, lr=lr, max_iter=1, history_size=history,
+                                 line_search_fn="strong_wolfe")
+    raise InferenceError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
+
+
+@dataclass
+class Progress:
+    """What the progress callback receives after every iteration."""
+
+    iteration: int
+    loss: float
+    best_loss: float
+    duration_s: float
+    elapsed_s: float
+    restarted: bool
+    evaluations: int
+
+
+@dataclass
+class OptimizationResult:
+    """Outcome of ``optimize``.
+
+    Attributes:
+        x: (P,) best parameters found.
+        loss: best loss.
+        history: one ``Progress`` per iteration.
+        best_index: which candidate of the batch found it.
+        stopped: True when ``should_stop`` ended the run early.
+    """
+
+    x: torch.Tensor
+    loss: float
+    history: list[Progress] = field(default_factory=list)
+    best_index: int = 0
+    stopped: bool = False
+
+
+def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, torch.Tensor]],
+             x0: torch.Tensor, *, optimizer: str = "lbfgs", iterations: int = 200,
+             gradient: str = "forward", lr: float | None = None, epsilon: float = 0.0,
+             patience: int = 25, sample: Callable[[int, torch.Generator], torch.Tensor] | None = None,
+             seed: int = 0, callback: Callable[[Progress], None] | None = None,
+             should_stop: Callable[[], bool] | None = None) -> OptimizationResult:
+    """Minimise a batched loss.
+
+    Args:
+        value_and_grad: (x (K, P), mode) -> (losses (K,), gradients (K, P)).
+        x0: (K, P) initial guesses (K >= 1 candidates run as one batch).
+        optimizer: ``gd`` | ``adam`` | ``lbfgs`` | ``bfgs``.
+        iterations: number of iterations (>= 1).
+        gradient: ``forward`` | ``reverse``.
+        lr: learning rate (default per optimiser).
+        epsilon, patience: epsilon-greedy restarts (epsilon 0: none).
+        sample: (n, generator) -> (n, P) fresh guesses, needed for restarts.
+        seed: seeds the restart draws.
+        callback: called with a ``Progress`` after every iteration.
+        should_stop: polled every iteration; True stops the run (cancellation).
+    Returns:
+        OptimizationResult with the best parameters over the whole run.
+    """
+    if optimizer not in OPTIMIZERS:
+        raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    if gradient not in ("forward", "reverse"):
+        raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+    if isinstance(iterations, bool) or int(iterations) != iterations or iterations < 1:
+        raise InferenceError(f"iterations must be a positive integer, got {iterations!r}")
+    if epsilon > 0 and sample is None:
+        raise InferenceError("restarts (epsilon > 0) need a way to sample fresh guesses")
+    gen = torch.Generator().manual_seed(int(seed))
+    x = torch.nn.Parameter(x0.detach().clone())
+    k, p = x.shape
+    opt = make_optimizer(optimizer, [x], p, lr)
+    best_x = x.detach()[0].clone()
+    best_loss = math.inf
+    best_index = 0
+    cand_best = torch.full((k,), math.inf, dtype=x.dtype)
+    since_improved = torch.zeros(k, dtype=torch.long)
+    history: list[Progress] = []
+    start = time.perf_counter()
+    evaluations = 0
+
+    cache = {}
+
+    def evaluate(xv):
+        # L-BFGS re-evaluates the point its line search ended on: reuse that result
+        if "x" in cache and torch.equal(cache["x"], xv):
+            return cache["value"]
+        value = value_and_grad(xv, gradient)
+        cache.update(x=xv.clone(), value=value)
+        return value
+
+    def closure():
+        nonlocal best_loss, best_x, best_index, evaluations
+        losses, grad = evaluate(x.detach())
+        evaluations += 1
+        finite = torch.isfinite(losses) & torch.isfinite(grad).all(-1)
+        # a NaN candidate must not poison the optimiser: zero its gradient, count it as +inf
+        grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+        safe = torch.where(finite, losses, torch.full_like(losses, 1e6))
+        i = int(torch.argmin(safe))
+        if finite[i] and safe[i].item() < best_loss:
+            best_loss = safe[i].item()
+            best_x = x.detach()[i].clone()
+            best_index = i
+        improved = safe < cand_best
+        cand_best.copy_(torch.where(improved, safe, cand_best))
+        x.grad = grad.to(x.dtype)
+        closure.last = safe
+        return safe.sum()
+
+    closure.last = None
+    stopped = False
+    for it in range(int(iterations)):
+        if should_stop is not None and should_stop():
+            stopped = True
+            break
+        t0 = time.perf_counter()
+        before = cand_best.clone()
+        opt.step(closure)
+        with torch.no_grad():
+            # keep parameters finite (a diverging GD step): restart those from a fresh draw
+            bad = ~torch.isfinite(x).all(-1)
+            if bad.any() and sample is not None:
+                x[bad] = sample(int(bad.sum()), gen).to(x.dtype)
+        improved = cand_best < before
+        since_improved = torch.where(improved, torch.zeros_like(since_improved), since_improved + 1)
+        restarted = False
+        if epsilon > 0:
+            eps_t = epsilon * (1.0 - it / iterations)
+            stale = since_improved >= patience
+            draw = torch.rand(k, generator=gen) < eps_t
+            restart = stale & draw
+            if restart.any():
+                with torch.no_grad():
+                    x[restart] = sample(int(restart.sum()), gen).to(x.dtype)
+                since_improved = torch.where(restart, torch.zeros_like(since_improved), since_improved)
+                cand_best = torch.where(restart, torch.full_like(cand_best, math.inf), cand_best)
+                opt = make_optimizer(optimizer, [x], p, lr)
+                restarted = True
+        last = closure.last
+        current = float(last.min()) if last is not None else math.nan
+        prog = Progress(iteration=it, loss=current, best_loss=best_loss,
+                        duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - start,
+                        restarted=restarted, evaluations=evaluations)
+        history.append(prog)
+        if callback is not None:
+            callback(prog)
+    return OptimizationResult(x=best_x, loss=best_loss, history=history, best_index=best_index,
+                              stopped=stopped)

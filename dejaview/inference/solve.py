@@ -1,0 +1,196 @@
+"""``dejaview.solve``: infer the source's initial state from a scene, and write the results."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from dejaview.errors import InferenceError
+from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, Progress, optimize
+from dejaview.inference.problem import InferenceProblem
+from dejaview.sim.integrate import Trajectory
+
+FORWARD_MODE_MAX_PARAMS = 16  # forward mode up to this many parameters, reverse above
+
+
+def default_gradient(num_params: int) -> str:
+    """The faster gradient mode for a problem of this size (forward for the ~12 of one object)."""
+    return "forward" if num_params <= FORWARD_MODE_MAX_PARAMS else "reverse"
+
+
+@dataclass
+class SolveResult:
+    """Outcome of ``solve``.
+
+    Attributes:
+        scene: the scene solved.
+        problem: the InferenceProblem.
+        optimization: the raw OptimizationResult.
+        initial_state: dict of the best initial state (object-frame position, orientation,
+            linear_velocity, angular_velocity) as lists.
+        loss: best loss.
+        trajectory: the best solution re-simulated (record every step), batch of 1.
+        settings: optimizer, gradient, iterations, seed, backend.
+    """
+
+    scene: object
+    problem: InferenceProblem
+    optimization: OptimizationResult
+    initial_state: dict
+    loss: float
+    trajectory: Trajectory
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def iterations(self) -> list[Progress]:
+        return self.optimization.history
+
+    def final_pose(self) -> tuple[list[float], list[float]]:
+        """Object-frame position and orientation of the source at the end of the trajectory."""
+        w = self.problem.world
+        final = self.trajectory.final
+        pos = w.object_position(final)[0, self.problem.source]
+        return pos.tolist(), final.orientation[0, self.problem.source].tolist()
+
+    def to_json(self) -> dict:
+        """``result.json`` content (scene-format spec, "Outputs")."""
+        end_pos, end_q = self.final_pose()
+        return {
+            "source": self.scene.inference.source,
+            "backend": self.settings.get("backend", "spheres"),
+            "optimizer": self.settings["optimizer"],
+            "gradient": self.settings["gradient"],
+            "loss": self.loss,
+            "initial_state": self.initial_state,
+            "final_pose": {"position": end_pos, "orientation": end_q},
+            "target": {"position": list(self.scene.inference.target.position),
+                       "orientation": list(self.scene.inference.target.orientation)},
+            "loss_kind": self.problem.loss_kind,
+            "evaluate": self.problem.evaluate,
+            "seed": self.settings.get("seed", 0),
+            "parameters": self.problem.layout.names(),
+            "simulation": {"dt": self.problem.world.dt, "substeps": self.problem.world.substeps,
+                           "steps": self.problem.steps},
+            "stopped_early": self.optimization.stopped,
+            "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
+                            "duration_s": p.duration_s, "restarted": p.restarted}
+                           for p in self.iterations],
+        }
+
+    def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
+        """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``)."""
+        from dejaview.io.trajectory import write_trajectory_csv
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = {"result": out / "result.json", "iterations": out / "iterations.csv",
+                 "trajectory": out / "trajectory.csv"}
+        paths["result"].write_text(json.dumps(self.to_json(), indent=2), encoding="utf-8")
+        with open(paths["iterations"], "w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh, lineterminator="\n")
+            writer.writerow(["iteration", "loss", "best_loss", "duration_s", "restarted"])
+            for p in self.iterations:
+                writer.writerow([p.iteration, f"{p.loss:.9g}", f"{p.best_loss:.9g}",
+                                 f"{p.duration_s:.6f}", int(p.restarted)])
+        write_trajectory_csv(paths["trajectory"], self.problem.world, self.trajectory)
+        if plot:
+            paths["plot"] = plot_losses(self.iterations, out / "loss.png")
+        return paths
+
+
+def _num(v: float):
+    return v if math.isfinite(v) else None
+
+
+def plot_losses(history: list[Progress], path) -> Path:
+    """loss.png: loss and best loss per iteration (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    its = [p.iteration for p in history]
+    ax.semilogy(its, [max(p.loss, 1e-12) for p in history], lw=1, alpha=0.6, label="loss")
+    ax.semilogy(its, [max(p.best_loss, 1e-12) for p in history], lw=2, label="best loss")
+    for p in history:
+        if p.restarted:
+            ax.axvline(p.iteration, color="grey", lw=0.5, ls=":")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
+          gradient: str | None = None, seed: int | None = None, lr: float | None = None,
+          multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
+          callback=None, should_stop=None, world=None, problem: InferenceProblem | None = None,
+          x0: torch.Tensor | None = None) -> SolveResult:
+    """Infer the initial state of the scene's source object.
+
+    Args:
+        scene: a Scene (or a path to a scene file) with an ``<inference>`` section.
+        iterations, optimizer, gradient, seed: override the scene's settings.
+        lr: learning rate (default per optimiser).
+        multistart: K initial guesses run as one batch (the scene's guess plus K-1 random).
+        epsilon, patience: override ``<exploration>``.
+        callback: called with a ``Progress`` after every iteration.
+        should_stop: polled every iteration; True stops early (cancellation).
+        world / problem: reuse an already built World / InferenceProblem.
+        x0: (K, P) explicit initial guesses.
+    Returns:
+        SolveResult.
+    Raises:
+        InferenceError: bad settings (one line naming the problem).
+    """
+    from dejaview.scene import Scene
+
+    if not hasattr(scene, "objects"):
+        scene = Scene.from_xml(scene)
+    inf = scene.inference
+    if inf is None:
+        raise InferenceError("the scene has no <inference> section: nothing to solve")
+    iterations = inf.iterations if iterations is None else iterations
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise InferenceError(f"iterations must be a positive integer, got {iterations!r}")
+    optimizer = inf.optimizer if optimizer is None else optimizer
+    if optimizer not in OPTIMIZERS:
+        raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    if multistart < 1:
+        raise InferenceError(f"multistart must be >= 1, got {multistart}")
+    seed = inf.seed if seed is None else seed
+    problem = problem or InferenceProblem.from_scene(scene, world)
+    gradient = gradient or inf.gradient or default_gradient(problem.num_params)
+    if gradient not in ("forward", "reverse"):
+        raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+    exploration = inf.exploration
+    eps = epsilon if epsilon is not None else (exploration.epsilon if exploration else 0.0)
+    pat = patience if patience is not None else (exploration.patience if exploration else 25)
+    gen = torch.Generator().manual_seed(int(seed))
+    if x0 is None:
+        x0 = problem.layout.encode()
+        if multistart > 1:
+            x0 = torch.cat([x0, problem.layout.sample(multistart - 1, gen)], 0)
+    x0 = x0.to(problem.world.dtype)
+    opt = optimize(problem.value_and_grad, x0, optimizer=optimizer, iterations=iterations,
+                   gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=problem.layout.sample,
+                   seed=seed, callback=callback, should_stop=should_stop)
+    if not math.isfinite(opt.loss):
+        raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
+    best = opt.x.unsqueeze(0)
+    with torch.no_grad():
+        decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
+        traj = problem.simulate(best, steps=problem.world.steps, record_every=1)
+    settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
+                "backend": "spheres", "multistart": multistart, "epsilon": eps, "patience": pat}
+    return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
+                       loss=opt.loss, trajectory=traj, settings=settings)

@@ -1,0 +1,182 @@
+"""Build the bundled example scenes: each tells a story with a known true past.
+
+For every scene the true initial state of the source is simulated with
+DejaView, and the source's final pose becomes the ``<target>``; the scene file
+itself holds a deliberately wrong initial guess (the pose a robot might
+assume), so ``dejaview solve`` has real work to do. The true initial state is
+written beside the scene as ``<name>.truth.json`` (for tests and benchmarks).
+
+Run from the repository root after ``examples/build_meshes.py``:
+
+    python examples/make_scenes.py
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from dejaview.scene import (
+    Exploration,
+    HeatmapSettings,
+    InferenceSettings,
+    Optimize,
+    Penalty,
+    Pose,
+    Scene,
+    SceneObject,
+    SimulationSettings,
+    StartArea,
+    Target,
+    Velocity,
+)
+from dejaview.sim import World
+from dejaview.sim.build import initial_state
+from dejaview.sim.integrate import rollout
+
+HERE = Path(__file__).resolve().parent
+SCENES = HERE / "scenes"
+
+
+def floor() -> SceneObject:
+    return SceneObject(id="floor", shape="plane", fixed=True)
+
+
+def furniture(name: str) -> SceneObject:
+    return SceneObject(id=name, mesh=f"../meshes/{name}.obj", fixed=True)
+
+
+def movable(name: str, mesh: str, position, orientation=(1.0, 0.0, 0.0, 0.0), linear=(0.0, 0.0, 0.0),
+            angular=(0.0, 0.0, 0.0), mass=None) -> SceneObject:
+    return SceneObject(id=name, mesh=f"../meshes/{mesh}.obj", spheres=f"../packings/{mesh}.spheres",
+                       mass=mass, pose=Pose(tuple(position), tuple(orientation)),
+                       velocity=Velocity(tuple(linear), tuple(angular)))
+
+
+def with_truth(scene: Scene, truth: SceneObject, guess: SceneObject, **target_kw) -> tuple[Scene, dict]:
+    """Simulate the scene with the source's true start; return the scene holding the guess
+    and a target at the simulated end, plus the truth record."""
+    scene = replace(scene, base_dir=SCENES)
+    true_scene = scene.with_object(truth)
+    world = World.from_scene(true_scene)
+    with torch.no_grad():
+        traj = rollout(world, initial_state(world, true_scene))
+    src = world.body_index(truth.id)
+    end_pos = world.object_position(traj.final)[0, src].tolist()
+    end_q = traj.final.orientation[0, src].tolist()
+    target = Target(position=tuple(round(v, 6) for v in end_pos),
+                    orientation=tuple(round(v, 6) for v in end_q), **target_kw)
+    inf = replace(scene.inference, target=target)
+    out = replace(scene.with_object(guess), inference=inf)
+    record = {"source": truth.id,
+              "initial_state": {"position": list(truth.pose.position),
+                                "orientation": list(truth.pose.orientation),
+                                "linear_velocity": list(truth.velocity.linear),
+                                "angular_velocity": list(truth.velocity.angular)},
+              "final_pose": {"position": end_pos, "orientation": end_q}}
+    return out, record
+
+
+def ball_off_table():
+    """A ball rolled across a table, off its edge, onto the floor."""
+    truth = movable("ball", "ball", (0.25, 0.05, 0.80), linear=(1.2, 0.15, 0.0),
+                    angular=(-3.0, 24.0, 0.0), mass=0.4)
+    guess = movable("ball", "ball", (0.0, 0.0, 0.80), linear=(0.5, 0.0, 0.0), mass=0.4)
+    scene = Scene(
+        name="ball-off-the-table",
+        objects=(floor(), furniture("table"), truth),
+        simulation=SimulationSettings(dt=0.002, duration=1.2, friction=0.5, restitution=0.3),
+        inference=InferenceSettings(
+            source="ball", target=Target((0, 0, 0)), iterations=200, optimizer="lbfgs",
+            loss="position", evaluate="best",
+            optimize=Optimize(position=True, orientation=False, linear_velocity=True,
+                              angular_velocity=True),
+            start_area=StartArea((-0.5, -0.3, 0.80), (0.5, 0.3, 0.80)),
+            exploration=Exploration(epsilon=0.2, patience=20),
+            heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
+    return with_truth(scene, truth, guess)
+
+
+def mug_off_counter():
+    """A mug knocked off a kitchen counter: it slides, tips over the edge, tumbles on the floor."""
+    truth = movable("mug", "mug", (0.30, 0.02, 0.95), linear=(2.0, 0.2, 0.0), angular=(0.0, 0.0, 2.0),
+                    mass=0.35)
+    guess = movable("mug", "mug", (0.0, 0.0, 0.95), linear=(0.5, 0.0, 0.0), mass=0.35)
+    scene = Scene(
+        name="mug-off-the-counter",
+        objects=(floor(), furniture("counter"), truth),
+        simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.2),
+        inference=InferenceSettings(
+            source="mug", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            loss="pose", evaluate="best",
+            start_area=StartArea((-0.4, -0.25, 0.95), (0.45, 0.25, 0.95)),
+            exploration=Exploration(epsilon=0.2, patience=20),
+            heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
+    return with_truth(scene, truth, guess)
+
+
+def box_along_shelf():
+    """A box slid along a shelf board into the corner wall."""
+    truth = movable("box", "box", (-0.25, -0.02, 1.05), linear=(2.6, 0.05, 0.0), mass=0.8)
+    guess = movable("box", "box", (-0.1, 0.0, 1.05), linear=(1.0, 0.0, 0.0), mass=0.8)
+    scene = Scene(
+        name="box-along-the-shelf",
+        objects=(floor(), furniture("shelf"), truth),
+        simulation=SimulationSettings(dt=0.002, duration=1.0, friction=0.4, restitution=0.1),
+        inference=InferenceSettings(
+            source="box", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            loss="pose", evaluate="best",
+            optimize=Optimize(position=True, orientation=False, linear_velocity=True,
+                              angular_velocity=False),
+            start_area=StartArea((-0.4, -0.06, 1.05), (0.2, 0.04, 1.05)),
+            exploration=Exploration(epsilon=0.2, patience=20)))
+    return with_truth(scene, truth, guess)
+
+
+def box_among_boxes():
+    """A box thrown onto the floor among three others, knocking into them."""
+    truth = movable("thrown", "box", (0.0, 0.0, 0.6), linear=(1.6, 0.1, 0.5), angular=(1.0, 2.0, 0.5),
+                    mass=0.8)
+    guess = movable("thrown", "box", (0.0, 0.0, 0.6), linear=(1.0, 0.0, 0.0), mass=0.8)
+    others = tuple(movable(f"box{i}", "box", p, mass=0.8)
+                   for i, p in enumerate([(0.75, 0.0, 0.05), (0.75, 0.2, 0.05), (1.0, 0.1, 0.05)]))
+    scene = Scene(
+        name="box-among-boxes",
+        objects=(floor(), truth, *others),
+        simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.1),
+        inference=InferenceSettings(
+            source="thrown", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            loss="pose", evaluate="best",
+            start_area=StartArea((-0.3, -0.3, 0.4), (0.3, 0.3, 0.8)),
+            exploration=Exploration(epsilon=0.2, patience=20),
+            penalties=(Penalty(("thrown", "box0"), 0.1),)))
+    return with_truth(scene, truth, guess)
+
+
+BUILDERS = {
+    "ball_off_table": ball_off_table,
+    "mug_off_counter": mug_off_counter,
+    "box_along_shelf": box_along_shelf,
+    "box_among_boxes": box_among_boxes,
+}
+
+
+def main(names=None):
+    SCENES.mkdir(exist_ok=True)
+    for name in names or BUILDERS:
+        scene, truth = BUILDERS[name]()
+        path = SCENES / f"{name}.xml"
+        text = scene.to_xml().replace("?>\n", f"?>\n<!-- {BUILDERS[name].__doc__.strip()} -->\n", 1)
+        path.write_text(text, encoding="utf-8")
+        (SCENES / f"{name}.truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
+        Scene.from_xml(path)  # validates
+        print(f"{path}: target {scene.inference.target.position}")
+
+
+if __name__ == "__main__":
+    import sys
+
+    main(sys.argv[1:] or None)
