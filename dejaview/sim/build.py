@@ -8,8 +8,7 @@ grid (built from the mesh and cached) for meshes.
 
 Backend-specific ``<simulation>`` attributes read here:
 ``substeps`` (int, default 2), ``contact-frequency`` (rad/s, default
-``0.5 / (dt / substeps)``), ``friction-velocity`` (m/s, default 0.01),
-``unload-velocity`` (m/s, default 0.01), ``sdf-spacing`` (m, default 0.01).
+``0.25 / (dt / substeps)``), ``unload-velocity`` (m/s, default 0.01), ``sdf-spacing`` (m, default 0.01).
 """
 
 from __future__ import annotations
@@ -22,12 +21,11 @@ import torch
 
 from dejaview.errors import GeometryError, SceneError
 from dejaview.sim.state import State
-from dejaview.sim.world import BodySpec, ContactSettings, StaticShape, World
+from dejaview.sim.world import BodySpec, StaticShape, World
 
 SIM_EXTRAS = {
     "substeps": int,
     "contact-frequency": float,
-    "friction-velocity": float,
     "unload-velocity": float,
     "sdf-spacing": float,
 }
@@ -155,14 +153,8 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                         substeps=extras.get("substeps", 2), duration=sim.duration,
                         friction=sim.friction, restitution=sim.restitution,
                         contact_frequency=extras.get("contact-frequency"),
-                        friction_velocity=extras.get("friction-velocity", 0.01),
+                        unload_velocity=extras.get("unload-velocity", 0.01),
                         dtype=dtype, device=device)
-    if "unload-velocity" in extras:
-        from dataclasses import replace
-
-        world = replace(world, contact=ContactSettings(world.contact.frequency,
-                                                       world.contact.friction_velocity,
-                                                       extras["unload-velocity"]))
     return world
 
 

@@ -26,21 +26,25 @@ pulls and never has to be clipped, and any e in [0, 1] is reachable; s_i
 blends the two stiffnesses over a few mm/s (v_s) so the force stays
 differentiable. A body therefore behaves like one spring of natural frequency
 omega_0 however many of its spheres touch, which keeps the explicit
-integrator stable (omega_0 h = 0.5 by default) and makes restitution
+integrator stable (omega_0 h = 0.25 by default) and makes restitution
 independent of the packing. The weights are continuous in the state: a
 sphere that starts touching enters with weight zero.
 
-Friction is Coulomb's law made smooth:
+Friction is Coulomb's law with a velocity-level stick limit:
 
-    f_t,i = -mu f_n,i v_t,i / sqrt(|v_t,i|^2 + eps^2),
-    eps = eps_0 + kappa mu h F_n / m
+    a_i = mu f_n,i                                  (Coulomb limit)
+    b_i = w_i m_i |v_t,i| / h                       (force that stops the slip in one substep)
+    f_t,i = -(v_t,i / |v_t,i|) smin(a_i, b_i),      smin(a, b) = a b / (a^8 + b^8)^(1/8)
 
-where v_t,i is the tangential velocity of the contact point, F_n the total
-normal force of the contact set and kappa = 1 + m r^2 / I_min accounts for the
-rotational lightening of the effective mass. The second term of eps keeps the
-viscous slope of the regularised law below m / h, so the explicit step never
-overshoots the sticking velocity, even during hard impacts; in steady sliding
-(|v_t| >> eps) the force is mu f_n to within (eps / v_t)^2 / 2.
+where v_t,i is the tangential velocity of the contact point, h the substep
+and m_i the contact's effective mass along the slip direction t,
+1 / m_i = 1 / m + (r_i x t)^T I_w^-1 (r_i x t) (r_i the lever arm, I_w the
+world-frame inertia; for a body pair the two bodies' terms add). While sliding (a << b)
+this is Coulomb friction, during an impact included; near sticking
+(b << a) it is a viscous force that removes the slip in about one substep,
+so the explicit step never overshoots. Written as
+``-v_t a c / (a^8 + (c |v_t|)^8)^(1/8)`` with ``c = w m / h`` it is smooth
+in v_t (no division by |v_t|), so gradients stay finite at rest.
 
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass. All functions are free of data-dependent Python
@@ -52,12 +56,28 @@ from __future__ import annotations
 import torch
 
 
-def normal_force(depth: torch.Tensor, normal_velocity: torch.Tensor, stiffness: torch.Tensor,
-                 unload: torch.Tensor, unload_velocity: float) -> torch.Tensor:
-    """Depth-weighted hysteretic spring normal forces of one contact set.
+SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
+
+
+def depth_weights(depth: torch.Tensor) -> torch.Tensor:
+    """Share of each contact in its set, ``w_i = delta_i / sum_j delta_j``.
 
     Args:
         depth: (B, C) penetration depths (>= 0) of the C candidate contacts of each set.
+    Returns:
+        (B, C) weights (all zero for a set without contact).
+    """
+    total = depth.sum(-1, keepdim=True)
+    return depth / (total + torch.finfo(depth.dtype).tiny)
+
+
+def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: torch.Tensor,
+                 stiffness: torch.Tensor, unload: torch.Tensor, unload_velocity: float) -> torch.Tensor:
+    """Depth-weighted hysteretic spring normal forces of one contact set.
+
+    Args:
+        depth: (B, C) penetration depths (>= 0).
+        weight: (B, C) ``depth_weights(depth)``.
         normal_velocity: (B, C) normal velocity of each contact point (negative approaching).
         stiffness: broadcastable to (B, C), body-level stiffness k.
         unload: broadcastable to (B, C), unloading stiffness factor phi in [0, 1].
@@ -65,41 +85,59 @@ def normal_force(depth: torch.Tensor, normal_velocity: torch.Tensor, stiffness: 
     Returns:
         (B, C) normal force magnitudes (>= 0).
     """
-    total = depth.sum(-1, keepdim=True)
-    tiny = torch.finfo(depth.dtype).tiny
-    weight = depth / (total + tiny)
     loading = torch.sigmoid(-normal_velocity / unload_velocity)
     return weight * stiffness * depth * (unload + (1.0 - unload) * loading)
 
 
-def friction_force(tangential_velocity: torch.Tensor, normal: torch.Tensor, mu: torch.Tensor,
-                   eps: torch.Tensor) -> torch.Tensor:
-    """Regularised Coulomb friction forces.
+def friction_force(tangential_velocity: torch.Tensor, coulomb: torch.Tensor,
+                   stick: torch.Tensor) -> torch.Tensor:
+    """Coulomb friction with a one-substep stick limit (see the module docstring).
 
     Args:
-        tangential_velocity: (..., 3) tangential velocity of each contact point.
-        normal: (...) normal force magnitudes.
-        mu: broadcastable to (...), friction coefficients.
-        eps: broadcastable to (...), regularisation speeds (> 0).
+        tangential_velocity: (..., 3) tangential velocity v_t of each contact point.
+        coulomb: broadcastable to (...), Coulomb limit mu f_n (>= 0).
+        stick: broadcastable to (...), c = w m_eff / h: the force per unit slip speed
+            that stops the slip in one substep (>= 0).
     Returns:
         (..., 3) friction forces opposing the tangential velocity.
     """
-    speed = torch.sqrt((tangential_velocity * tangential_velocity).sum(-1) + eps * eps)
-    return -(mu * normal / speed).unsqueeze(-1) * tangential_velocity
+    speed = torch.sqrt((tangential_velocity * tangential_velocity).sum(-1) + 1e-30)
+    b = stick * speed
+    # a c / (a^p + b^p)^(1/p) on numbers scaled by max(a, b), so float32 cannot overflow
+    scale = torch.maximum(coulomb, b) + 1e-30
+    den = (((coulomb / scale) ** SMOOTH_MIN_POWER + (b / scale) ** SMOOTH_MIN_POWER + 1e-30)
+           ** (1.0 / SMOOTH_MIN_POWER)) * scale
+    return -(coulomb * stick / den).unsqueeze(-1) * tangential_velocity
 
 
 def _point_velocity(v: torch.Tensor, w: torch.Tensor, arm: torch.Tensor) -> torch.Tensor:
     return v + torch.linalg.cross(w.expand_as(arm), arm, dim=-1)
 
 
-def static_contact_wrench(world, state, spheres: torch.Tensor, h: float):
+def _inverse_mass_along(arm: torch.Tensor, direction: torch.Tensor, inv_inertia_w: torch.Tensor
+                        ) -> torch.Tensor:
+    """(r x t)^T I_w^-1 (r x t) for arms (B, N, ..., 3), directions alike, I_w^-1 (B, N, 3, 3)."""
+    u = torch.linalg.cross(arm, direction, dim=-1)
+    shape = u.shape
+    flat = u.reshape(shape[0], shape[1], -1, 3)
+    iu = flat @ inv_inertia_w.transpose(-1, -2)
+    return (flat * iu).sum(-1).reshape(shape[:-1])
+
+
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-30)
+
+
+def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
+                          inv_inertia_w: torch.Tensor):
     """Force and torque on every body from contacts with all static shapes.
 
     Args:
         world: the World.
         state: current State, (B, N, ...).
         spheres: (B, N, S, 3) world sphere centres.
-        h: integration substep (s), for the friction regularisation.
+        h: integration substep (s), for the friction stick limit.
+        inv_inertia_w: (B, N, 3, 3) world-frame inverse inertia of every body.
     Returns:
         force (B, N, 3), torque (B, N, 3) about each centre of mass.
     """
@@ -128,20 +166,20 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float):
     omega = world.contact.frequency
     stiff = (m * omega ** 2)[None, :, None]  # (1, N, 1)
     unload = world.unload_static[None, :, :, None].expand(b, nb, k, s).reshape(b, nb, k * s)
-    fn = normal_force(depth.reshape(b, nb, k * s), vn.reshape(b, nb, k * s), stiff, unload,
-                      world.contact.unload_velocity)
-    fn = fn.reshape(b, nb, k, s)
-    total = fn.sum((-1, -2))  # (B, N)
-    mu = world.mu_static[None, :, :, None]  # (1, N, K, 1)
-    mu_max = world.mu_static.max(-1).values  # (N,)
-    eps = world.contact.friction_velocity + world.kappa * mu_max * h * total / m  # (B, N)
-    ft = friction_force(vt, fn, mu, eps[:, :, None, None])
+    flat_depth = depth.reshape(b, nb, k * s)
+    weight = depth_weights(flat_depth)
+    fn = normal_force(flat_depth, weight, vn.reshape(b, nb, k * s), stiff, unload,
+                      world.contact.unload_velocity).reshape(b, nb, k, s)
+    inv_mass = (1.0 / m)[:, None, None] + _inverse_mass_along(arm, _unit(vt), inv_inertia_w)
+    stick = weight.reshape(b, nb, k, s) / (inv_mass * h)
+    ft = friction_force(vt, world.mu_static[None, :, :, None] * fn, stick)
     force = fn.unsqueeze(-1) * normal + ft  # (B, N, K, S, 3)
     torque = torch.linalg.cross(arm, force, dim=-1)
     return force.sum((2, 3)), torque.sum((2, 3))
 
 
-def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, pair_ids=None):
+def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inertia_w: torch.Tensor,
+                        pair_ids=None):
     """Force and torque on every body from sphere-sphere contacts between movable bodies.
 
     Args:
@@ -149,6 +187,7 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, pair_ids=
         state: current State.
         spheres: (B, N, S, 3) world sphere centres.
         h: integration substep (s).
+        inv_inertia_w: (B, N, 3, 3) world-frame inverse inertia of every body.
         pair_ids: indices into ``world.pairs`` to evaluate (None: all). The
             caller's broad phase passes only pairs whose bounding spheres overlap.
     Returns:
@@ -162,7 +201,6 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, pair_ids=
     mu_p = world.mu_pair if pair_ids is None else world.mu_pair[pair_ids]
     unload_p = world.unload_pair if pair_ids is None else world.unload_pair[pair_ids]
     mass_p = world.mass_pair if pair_ids is None else world.mass_pair[pair_ids]
-    kappa_p = world.kappa_pair if pair_ids is None else world.kappa_pair[pair_ids]
     if pairs.shape[0] == 0:
         return force, torque
     ia, ib = pairs[:, 0], pairs[:, 1]
@@ -189,12 +227,16 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, pair_ids=
     omega = world.contact.frequency
     stiff = (mass_p * omega ** 2)[None, :, None]
     unload = unload_p[None, :, None]
-    fn = normal_force(depth.reshape(b, p, s1 * s2), vn.reshape(b, p, s1 * s2), stiff, unload,
-                      world.contact.unload_velocity)
-    fn = fn.reshape(b, p, s1, s2)
-    total = fn.sum((-1, -2))  # (B, P)
-    eps = world.contact.friction_velocity + kappa_p * mu_p * h * total / mass_p
-    ft = friction_force(vt, fn, mu_p[None, :, None, None], eps[:, :, None, None])
+    flat_depth = depth.reshape(b, p, s1 * s2)
+    weight = depth_weights(flat_depth)
+    fn = normal_force(flat_depth, weight, vn.reshape(b, p, s1 * s2), stiff, unload,
+                      world.contact.unload_velocity).reshape(b, p, s1, s2)
+    t_hat = _unit(vt)
+    inv_mass = ((1.0 / world.mass[ia] + 1.0 / world.mass[ib])[:, None, None]
+                + _inverse_mass_along(arm_a, t_hat, inv_inertia_w[:, ia])
+                + _inverse_mass_along(arm_b, t_hat, inv_inertia_w[:, ib]))
+    stick = weight.reshape(b, p, s1, s2) / (inv_mass * h)
+    ft = friction_force(vt, mu_p[None, :, None, None] * fn, stick)
     f_b = fn.unsqueeze(-1) * n + ft  # on b
     fa_tot = -f_b.sum((2, 3))
     fb_tot = f_b.sum((2, 3))

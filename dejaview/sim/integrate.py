@@ -45,11 +45,13 @@ def wrench(world: World, state: State, h: float, broadphase: bool | None = None)
         broadphase: skip body pairs whose bounding spheres are apart (a data-
             dependent branch; default: on in eager mode, off under transforms).
     Returns:
-        force (B, N, 3), torque (B, N, 3).
+        force (B, N, 3), torque (B, N, 3), rotation matrices (B, N, 3, 3),
+        world-frame inverse inertia (B, N, 3, 3).
     """
     rot = quat_to_matrix(state.orientation)  # (B, N, 3, 3)
     spheres = state.position.unsqueeze(-2) + world.centers @ rot.transpose(-1, -2)
-    force, torque = contacts.static_contact_wrench(world, state, spheres, h)
+    inv_w = rot @ world.inv_inertia @ rot.transpose(-1, -2)
+    force, torque = contacts.static_contact_wrench(world, state, spheres, h, inv_w)
     if world.pairs.shape[0] > 0:
         if broadphase is None:
             broadphase = not _transforms_active()
@@ -57,20 +59,19 @@ def wrench(world: World, state: State, h: float, broadphase: bool | None = None)
         if broadphase:
             ids = contacts.pair_bounding_overlap(world, state).nonzero().flatten()
         if ids is None or ids.numel() > 0:
-            f2, t2 = contacts.pair_contact_wrench(world, state, spheres, h, ids)
+            f2, t2 = contacts.pair_contact_wrench(world, state, spheres, h, inv_w, ids)
             force = force + f2
             torque = torque + t2
     force = force + world.mass[:, None] * world.gravity
-    return force, torque, rot
+    return force, torque, rot, inv_w
 
 
 def substep(world: World, state: State, h: float, broadphase: bool | None = None) -> State:
     """One semi-implicit Euler substep of length ``h``."""
-    force, torque, rot = wrench(world, state, h, broadphase)
+    force, torque, rot, inv_w = wrench(world, state, h, broadphase)
     v = state.linear_velocity + (h / world.mass)[:, None] * force
     w = state.angular_velocity
     inertia_w = rot @ world.inertia @ rot.transpose(-1, -2)  # (B, N, 3, 3)
-    inv_w = rot @ world.inv_inertia @ rot.transpose(-1, -2)
     lw = (inertia_w @ w.unsqueeze(-1)).squeeze(-1)
     gyro = torch.linalg.cross(w, lw, dim=-1)
     w = w + h * (inv_w @ (torque - gyro).unsqueeze(-1)).squeeze(-1)

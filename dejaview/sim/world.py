@@ -22,6 +22,12 @@ from dejaview.sim.state import State
 
 STATIC_KINDS = ("plane", "box", "sphere", "cylinder", "grid")
 
+# Default contact stiffness: omega_0 h = 0.25, so an impact (pi / omega_0) spans ~12
+# substeps. Stiffer (0.5) halves impact penetration but resolves impact friction
+# worse: a tumbling box then rests 2.7 cm from MuJoCo's answer instead of 1.3 cm
+# (tests/sim/test_mujoco_crosscheck.py). More substeps buy stiffness back.
+DEFAULT_OMEGA_H = 0.25
+
 
 def _tensor_fields_to(obj, device=None, dtype=None):
     changes = {}
@@ -150,12 +156,10 @@ class ContactSettings:
 
     Attributes:
         frequency: body-level contact natural frequency omega_0 (rad/s).
-        friction_velocity: minimum regularisation speed of Coulomb friction (m/s).
         unload_velocity: speed over which a contact blends from loading to unloading stiffness (m/s).
     """
 
     frequency: float
-    friction_velocity: float = 0.01
     unload_velocity: float = 0.01
 
 
@@ -178,7 +182,7 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
 
 
 @functools.lru_cache(maxsize=256)
-def restitution_to_unloading(e: float, omega_h: float = 0.5) -> float:
+def restitution_to_unloading(e: float, omega_h: float = DEFAULT_OMEGA_H) -> float:
     """Unloading stiffness factor phi that gives restitution ``e`` in simulation.
 
     A contact is stiffer when loading (k) than when unloading (phi k), so it
@@ -215,13 +219,12 @@ class World:
         radii: (N, S) sphere radii (0 for padding).
         mask: (N, S) 1 for real spheres, 0 for padding.
         bound: (N,) radius of a sphere about the centre of mass holding all spheres.
-        kappa: (N,) 1 + m r^2 / I_min, how much rotation lightens a contact's effective mass.
+        inv_inertia_min: (N,) 1 / smallest principal moment (for contacts' effective masses).
         statics: K static shapes.
         mu_static: (N, K) friction coefficient body vs static.
         unload_static: (N, K) unloading stiffness factor body vs static (restitution).
         pairs: (P, 2) movable body pairs checked for contact.
         mu_pair, unload_pair, mass_pair: (P,) friction, unloading factor, reduced mass per pair.
-        kappa_pair: (P,) the larger kappa of the two bodies.
         gravity: (3,) m/s^2.
         dt: step (s); substeps: integration substeps per step; steps: default rollout length.
         contact: contact model numbers.
@@ -236,7 +239,7 @@ class World:
     radii: torch.Tensor
     mask: torch.Tensor
     bound: torch.Tensor
-    kappa: torch.Tensor
+    inv_inertia_min: torch.Tensor
     statics: tuple[StaticShape, ...]
     mu_static: torch.Tensor
     unload_static: torch.Tensor
@@ -244,7 +247,6 @@ class World:
     mu_pair: torch.Tensor
     unload_pair: torch.Tensor
     mass_pair: torch.Tensor
-    kappa_pair: torch.Tensor
     gravity: torch.Tensor
     dt: float
     substeps: int
@@ -256,7 +258,7 @@ class World:
     def build(bodies: list[BodySpec], statics: list[StaticShape], *, gravity=(0.0, 0.0, -9.81),
               dt: float = 0.002, substeps: int = 2, steps: int | None = None,
               duration: float | None = None, friction: float = 0.5, restitution: float = 0.2,
-              contact_frequency: float | None = None, friction_velocity: float = 0.01,
+              contact_frequency: float | None = None, unload_velocity: float = 0.01,
               dtype: torch.dtype = torch.float64, device=None) -> "World":
         """Assemble a world from body and static descriptions.
 
@@ -266,8 +268,8 @@ class World:
             dt: step length; substeps: integration substeps per step.
             steps / duration: default rollout length (steps wins).
             friction, restitution: defaults for bodies and shapes without their own.
-            contact_frequency: omega_0 in rad/s (default ``0.5 / (dt / substeps)``).
-            friction_velocity: minimum friction regularisation speed (m/s).
+            contact_frequency: omega_0 in rad/s (default ``DEFAULT_OMEGA_H / (dt / substeps)``).
+            unload_velocity: speed over which contacts blend loading/unloading stiffness (m/s).
         """
         if not bodies:
             raise SimulationError("a world needs at least one movable body")
@@ -281,7 +283,7 @@ class World:
         inertia = np.zeros((n, 3, 3))
         com = np.zeros((n, 3))
         bound = np.zeros(n)
-        kappa = np.zeros(n)
+        inv_i_min = np.zeros(n)
         mass = np.zeros(n)
         for i, b in enumerate(bodies):
             if not (b.mass > 0 and math.isfinite(b.mass)):
@@ -300,11 +302,11 @@ class World:
             i_min = float(np.linalg.eigvalsh(inertia[i]).min())
             if not i_min > 0:
                 raise SimulationError(f"body {b.name!r}: inertia is not positive definite")
-            kappa[i] = 1.0 + b.mass * bound[i] ** 2 / i_min
+            inv_i_min[i] = 1.0 / i_min
         mus = np.array([friction if b.friction is None else b.friction for b in bodies])
         es = np.array([restitution if b.restitution is None else b.restitution for b in bodies])
         h = dt / substeps
-        omega = float(contact_frequency or 0.5 / h)
+        omega = float(contact_frequency or DEFAULT_OMEGA_H / h)
         unload = functools.partial(restitution_to_unloading, omega_h=omega * h)
         k = len(statics)
         mu_static = np.zeros((n, k))
@@ -316,21 +318,20 @@ class World:
         mu_pair = np.array([math.sqrt(mus[a] * mus[b]) for a, b in pairs])
         unload_pair = np.array([unload(0.5 * (es[a] + es[b])) for a, b in pairs])
         mass_pair = np.array([mass[a] * mass[b] / (mass[a] + mass[b]) for a, b in pairs])
-        kappa_pair = np.array([max(kappa[a], kappa[b]) for a, b in pairs])
         if steps is None:
             steps = max(1, int(round((duration if duration is not None else 1.5) / dt)))
         f = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
         world = World(
             names=tuple(b.name for b in bodies), mass=f(mass), inertia=f(inertia),
             inv_inertia=f(np.linalg.inv(inertia)), com=f(com), centers=f(centers), radii=f(radii),
-            mask=f(mask), bound=f(bound), kappa=f(kappa), statics=tuple(statics),
+            mask=f(mask), bound=f(bound), inv_inertia_min=f(inv_i_min), statics=tuple(statics),
             mu_static=f(mu_static), unload_static=f(unload_static),
             pairs=torch.as_tensor(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)),
             mu_pair=f(mu_pair), unload_pair=f(unload_pair), mass_pair=f(mass_pair),
-            kappa_pair=f(kappa_pair), gravity=f(gravity), dt=float(dt), substeps=int(substeps),
+            gravity=f(gravity), dt=float(dt), substeps=int(substeps),
             steps=int(steps),
             contact=ContactSettings(frequency=omega,
-                                    friction_velocity=float(friction_velocity)))
+                                    unload_velocity=float(unload_velocity)))
         return world.to(device=device, dtype=dtype)
 
     @staticmethod

@@ -111,16 +111,28 @@ def test_gradcheck_normal_force():
     vn = (_rand(2, 5, seed=1) - 0.5).requires_grad_(True)
     stiff = torch.tensor(1e4, dtype=torch.float64)
     unload = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda d, v, u: contacts.normal_force(d, v, stiff, u, 0.01),
-                                    (depth, vn, unload))
+    assert torch.autograd.gradcheck(
+        lambda d, v, u: contacts.normal_force(d, contacts.depth_weights(d), v, stiff, u, 0.01),
+        (depth, vn, unload))
 
 
 def test_gradcheck_friction_force():
     vt = (_rand(4, 3) - 0.5).requires_grad_(True)
-    fn = (_rand(4, seed=2) + 0.1).requires_grad_(True)
-    mu = torch.tensor(0.5, dtype=torch.float64)
-    eps = torch.tensor(0.01, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda v, f: contacts.friction_force(v, f, mu, eps), (vt, fn))
+    coulomb = (_rand(4, seed=2) + 0.1).requires_grad_(True)
+    stick = (_rand(4, seed=8) * 3 + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(contacts.friction_force, (vt, coulomb, stick))
+    # and at zero slip (sticking): finite, zero force
+    zero = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(contacts.friction_force, (zero, coulomb, stick))
+
+
+def test_friction_is_coulomb_while_sliding_and_stops_slip_when_slow():
+    mu_fn = torch.tensor([2.0], dtype=torch.float64)
+    stick = torch.tensor([1e4], dtype=torch.float64)  # strong stick limit
+    fast = contacts.friction_force(torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64), mu_fn, stick)
+    assert torch.allclose(fast, torch.tensor([[-2.0, 0.0, 0.0]], dtype=torch.float64), rtol=1e-6)
+    slow = contacts.friction_force(torch.tensor([[1e-6, 0.0, 0.0]], dtype=torch.float64), mu_fn, stick)
+    assert torch.allclose(slow, torch.tensor([[-1e-2, 0.0, 0.0]], dtype=torch.float64), rtol=1e-6)
 
 
 def test_gradcheck_sdf_grid_lookup():
@@ -163,7 +175,11 @@ def test_gradcheck_static_contact_wrench():
     def f(x, v, w):
         s = base.replace(position=x, linear_velocity=v, angular_velocity=w)
         spheres = world.sphere_positions(s)
-        return contacts.static_contact_wrench(world, s, spheres, 0.001)
+        from dejaview.sim.rotation import quat_to_matrix
+
+        rot = quat_to_matrix(s.orientation)
+        inv_w = rot @ world.inv_inertia @ rot.transpose(-1, -2)
+        return contacts.static_contact_wrench(world, s, spheres, 0.001, inv_w)
 
     args = tuple(t.clone().requires_grad_(True) for t in (base.position, base.linear_velocity,
                                                           base.angular_velocity))
