@@ -170,7 +170,12 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
             break
         t0 = time.perf_counter()
         before = cand_best.clone()
+        x_before = x.detach().clone()
         opt.step(closure)
+        if optimizer in ("lbfgs", "bfgs") and torch.equal(x.detach(), x_before):
+            # a failed line search leaves x where it was and would fail the same way again:
+            # drop the curvature history so the next step starts from steepest descent
+            opt = make_optimizer(optimizer, [x], p, lr)
         with torch.no_grad():
             # keep parameters finite (a diverging GD step): restart those from a fresh draw
             bad = ~torch.isfinite(x).all(-1)
