@@ -79,7 +79,7 @@ class OptimizationResult:
         loss: best loss.
         history: one ``Progress`` per iteration.
         best_index: which candidate of the batch found it.
-        stopped: True when ``should_stop`` ended the run early.
+        stopped: True when ``should_stop`` ended the run early (not set by ``tolerance``).
     """
 
     x: torch.Tensor
@@ -94,7 +94,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
              gradient: str = "forward", lr: float | None = None, epsilon: float = 0.0,
              patience: int = 25, sample: Callable[[int, torch.Generator], torch.Tensor] | None = None,
              seed: int = 0, callback: Callable[[Progress], None] | None = None,
-             should_stop: Callable[[], bool] | None = None) -> OptimizationResult:
+             should_stop: Callable[[], bool] | None = None,
+             tolerance: float | None = None) -> OptimizationResult:
     """Minimise a batched loss.
 
     Args:
@@ -109,6 +110,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         seed: seeds the restart draws.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops the run (cancellation).
+        tolerance: stop once the best loss is at or below this (None: run all iterations).
     Returns:
         OptimizationResult with the best parameters over the whole run.
     """
@@ -204,5 +206,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         history.append(prog)
         if callback is not None:
             callback(prog)
+        if tolerance is not None and best_loss <= tolerance:
+            break
     return OptimizationResult(x=best_x, loss=best_loss, history=history, best_index=best_index,
                               stopped=stopped)

@@ -142,7 +142,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           gradient: str | None = None, seed: int | None = None, lr: float | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem: InferenceProblem | None = None,
-          x0: torch.Tensor | None = None) -> SolveResult:
+          x0: torch.Tensor | None = None, tolerance: float | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
     Args:
@@ -155,6 +155,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         should_stop: polled every iteration; True stops early (cancellation).
         world / problem: reuse an already built World / InferenceProblem.
         x0: (K, P) explicit initial guesses.
+        tolerance: stop once the best loss is at or below this.
     Returns:
         SolveResult.
     Raises:
@@ -191,7 +192,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     x0 = x0.to(problem.world.dtype)
     opt = optimize(problem.value_and_grad, x0, optimizer=optimizer, iterations=iterations,
                    gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=problem.layout.sample,
-                   seed=seed, callback=callback, should_stop=should_stop)
+                   seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance)
     if not math.isfinite(opt.loss):
         raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
     best = opt.x.unsqueeze(0)
