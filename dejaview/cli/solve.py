@@ -17,8 +17,10 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
               help="initial guesses run as one batch")
 @click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
+@click.option("--tolerance", type=float, default=None,
+              help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, multistart, lr, plot, backend, iterations, optimizer, gradient, seed, quiet):
+def command(scene, out_dir, multistart, lr, plot, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the initial state of SCENE's source object; write result.json, iterations.csv
     and trajectory.csv (the best solution re-simulated) to DIR."""
     from tqdm import tqdm
@@ -38,7 +40,7 @@ def command(scene, out_dir, multistart, lr, plot, backend, iterations, optimizer
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
-                   lr=lr, multistart=multistart, callback=progress)
+                   lr=lr, multistart=multistart, callback=progress, tolerance=tolerance)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:

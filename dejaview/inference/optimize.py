@@ -40,7 +40,10 @@ import torch
 from dejaview.errors import InferenceError
 
 OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
-DEFAULT_LR = {"gd": 0.05, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}
+# on the 0.5 * loss^2 objective in scaled parameters (see dejaview.inference.params)
+DEFAULT_LR = {"gd": 1.0, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}
+LINE_SEARCH_EVALS = 10
+"""Most objective evaluations one L-BFGS/BFGS line search may spend in one iteration."""
 
 
 def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: float | None = None):
@@ -52,8 +55,10 @@ def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: f
         return torch.optim.Adam(params, lr=lr)
     if name in ("lbfgs", "bfgs"):
         history = 10 if name == "lbfgs" else max(10, num_params)
-        return torch.optim.LBFGS(params, lr=lr, max_iter=1, history_size=history,
-                                 line_search_fn="strong_wolfe")
+        # max_eval bounds the line search too (max_ls = max_eval - 1): torch's default for
+        # max_iter=1 is 1, which leaves no line search at all (a rejected first trial step = no move)
+        return torch.optim.LBFGS(params, lr=lr, max_iter=1, max_eval=1 + LINE_SEARCH_EVALS,
+                                 history_size=history, line_search_fn="strong_wolfe")
     raise InferenceError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
 
 
@@ -95,7 +100,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
              patience: int = 25, sample: Callable[[int, torch.Generator], torch.Tensor] | None = None,
              seed: int = 0, callback: Callable[[Progress], None] | None = None,
              should_stop: Callable[[], bool] | None = None,
-             tolerance: float | None = None) -> OptimizationResult:
+             tolerance: float | None = None,
+             report: Callable[[float], float] | None = None) -> OptimizationResult:
     """Minimise a batched loss.
 
     Args:
@@ -110,7 +116,9 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         seed: seeds the restart draws.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops the run (cancellation).
-        tolerance: stop once the best loss is at or below this (None: run all iterations).
+        tolerance: stop once the best reported loss is at or below this (None: run all iterations).
+        report: maps objective values to the losses reported in ``Progress`` and the
+            result (e.g. ``sqrt(2 v)`` for a squared objective; default: identity).
     Returns:
         OptimizationResult with the best parameters over the whole run.
     """
@@ -200,13 +208,14 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
                 restarted = True
         last = closure.last
         current = float(last.min()) if last is not None else math.nan
-        prog = Progress(iteration=it, loss=current, best_loss=best_loss,
+        shown = report or (lambda v: v)
+        prog = Progress(iteration=it, loss=shown(current), best_loss=shown(best_loss),
                         duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - start,
                         restarted=restarted, evaluations=evaluations)
         history.append(prog)
         if callback is not None:
             callback(prog)
-        if tolerance is not None and best_loss <= tolerance:
+        if tolerance is not None and prog.best_loss <= tolerance:
             break
-    return OptimizationResult(x=best_x, loss=best_loss, history=history, best_index=best_index,
-                              stopped=stopped)
+    return OptimizationResult(x=best_x, loss=(report or (lambda v: v))(best_loss), history=history,
+                              best_index=best_index, stopped=stopped)

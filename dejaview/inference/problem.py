@@ -17,6 +17,7 @@ from dejaview.errors import InferenceError
 from dejaview.inference.params import ParameterLayout, layout_from_scene
 from dejaview.sim.gradients import forward_value_and_grad, reverse_value_and_grad
 from dejaview.sim.integrate import Trajectory, rollout
+from dejaview.sim.rotation import normalize_quat, quat_rotate
 from dejaview.sim.state import State
 from dejaview.sim.world import World
 
@@ -109,12 +110,14 @@ class InferenceProblem:
         """State (B, N, ...) with the source's initial state from parameters x (B, P)."""
         b = x.shape[0]
         s = self.layout.decode(x)
-        src = self.world.state(s["position"][:, None], s["orientation"][:, None],
-                               s["linear_velocity"][:, None], s["angular_velocity"][:, None])
+        # the source alone (World.state wants every body): object-frame origin -> centre of mass
+        q = normalize_quat(s["orientation"])
+        com = quat_rotate(q, self.world.com[self.source].expand_as(s["position"]))
+        src = (s["position"] + com, q, s["linear_velocity"], s["angular_velocity"])
         base = self.base.index(slice(0, 1))
         out = []
         for field_name, value in zip(("position", "orientation", "linear_velocity", "angular_velocity"),
-                                     src.tensors()):
+                                     (t[:, None] for t in src)):
             full = getattr(base, field_name).expand(b, *getattr(base, field_name).shape[1:])
             parts = [full[:, i:i + 1] for i in range(self.world.num_bodies)]
             parts[self.source] = value
@@ -147,12 +150,31 @@ class InferenceProblem:
         return self.loss_of_trajectory(self.simulate(x, checkpoint=checkpoint))
 
     def value_and_grad(self, x: torch.Tensor, mode: str = "forward") -> tuple[torch.Tensor, torch.Tensor]:
-        """Losses (B,) and gradients (B, P) by forward or reverse mode."""
+        """Losses (B,) and their gradients (B, P) by forward or reverse mode."""
         if mode == "forward":
             return forward_value_and_grad(self.loss, x)
         if mode == "reverse":
             return reverse_value_and_grad(lambda z: self.loss(z, checkpoint=True), x)
         raise InferenceError(f"unknown gradient mode {mode!r}; choose forward or reverse")
+
+    def objective_and_grad(self, x: torch.Tensor, mode: str = "forward") -> tuple[torch.Tensor, torch.Tensor]:
+        """What the optimisers minimise: ``0.5 * loss^2`` (B,) and its gradient (B, P).
+
+        The losses are distances (metres), close to a cone |d| around the
+        optimum; squared, they are smooth and quadratic there, which is what
+        L-BFGS's curvature pairs and line search need (on the cone L-BFGS
+        creeps by |g|^2 per iteration). Same minimiser; ``objective_to_loss``
+        turns values back into losses for reporting.
+        """
+        loss, grad = self.value_and_grad(x, mode)
+        return 0.5 * loss * loss, loss.unsqueeze(-1) * grad
+
+
+def objective_to_loss(value: float) -> float:
+    """Inverse of ``0.5 * loss^2`` for reporting."""
+    import math
+
+    return math.sqrt(max(2.0 * value, 0.0)) if math.isfinite(value) else value
 
 
 def model_points(scene, obj, dtype=torch.float64, budget: int = 256) -> torch.Tensor:

@@ -12,7 +12,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, Progress, optimize
-from dejaview.inference.problem import InferenceProblem
+from dejaview.inference.problem import InferenceProblem, objective_to_loss
 from dejaview.sim.integrate import Trajectory
 
 def default_gradient(num_params: int) -> str:
@@ -190,9 +190,10 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         if multistart > 1:
             x0 = torch.cat([x0, problem.layout.sample(multistart - 1, gen)], 0)
     x0 = x0.to(problem.world.dtype)
-    opt = optimize(problem.value_and_grad, x0, optimizer=optimizer, iterations=iterations,
+    opt = optimize(problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
                    gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=problem.layout.sample,
-                   seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance)
+                   seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance,
+                   report=objective_to_loss)
     if not math.isfinite(opt.loss):
         raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
     best = opt.x.unsqueeze(0)
