@@ -142,7 +142,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           gradient: str | None = None, seed: int | None = None, lr: float | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem: InferenceProblem | None = None,
-          x0: torch.Tensor | None = None, tolerance: float | None = None) -> SolveResult:
+          x0: torch.Tensor | None = None, tolerance: float | None = None,
+          compile: bool = False) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
     Args:
@@ -156,6 +157,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         world / problem: reuse an already built World / InferenceProblem.
         x0: (K, P) explicit initial guesses.
         tolerance: stop once the best loss is at or below this.
+        compile: compiled rollouts (see ``InferenceProblem.compile``).
     Returns:
         SolveResult.
     Raises:
@@ -178,6 +180,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         raise InferenceError(f"multistart must be >= 1, got {multistart}")
     seed = inf.seed if seed is None else seed
     problem = problem or InferenceProblem.from_scene(scene, world)
+    problem.compile = compile
     gradient = gradient or inf.gradient or default_gradient(problem.num_params)
     if gradient not in ("forward", "reverse"):
         raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
