@@ -1,0 +1,168 @@
+"""``dejaview bench``: run the benchmarks of the source checkout's ``bench/`` folder.
+
+The benchmarks are scripts beside the package, not part of it (they read the
+example scenes and meshes of the checkout), so they are loaded by path from
+the checkout DejaView is installed from (``pip install -e .``).
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import sys
+from pathlib import Path
+
+import click
+
+
+def bench_module(name: str):
+    """The module ``bench/<name>.py`` of the checkout this package lives in.
+
+    Raises:
+        click.ClickException: no such file (DejaView not installed from a checkout).
+    """
+    import dejaview
+
+    root = Path(dejaview.__file__).resolve().parent.parent
+    path = root / "bench" / f"{name}.py"
+    if not path.is_file():
+        raise click.ClickException(f"{path} not found: the benchmarks run from a source checkout "
+                                   f"(pip install -e .)")
+    key = f"dejaview_bench_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[key]
+            raise
+    return sys.modules[key]
+
+
+def write_rows_csv(rows: list[dict], path) -> Path:
+    """Write benchmark rows as CSV: one column per key (first-seen order), blank where absent."""
+    fields: dict[str, None] = {}
+    for row in rows:
+        fields.update(dict.fromkeys(row))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(fields) or ["name"], restval="", lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def _comma_list(choices):
+    def convert(ctx, param, value):
+        items = tuple(v for v in value.replace(" ", "").split(",") if v)
+        bad = [v for v in items if v not in choices]
+        if not items or bad:
+            raise click.BadParameter(f"expected a comma-separated list of {', '.join(choices)}")
+        return items
+    return convert
+
+
+def _iterations(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        counts = tuple(int(v) for v in value.replace(" ", "").split(",") if v)
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 1:
+        raise click.BadParameter("expected comma-separated positive integers, e.g. 100,500,1000")
+    return counts
+
+
+csv_option = click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
+                          help="Also write the rows as CSV to this file.")
+check_option = click.option("--check", is_flag=True,
+                            help="Exit with status 1 when a target is missed.")
+
+
+@click.group("bench", context_settings={"help_option_names": ["-h", "--help"]})
+def command():
+    """Benchmarks of the simulator, the sphere packing and the optimisers.
+
+    Timings are wall clock on whatever else the machine runs; each table is
+    printed with the load average.
+    """
+
+
+@command.command("sim")
+@click.option("--quick", is_flag=True, help="A few steps and a batch of 4 (smoke test).")
+@click.option("--compile", "use_compile", is_flag=True,
+              help="Also time compiled loss + gradients (each first compile takes minutes).")
+@click.option("--compile-timeout", default=600.0, show_default=True, type=click.FloatRange(min=1),
+              metavar="SECONDS", help="Time allowed to each compiled configuration.")
+@csv_option
+@check_option
+def sim(quick, use_compile, compile_timeout, csv_path, check):
+    """Simulator speed and memory on examples/scenes/mug_thrown.xml.
+
+    A 150-sphere mug thrown across a table onto the floor, 1.5 s at dt = 2 ms:
+    steps per second at B = 1 and 64, one loss + gradient of its 12
+    parameters in forward and reverse mode, reverse-mode peak memory with and
+    without checkpointing, against the targets (<= 100 ms at B = 1, <= 10 ms
+    per candidate at B = 64). Several minutes without --quick.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("sim").run(print_fn=click.echo, quick=quick, compile=use_compile,
+                                   compile_timeout=compile_timeout)
+    _finish(rows, csv_path, check, [r["met"] for r in rows if r["section"] == "target"])
+
+
+@command.command("packing")
+@click.option("-n", "--max-spheres", default=256, show_default=True, type=click.IntRange(min=1),
+              help="Sphere budget for every mesh.")
+@csv_option
+@check_option
+def packing(max_spheres, csv_path, check):
+    """Sphere packing of the example box, ball and mug and a 10 000-triangle mesh.
+
+    Coverage, how far spheres reach outside the mesh and build time, against
+    the targets (>= 80 % coverage with <= 256 spheres, <= 2 mm outside,
+    10 000 triangles in < 15 s).
+    """
+    rows = bench_module("packing").run(print_fn=click.echo, max_spheres=max_spheres)
+    _finish(rows, csv_path, check, [rows[-1]["ok"]] if rows else [])
+
+
+@command.command("optimizers")
+@click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
+              help="Comma-separated iteration counts to report the best loss at.")
+@click.option("--scene", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Scene with an <inference> section [default: examples/scenes/ball_rolled.xml, "
+                   "a cheap one].")
+@click.option("--optimizers", "optimizers", default="gd,adam,lbfgs,bfgs", show_default=True,
+              callback=_comma_list(("gd", "adam", "lbfgs", "bfgs")), help="Optimisers to compare.")
+@click.option("--modes", default="forward,reverse", show_default=True,
+              callback=_comma_list(("forward", "reverse")), help="Gradient modes to compare.")
+@click.option("--quick", is_flag=True, help="Iterations 1,2 (smoke test).")
+@csv_option
+def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
+    """Best loss after N iterations and time per iteration of each optimiser and gradient mode.
+
+    One solve per optimiser and mode, from the scene's initial guess, without
+    restarts. On the bundled examples (dt = 2 ms) a loss + gradient takes
+    seconds: give them few --iterations.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    module = bench_module("optimizers")
+    module.run(print_fn=click.echo, iterations=(1, 2) if quick else iterations, modes=modes,
+               optimizers=optimizers, scene=scene, csv_path=csv_path)
+
+
+def _finish(rows, csv_path, check, verdicts):
+    if csv_path is not None:
+        write_rows_csv(rows, csv_path)
+        click.echo(f"wrote {csv_path}")
+    if check and not all(verdicts):
+        click.get_current_context().exit(1)

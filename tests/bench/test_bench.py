@@ -1,0 +1,121 @@
+"""Smoke tests of the benchmarks: quick modes and tiny iteration counts, no timing assertions."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+from click.testing import CliRunner
+
+from dejaview.cli import cli
+from dejaview.cli.bench import bench_module, command, write_rows_csv
+
+ROW_KEYS = {"section", "name", "batch", "mode", "value", "unit"}
+
+
+def assert_finite_numbers(row: dict) -> None:
+    for key, value in row.items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            assert math.isfinite(value), (key, row)
+
+
+@pytest.fixture(scope="module")
+def sim_rows():
+    return bench_module("sim").run(print_fn=None, quick=True)
+
+
+def test_sim_quick_returns_every_section(sim_rows):
+    assert {r["section"] for r in sim_rows} == {"rollout", "loss+grad", "check", "memory", "target"}
+    for row in sim_rows:
+        assert ROW_KEYS <= set(row), row
+        assert_finite_numbers(row)
+        if row["value"] is None:
+            assert row["note"], row
+    rollout = [r for r in sim_rows if r["section"] == "rollout"]
+    assert [r["batch"] for r in rollout] == [1, 4]
+    assert all(r["value"] > 0 and r["per_candidate_s"] > 0 for r in rollout)
+    eager = [r for r in sim_rows if r["section"] == "loss+grad" and r["value"] is not None]
+    assert {(r["mode"], r["batch"]) for r in eager} == {("forward", 1), ("forward", 4), ("reverse", 1),
+                                                         ("reverse", 4)}
+    compiled = [r for r in sim_rows if r["section"] == "loss+grad" and r["value"] is None]
+    assert {r["mode"] for r in compiled} == {"forward", "reverse"}
+    memory = [r for r in sim_rows if r["section"] == "memory"]
+    assert {r["checkpoint_every"] > 0 for r in memory} == {True, False}
+    assert all(r["value"] >= 0 for r in memory)
+    targets = [r for r in sim_rows if r["section"] == "target"]
+    assert len(targets) == 2 and all(isinstance(r["met"], bool) for r in targets)
+
+
+def test_sim_forward_and_reverse_gradients_agree(sim_rows):
+    (check,) = [r for r in sim_rows if r["section"] == "check"]
+    assert check["value"] < 1e-6
+
+
+def test_sim_rows_write_a_parseable_csv(sim_rows, tmp_path):
+    path = write_rows_csv(sim_rows, tmp_path / "sim.csv")
+    with open(path, newline="", encoding="utf-8") as fh:
+        read = list(csv.DictReader(fh))
+    assert len(read) == len(sim_rows)
+    assert ROW_KEYS <= set(read[0])
+    assert all(math.isfinite(float(r["value"])) for r in read if r["value"])
+
+
+def test_optimizers_rows_and_csv(tmp_path):
+    path = tmp_path / "optimizers.csv"
+    rows = bench_module("optimizers").run(print_fn=None, iterations=(1, 2), modes=("forward", "reverse"),
+                                          optimizers=("gd", "lbfgs"), csv_path=path)
+    assert [(r["optimizer"], r["mode"]) for r in rows] == [
+        ("gd", "forward"), ("gd", "reverse"), ("lbfgs", "forward"), ("lbfgs", "reverse")]
+    for row in rows:
+        assert {"optimizer", "mode", "params", "iterations", "best_loss_1", "best_loss_2",
+                "final_best_loss", "ms_per_iteration", "evaluations_per_iteration", "ms_per_evaluation",
+                "idle_iterations"} <= set(row)
+        assert_finite_numbers(row)
+        assert row["iterations"] == 2 and row["params"] == 11
+        assert row["best_loss_2"] <= row["best_loss_1"]
+        assert row["evaluations_per_iteration"] >= 1
+    with open(path, newline="", encoding="utf-8") as fh:
+        read = list(csv.DictReader(fh))
+    assert [(r["optimizer"], r["mode"]) for r in read] == [(r["optimizer"], r["mode"]) for r in rows]
+    assert all(math.isfinite(float(r["best_loss_2"])) for r in read)
+
+
+def test_cli_optimizers_writes_csv(tmp_path):
+    path = tmp_path / "out.csv"
+    result = CliRunner().invoke(command, ["optimizers", "--iterations", "1", "--optimizers", "adam",
+                                          "--modes", "reverse", "--csv", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "adam" in result.output and "best@1" in result.output
+    with open(path, newline="", encoding="utf-8") as fh:
+        (row,) = list(csv.DictReader(fh))
+    assert row["optimizer"] == "adam" and math.isfinite(float(row["best_loss_1"]))
+
+
+def test_cli_packing_writes_csv(tmp_path):
+    path = tmp_path / "packing.csv"
+    result = CliRunner().invoke(command, ["packing", "--max-spheres", "4", "--csv", str(path)])
+    assert result.exit_code == 0, result.output
+    with open(path, newline="", encoding="utf-8") as fh:
+        read = list(csv.DictReader(fh))
+    assert [r["name"] for r in read][-1] == "all"
+    assert all(math.isfinite(float(r["seconds"])) for r in read[:-1])
+
+
+@pytest.mark.parametrize("args, options", [
+    ([], ["sim", "packing", "optimizers"]),
+    (["sim"], ["--quick", "--compile", "--csv", "--check"]),
+    (["packing"], ["--max-spheres", "--csv", "--check"]),
+    (["optimizers"], ["--iterations", "--scene", "--optimizers", "--modes", "--quick", "--csv"]),
+])
+def test_cli_help(args, options):
+    result = CliRunner().invoke(cli, ["bench", *args, "--help"])
+    assert result.exit_code == 0, result.output
+    for option in options:
+        assert option in result.output
+
+
+def test_cli_rejects_bad_iterations():
+    result = CliRunner().invoke(command, ["optimizers", "--iterations", "0,x"])
+    assert result.exit_code == 2
+    assert "iterations" in result.output
