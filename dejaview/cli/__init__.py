@@ -57,6 +57,14 @@ def main(argv=None):
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(130)
+    except click.exceptions.NoArgsIsHelpError as exc:
+        exc.show()  # a bare ``dejaview``: the help text, not an error line
+        sys.exit(exc.exit_code)
+    except click.UsageError as exc:
+        # one line naming the problem (scene-format spec, "Command line"); click would add
+        # the usage and a help hint
+        click.echo(f"error: {exc.format_message()}", err=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

@@ -56,8 +56,11 @@ def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: f
     if name in ("lbfgs", "bfgs"):
         history = 10 if name == "lbfgs" else max(10, num_params)
         # max_eval bounds the line search too (max_ls = max_eval - 1): torch's default for
-        # max_iter=1 is 1, which leaves no line search at all (a rejected first trial step = no move)
+        # max_iter=1 is 1, which leaves no line search at all (a rejected first trial step = no move).
+        # No gradient/change tolerances: torch's absolute 1e-7 / 1e-9 stop a squared-metres objective
+        # (|g|^2 ~ 1e-9 at a 1 cm loss) for good; this loop stops by iterations and ``tolerance``
         return torch.optim.LBFGS(params, lr=lr, max_iter=1, max_eval=1 + LINE_SEARCH_EVALS,
+                                 tolerance_grad=0.0, tolerance_change=0.0,
                                  history_size=history, line_search_fn="strong_wolfe")
     raise InferenceError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
 

@@ -198,6 +198,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                    seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance,
                    report=objective_to_loss)
     if not math.isfinite(opt.loss):
+        if opt.stopped and not opt.history:
+            raise InferenceError("stopped before the first iteration: no solution to report")
         raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
     best = opt.x.unsqueeze(0)
     with torch.no_grad():
