@@ -6,14 +6,14 @@ import sys
 
 import click
 
-BACKENDS = ("spheres",)
+BACKENDS = ("spheres", "warp")  # dejaview.backends.BACKENDS (not imported: --help stays cheap)
 
 
 def common_options(f):
     """--backend --iterations --optimizer --gradient --seed --quiet."""
     opts = [
         click.option("--backend", type=click.Choice(BACKENDS), default="spheres", show_default=True,
-                     help="physics backend"),
+                     help="physics backend (warp: pip install 'dejaview[warp]')"),
         click.option("--iterations", type=int, default=None, help="optimiser iterations (overrides the scene)"),
         click.option("--optimizer", type=click.Choice(["gd", "adam", "lbfgs", "bfgs"]), default=None,
                      help="optimiser (overrides the scene)"),

@@ -43,7 +43,7 @@ def command(scene, out_dir, multistart, lr, plot, use_compile, tolerance, backen
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, callback=progress, tolerance=tolerance,
-                   compile=use_compile)
+                   compile=use_compile, backend=backend)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:
@@ -51,7 +51,8 @@ def command(scene, out_dir, multistart, lr, plot, use_compile, tolerance, backen
         fmt = lambda v: "(" + ", ".join(f"{x:.3f}" for x in v) + ")"  # noqa: E731
         end_pos, _ = result.final_pose()
         click.echo(f"best loss {result.loss:.5g} after {len(result.iterations)} iterations "
-                   f"({result.settings['optimizer']}, {result.settings['gradient']} mode)")
+                   f"({result.settings['backend']} backend, {result.settings['optimizer']}, "
+                   f"{result.settings['gradient']} mode)")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
         click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")

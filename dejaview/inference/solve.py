@@ -12,7 +12,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, Progress, optimize
-from dejaview.inference.problem import InferenceProblem, objective_to_loss
+from dejaview.inference.problem import objective_to_loss
 from dejaview.sim.integrate import Trajectory
 
 def default_gradient(num_params: int) -> str:
@@ -37,7 +37,8 @@ class SolveResult:
 
     Attributes:
         scene: the scene solved.
-        problem: the InferenceProblem.
+        problem: the backend's problem (``dejaview.backends``; ``SpheresProblem`` wraps an
+            ``InferenceProblem``).
         optimization: the raw OptimizationResult.
         initial_state: dict of the best initial state (object-frame position, orientation,
             linear_velocity, angular_velocity) as lists.
@@ -47,7 +48,7 @@ class SolveResult:
     """
 
     scene: object
-    problem: InferenceProblem
+    problem: object
     optimization: OptimizationResult
     initial_state: dict
     loss: float
@@ -60,17 +61,14 @@ class SolveResult:
 
     def final_pose(self) -> tuple[list[float], list[float]]:
         """Object-frame position and orientation of the source at the end of the trajectory."""
-        w = self.problem.world
-        final = self.trajectory.final
-        pos = w.object_position(final)[0, self.problem.source]
-        return pos.tolist(), final.orientation[0, self.problem.source].tolist()
+        return self.problem.final_pose(self.trajectory)
 
     def to_json(self) -> dict:
         """``result.json`` content (scene-format spec, "Outputs")."""
         end_pos, end_q = self.final_pose()
         return {
             "source": self.scene.inference.source,
-            "backend": self.settings.get("backend", "spheres"),
+            "backend": self.settings.get("backend", self.problem.backend),
             "optimizer": self.settings["optimizer"],
             "gradient": self.settings["gradient"],
             "loss": self.loss,
@@ -82,8 +80,7 @@ class SolveResult:
             "evaluate": self.problem.evaluate,
             "seed": self.settings.get("seed", 0),
             "parameters": self.problem.layout.names(),
-            "simulation": {"dt": self.problem.world.dt, "substeps": self.problem.world.substeps,
-                           "steps": self.problem.steps},
+            "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}
@@ -92,8 +89,6 @@ class SolveResult:
 
     def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
         """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``)."""
-        from dejaview.io.trajectory import write_trajectory_csv
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         paths = {"result": out / "result.json", "iterations": out / "iterations.csv",
@@ -105,7 +100,7 @@ class SolveResult:
             for p in self.iterations:
                 writer.writerow([p.iteration, f"{p.loss:.9g}", f"{p.best_loss:.9g}",
                                  f"{p.duration_s:.6f}", int(p.restarted)])
-        write_trajectory_csv(paths["trajectory"], self.problem.world, self.trajectory)
+        self.problem.write_trajectory(paths["trajectory"], self.trajectory)
         if plot:
             paths["plot"] = plot_losses(self.iterations, out / "loss.png")
         return paths
@@ -141,9 +136,9 @@ def plot_losses(history: list[Progress], path) -> Path:
 def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           gradient: str | None = None, seed: int | None = None, lr: float | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
-          callback=None, should_stop=None, world=None, problem: InferenceProblem | None = None,
+          callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
-          compile: bool = False) -> SolveResult:
+          compile: bool = False, backend: str | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
     Args:
@@ -154,15 +149,18 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         epsilon, patience: override ``<exploration>``.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops early (cancellation).
-        world / problem: reuse an already built World / InferenceProblem.
+        world / problem: reuse an already built World (spheres) / problem (any backend's,
+            ``dejaview.backends.make_problem``, or a bare ``InferenceProblem``).
         x0: (K, P) explicit initial guesses.
         tolerance: stop once the best loss is at or below this.
-        compile: compiled rollouts (see ``InferenceProblem.compile``).
+        compile: compiled rollouts (see ``InferenceProblem.compile``; spheres only).
+        backend: ``spheres`` (default) | ``warp`` (``dejaview.backends``); ignored with ``problem``.
     Returns:
         SolveResult.
     Raises:
         InferenceError: bad settings (one line naming the problem).
     """
+    from dejaview.backends import as_problem, make_problem
     from dejaview.scene import Scene
 
     if not hasattr(scene, "objects"):
@@ -179,11 +177,20 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     if multistart < 1:
         raise InferenceError(f"multistart must be >= 1, got {multistart}")
     seed = inf.seed if seed is None else seed
-    problem = problem or InferenceProblem.from_scene(scene, world)
-    problem.compile = compile
+    if problem is None:
+        options = {} if world is None else {"world": world}
+        problem = make_problem(scene, backend or "spheres", **options)
+    problem = as_problem(problem)
+    if problem.backend == "spheres":
+        problem.compile = compile
+    elif compile:
+        raise InferenceError(f"compile is an option of the spheres backend, not of {problem.backend}")
     gradient = gradient or inf.gradient or default_gradient(problem.num_params)
     if gradient not in ("forward", "reverse"):
         raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+    if gradient not in problem.gradient_modes:
+        raise InferenceError(f"the {problem.backend} backend offers {' and '.join(problem.gradient_modes)}-mode "
+                             f"gradients only, not {gradient} mode; use --gradient reverse")
     exploration = inf.exploration
     eps = epsilon if epsilon is not None else (exploration.epsilon if exploration else 0.0)
     pat = patience if patience is not None else (exploration.patience if exploration else 25)
@@ -192,7 +199,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         x0 = problem.layout.encode()
         if multistart > 1:
             x0 = torch.cat([x0, problem.layout.sample(multistart - 1, gen)], 0)
-    x0 = x0.to(problem.world.dtype)
+    x0 = x0.to(problem.dtype)
     opt = optimize(problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
                    gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=problem.layout.sample,
                    seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance,
@@ -204,8 +211,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     best = opt.x.unsqueeze(0)
     with torch.no_grad():
         decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
-        traj = problem.simulate(best, steps=problem.world.steps, record_every=1)
+        traj = problem.simulate(best, steps=problem.duration_steps, record_every=1)
     settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
-                "backend": "spheres", "multistart": multistart, "epsilon": eps, "patience": pat}
+                "backend": problem.backend, "multistart": multistart, "epsilon": eps, "patience": pat}
     return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
                        loss=opt.loss, trajectory=traj, settings=settings)
