@@ -1,3 +1,5 @@
 from dejaview.cli import main
 
-main()
+# guarded: worker processes of ``dejaview serve`` (multiprocessing "spawn") import this module again
+if __name__ == "__main__":
+    main()

@@ -20,40 +20,29 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 def command(scene, out_dir, steps, record_every, float32, backend, iterations, optimizer, gradient,
             seed, quiet):
     """Simulate SCENE from the objects' given poses and velocities; write DIR/trajectory.csv."""
-    import time
-
     import torch
     from tqdm import tqdm
 
-    from dejaview.io.trajectory import write_trajectory_csv
     from dejaview.scene import Scene
-    from dejaview.sim import World
-    from dejaview.sim.build import initial_state
-    from dejaview.sim.integrate import rollout
+    from dejaview.sim.simulate import simulate
 
     configure_torch()
     if record_every < 1:
         raise click.BadParameter("must be >= 1", param_hint="--record-every")
-    sc = Scene.from_xml(scene)
-    world = World.from_scene(sc, dtype=torch.float32 if float32 else torch.float64)
-    state = initial_state(world, sc)
-    n = world.steps if steps is None else steps
-    if n < 1:
+    if steps is not None and steps < 1:
         raise click.BadParameter("must be >= 1", param_hint="--steps")
-    bar = tqdm(total=n, desc="simulate", unit="step", disable=not show_progress(quiet))
-    start = time.perf_counter()
+    sc = Scene.from_xml(scene)
+    bar = tqdm(desc="simulate", unit="step", disable=not show_progress(quiet))
 
-    def step_with_progress(world_, state_, broadphase=None):
-        from dejaview.sim.integrate import step
-
+    def progress(done, total):
+        bar.total = total
         bar.update(1)
-        return step(world_, state_, broadphase)
 
-    with torch.no_grad():
-        traj = rollout(world, state, steps=n, record_every=record_every, step_fn=None if bar.disable
-                       else step_with_progress)
+    run = simulate(sc, steps=steps, record_every=record_every,
+                   dtype=torch.float32 if float32 else torch.float64,
+                   callback=None if bar.disable else progress)
     bar.close()
-    path = write_trajectory_csv(out_dir / "trajectory.csv", world, traj)
+    path = run.write(out_dir)["trajectory"]
     if not quiet:
-        click.echo(f"simulated {n} steps ({n * world.dt:.3f} s) of {len(world.names)} bodies in "
-                   f"{time.perf_counter() - start:.2f} s -> {path}")
+        click.echo(f"simulated {run.steps} steps ({run.steps * run.world.dt:.3f} s) of "
+                   f"{len(run.world.names)} bodies in {run.elapsed_s:.2f} s -> {path}")

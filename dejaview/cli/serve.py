@@ -1,0 +1,72 @@
+"""``dejaview serve``: the FastAPI service under uvicorn (REST, WebSocket ``/ws``, docs at ``/docs``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from dejaview.server.config import KIB, MIB, default_workers
+
+
+@click.command("serve")
+@click.option("--host", default="127.0.0.1", show_default=True, help="address to listen on")
+@click.option("--port", default=8765, show_default=True, type=click.IntRange(0, 65535), help="TCP port")
+@click.option("--scene-root", type=click.Path(file_okay=False, exists=True, path_type=Path), default=".",
+              show_default=True, help="folder that scene paths and mesh files must lie in")
+@click.option("--results-dir", type=click.Path(file_okay=False, path_type=Path), default="results",
+              show_default=True, help="job records and artefacts (kept across restarts)")
+@click.option("--workers", type=click.IntRange(min=1), default=default_workers(), show_default=True,
+              help="jobs run at the same time")
+@click.option("--executor", type=click.Choice(["process", "thread"]), default="process", show_default=True,
+              help="run jobs in worker processes or in threads of the server")
+@click.option("--queue-size", type=click.IntRange(min=1), default=64, show_default=True,
+              help="jobs that may wait for a worker")
+@click.option("--max-body-kb", type=click.IntRange(min=1), default=2 * MIB // KIB, show_default=True,
+              help="largest REST request body")
+@click.option("--max-message-kb", type=click.IntRange(min=1), default=2 * MIB // KIB, show_default=True,
+              help="largest WebSocket message (4x this closes the connection)")
+@click.option("--max-scene-kb", type=click.IntRange(min=1), default=MIB // KIB, show_default=True,
+              help="largest scene XML")
+@click.option("--rate", "messages_per_second", type=click.FloatRange(min=0, min_open=True), default=20.0,
+              show_default=True, help="WebSocket messages per second per connection (bursts of 2x)")
+@click.option("--inline-limit-kb", type=click.IntRange(min=1), default=100, show_default=True,
+              help="larger payloads are sent as URLs only (1 kB = 1000 bytes)")
+@click.option("--max-jobs-per-connection", type=click.IntRange(min=1), default=16, show_default=True,
+              help="unfinished jobs one WebSocket connection may have")
+@click.option("--max-steps", type=click.IntRange(min=1), default=200_000, show_default=True,
+              help="largest rollout in integration substeps (steps x substeps)")
+@click.option("--max-iterations", type=click.IntRange(min=1), default=10_000, show_default=True,
+              help="largest number of optimiser iterations")
+@click.option("--job-timeout", type=click.FloatRange(min=0, min_open=True), default=3600.0,
+              show_default=True, help="seconds a job may run")
+@click.option("--max-connections", type=click.IntRange(min=1), default=None,
+              help="concurrent connections (HTTP and WebSocket); more get 503")
+@click.option("--log-level", type=click.Choice(["critical", "error", "warning", "info", "debug"]),
+              default="info", show_default=True)
+def command(host, port, scene_root, results_dir, workers, executor, queue_size, max_body_kb,
+            max_message_kb, max_scene_kb, messages_per_second, inline_limit_kb, max_jobs_per_connection,
+            max_steps, max_iterations, job_timeout, max_connections, log_level):
+    """Serve simulate, solve and heatmap jobs over REST and WebSocket.
+
+    Clients submit scenes as XML text or as paths inside --scene-root; results
+    go to --results-dir/jobs/ID/. The API and message schemas are at
+    http://HOST:PORT/docs, the WebSocket at ws://HOST:PORT/ws.
+    """
+    import uvicorn
+
+    from dejaview.server.app import create_app
+    from dejaview.server.config import ServerConfig
+
+    config = ServerConfig(scene_root=scene_root, results_dir=results_dir, workers=workers, executor=executor,
+                          queue_size=queue_size, max_body_bytes=max_body_kb * KIB,
+                          max_message_bytes=max_message_kb * KIB, max_scene_bytes=max_scene_kb * KIB,
+                          messages_per_second=messages_per_second, inline_limit_bytes=inline_limit_kb * 1000,
+                          max_jobs_per_connection=max_jobs_per_connection, max_steps=max_steps,
+                          max_iterations=max_iterations, job_timeout_s=job_timeout)
+    click.echo(f"dejaview serve: scene root {config.scene_root}, results in {config.results_dir}, "
+               f"{workers} {executor} worker(s); API docs http://{host}:{port}/docs, "
+               f"WebSocket ws://{host}:{port}/ws", err=True)
+    uvicorn.run(create_app(config), host=host, port=port, log_level=log_level, ws="websockets-sansio",
+                ws_max_size=config.ws_max_size, limit_concurrency=max_connections,
+                timeout_graceful_shutdown=10)

@@ -1,0 +1,42 @@
+"""The one exception type of the service: an error code, a one-line message and an HTTP status."""
+
+from __future__ import annotations
+
+from dejaview.errors import DejaViewError
+
+
+class ServiceError(DejaViewError):
+    """A request the server refuses (see ``dejaview.server.messages`` for the codes).
+
+    Attributes:
+        code: machine-readable error code (``invalid_scene``, ``queue_full``...).
+        message: one line for a person.
+        status: the HTTP status REST answers with.
+    """
+
+    def __init__(self, code: str, message: str, status: int = 400):
+        self.code = code
+        self.message = " ".join(str(message).split())
+        self.status = status
+        super().__init__(self.message)
+
+
+# The library's errors as (code, HTTP status): bad scenes are the client's fault, the rest happen
+# while a job runs.
+LIBRARY_ERRORS = {
+    "SceneError": ("invalid_scene", 422),
+    "GeometryError": ("geometry_error", 422),
+    "SimulationError": ("simulation_error", 422),
+    "InferenceError": ("inference_error", 422),
+}
+
+
+def from_library_error(exc: Exception) -> ServiceError:
+    """The ServiceError for a DejaView library error (``internal_error`` for anything else)."""
+    for cls in type(exc).__mro__:
+        if cls.__name__ in LIBRARY_ERRORS:
+            code, status = LIBRARY_ERRORS[cls.__name__]
+            return ServiceError(code, str(exc), status)
+    if isinstance(exc, ServiceError):
+        return exc
+    return ServiceError("internal_error", f"internal error: {type(exc).__name__}: {exc}", 500)

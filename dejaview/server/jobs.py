@@ -1,0 +1,190 @@
+"""What a worker does with one job: run simulate / solve / heatmap, write the artefacts.
+
+``run_job`` is the same in a worker thread and in a worker process: it gets
+the job's spec (kind, scene text, overrides), a folder to write into, a
+function to report progress through and a ``StopCheck`` to poll, and returns
+the job's summary and the names of the files it wrote. Torch and the
+simulator are imported here, inside the worker, never by the web process's
+event loop.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+from dejaview.server.errors import ServiceError
+
+
+class JobStopped(Exception):
+    """The job was stopped (cancelled, over its time limit, or its server went away)."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        super().__init__(reason)
+
+
+class StopCheck:
+    """``should_stop`` for the library: True once the job is cancelled, over its time limit,
+    or the process that started this worker is gone. ``reason`` says which."""
+
+    def __init__(self, cancelled, timeout_s: float | None = None, parent_pid: int | None = None):
+        self.cancelled = cancelled  # callable -> bool
+        self.deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        self.timeout_s = timeout_s
+        self.parent_pid = parent_pid
+        self.reason: str | None = None
+
+    def __call__(self) -> bool:
+        if self.reason is None:
+            if self.cancelled():
+                self.reason = "cancelled"
+            elif self.deadline is not None and time.monotonic() > self.deadline:
+                self.reason = "timeout"
+            elif self.parent_pid is not None and os.getppid() != self.parent_pid:
+                self.reason = "orphaned"
+        return self.reason is not None
+
+    def raise_if_stopped(self) -> None:
+        if self():
+            raise JobStopped(self.reason)
+
+
+class Throttle:
+    """Pass progress on at most once per ``interval`` seconds (the first and the last always)."""
+
+    def __init__(self, emit, interval: float):
+        self.emit = emit
+        self.interval = interval
+        self.last = -math.inf
+
+    def __call__(self, data: dict, last: bool = False) -> None:
+        now = time.monotonic()
+        if last or now - self.last >= self.interval:
+            self.last = now
+            self.emit(data)
+
+
+def _finite(v):
+    return v if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+
+def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval: float = 0.25) -> dict:
+    """Run one job and write its artefacts into ``out_dir``.
+
+    Args:
+        spec: ``{"kind", "text", "base_dir", "filename", "overrides"}``.
+        out_dir: the job's folder (exists).
+        emit: called with a progress dict (fields of ``messages.Progress``), throttled here.
+        stop: polled every iteration / step.
+        progress_interval: seconds between progress reports.
+    Returns:
+        ``{"summary": {...}, "artefacts": [file names]}``.
+    Raises:
+        JobStopped: cancelled, timed out or orphaned.
+        DejaViewError: the library's errors (bad scene, simulation or inference problem).
+    """
+    import torch
+
+    from dejaview.scene.xml import read_scene_string
+
+    torch.set_num_threads(1)  # see dejaview.cli.options.configure_torch: one thread per worker
+    scene = read_scene_string(spec["text"], base_dir=spec["base_dir"], filename=spec["filename"],
+                              check_files=True, max_bytes=max(len(spec["text"].encode()), 1))
+    overrides = dict(spec.get("overrides") or {})
+    progress = Throttle(emit, progress_interval)
+    stop.raise_if_stopped()
+    runner = {"simulate": _simulate, "solve": _solve, "heatmap": _heatmap}[spec["kind"]]
+    out = runner(scene, overrides, Path(out_dir), progress, stop)
+    stop.raise_if_stopped()
+    return out
+
+
+def _simulate(scene, overrides, out_dir, progress, stop):
+    from dejaview.sim.simulate import SimulationStopped, simulate
+
+    start = time.perf_counter()
+
+    def step_done(step, total):
+        progress({"iteration": step, "total": total, "elapsed_s": time.perf_counter() - start},
+                 last=step == total)
+
+    try:
+        run = simulate(scene, steps=overrides.get("steps"), record_every=overrides.get("record_every", 1),
+                       callback=step_done, should_stop=stop)
+    except SimulationStopped:
+        raise JobStopped(stop.reason or "cancelled") from None
+    paths = run.write(out_dir)
+    summary = {"steps": run.steps, "dt": run.world.dt, "duration_s": run.steps * run.world.dt,
+               "bodies": list(run.world.names), "records": len(run.trajectory),
+               "elapsed_s": run.elapsed_s}
+    return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
+
+
+def _optimiser_progress(total: int, progress):
+    def report(p):
+        data = {"iteration": p.iteration + 1, "total": total, "loss": _finite(p.loss),
+                "best_loss": _finite(p.best_loss), "elapsed_s": p.elapsed_s,
+                "evaluations": getattr(p, "evaluations", None)}
+        for key in ("cells_done", "cells_total"):
+            if getattr(p, key, None) is not None:
+                data[key] = int(getattr(p, key))
+        progress(data, last=data["iteration"] == total)
+    return report
+
+
+def _solve(scene, overrides, out_dir, progress, stop):
+    from dejaview.inference.solve import solve
+
+    total = overrides.get("iterations", scene.inference.iterations)
+    kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "gradient", "seed", "lr", "tolerance",
+                                        "backend") if k in overrides}
+    result = solve(scene, multistart=overrides.get("multistart", 1),
+                   callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
+    if stop.reason is not None:
+        raise JobStopped(stop.reason)
+    paths = result.write(out_dir)
+    end_pos, end_q = result.final_pose()
+    summary = {"loss": _finite(result.loss), "iterations": len(result.iterations),
+               "initial_state": result.initial_state,
+               "final_pose": {"position": end_pos, "orientation": end_q},
+               "optimizer": result.settings.get("optimizer"), "gradient": result.settings.get("gradient")}
+    return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
+
+
+def _heatmap(scene, overrides, out_dir, progress, stop):
+    from dejaview.heatmap import compute_heatmap
+
+    total = overrides.get("iterations", scene.inference.iterations)
+    kwargs = {k: overrides[k] for k in ("cells", "samples", "sigma", "iterations", "optimizer", "gradient",
+                                        "seed", "backend") if k in overrides}
+    if "cells" in kwargs:
+        kwargs["cells"] = tuple(kwargs["cells"])
+    result = compute_heatmap(scene, callback=_optimiser_progress(total, progress), should_stop=stop,
+                             **kwargs)
+    if stop.reason is not None:
+        raise JobStopped(stop.reason)
+    paths = result.write(out_dir)
+    grid = result.to_json()
+    summary = {"cells": grid.get("cells"), "min": grid.get("min"), "max": grid.get("max")}
+    result_json = Path(out_dir) / "result.json"
+    if result_json.is_file():
+        data = json.loads(result_json.read_text(encoding="utf-8"))
+        summary["loss"] = _finite(data.get("loss"))
+        if "initial_state" in data:
+            summary["initial_state"] = data["initial_state"]
+    return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
+
+
+def worker_error(exc: BaseException) -> ServiceError:
+    """The (code, message) a failed job reports for an exception raised by ``run_job``."""
+    from dejaview.server.errors import from_library_error
+
+    if isinstance(exc, JobStopped):
+        if exc.reason == "timeout":
+            return ServiceError("timeout", "the job ran over the server's time limit and was stopped")
+        return ServiceError("cancelled", "the job was cancelled")
+    return from_library_error(exc)

@@ -1,0 +1,373 @@
+"""The job runner: a bounded queue in front of a worker pool, job records on disk, subscribers.
+
+Everything here runs on the event loop (worker events arrive through
+``call_soon_threadsafe``), so job state needs no locks. A job is
+
+    queued -> running -> done | failed | cancelled      (queued -> cancelled too)
+
+and every change is written to ``<results_dir>/jobs/<id>/job.json`` beside
+the job's scene (``scene.xml``) and artefacts, so a client that went away can
+fetch the results later and a restarted server still serves finished jobs.
+Jobs a previous server left queued or running are marked failed
+(``interrupted``) when the next one starts, instead of waiting forever.
+
+Subscribers are objects with a ``deliver(job_id, message)`` method; each job
+keeps them (with the request id each one's messages carry) and every
+progress and final message goes to all of them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import logging
+import os
+import re
+import shutil
+import time
+import uuid
+from pathlib import Path
+
+from dejaview.server.config import ServerConfig
+from dejaview.server.errors import ServiceError
+from dejaview.server.messages import (
+    FINISHED_STATES,
+    AcceptedMessage,
+    DoneMessage,
+    ErrorInfo,
+    ErrorMessage,
+    HeatmapMessage,
+    JobStatus,
+    Progress,
+    ProgressMessage,
+    ResultMessage,
+    TrajectoryMessage,
+)
+from dejaview.server.scenes import SceneInput, check_job, read_scene_input
+from dejaview.server.workers import make_pool
+
+log = logging.getLogger("dejaview.server")
+
+JOB_ID_RE = re.compile(r"^[0-9a-f]{32}$")
+
+# artefact file name -> media type; what GET /jobs/{id}/{name} may serve
+ARTEFACTS = {
+    "trajectory.csv": "text/csv; charset=utf-8",
+    "result.json": "application/json",
+    "heatmap.ppm": "image/x-portable-pixmap",
+    "heatmap.png": "image/png",
+    "heatmap.json": "application/json",
+    "iterations.csv": "text/csv; charset=utf-8",
+}
+
+
+def artefact_url(job_id: str, name: str) -> str:
+    return f"/jobs/{job_id}/{name}"
+
+
+class Job:
+    """A job in memory: its record plus what only a live server knows."""
+
+    def __init__(self, status: JobStatus, spec: dict | None = None):
+        self.status = status
+        self.spec = spec
+        self.slot: int | None = None
+        self.subscribers: dict[object, str | None] = {}  # subscriber -> its request id
+        self.cancel_requested = False
+
+    @property
+    def id(self) -> str:
+        return self.status.job_id
+
+    @property
+    def finished(self) -> bool:
+        return self.status.state in FINISHED_STATES
+
+
+class JobRunner:
+    """Queue, dispatch, cancel and record jobs; fan their messages out to subscribers."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        self.jobs: dict[str, Job] = {}
+        self.pending: collections.deque[str] = collections.deque()
+        self.free_slots: list[int] = list(range(config.workers))[::-1]
+        self.pool = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.jobs_dir = config.results_dir / "jobs"
+
+    # ------------------------------------------------------------ life cycle
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self._load_records()
+        self.pool = make_pool(self.config.executor, self.config.workers,
+                              {"job_timeout_s": self.config.job_timeout_s,
+                               "progress_interval_s": self.config.progress_interval_s})
+        self.pool.start(self._from_worker)
+
+    async def close(self) -> None:
+        """Stop the workers; unfinished jobs end as failed (``interrupted``), as after a crash."""
+        for job in list(self.jobs.values()):
+            if not job.finished:
+                self._finish(job, "failed", ErrorInfo(code="interrupted",
+                                                      message="the server stopped before this job finished"))
+        self.pending.clear()
+        if self.pool is not None:
+            await asyncio.to_thread(self.pool.close)
+
+    def _load_records(self) -> None:
+        for path in sorted(self.jobs_dir.glob("*/job.json")):
+            try:
+                status = JobStatus.model_validate_json(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                log.warning("skipping unreadable job record %s: %s", path, exc)
+                continue
+            if status.job_id != path.parent.name:
+                continue
+            job = Job(status)
+            if status.state not in FINISHED_STATES:
+                status.state = "failed"
+                status.finished_at = time.time()
+                status.queue_position = None
+                status.error = ErrorInfo(code="interrupted",
+                                         message="the server stopped before this job finished")
+                self._save(job)
+            self.jobs[status.job_id] = job
+
+    # ------------------------------------------------------------ queries
+    @property
+    def running(self) -> int:
+        return sum(1 for j in self.jobs.values() if j.status.state == "running")
+
+    def get(self, job_id: str) -> Job:
+        job = self.jobs.get(job_id) if isinstance(job_id, str) and JOB_ID_RE.match(job_id) else None
+        if job is None:
+            raise ServiceError("not_found", f"no job {job_id!r}", 404)
+        return job
+
+    def status(self, job_id: str) -> JobStatus:
+        job = self.get(job_id)
+        status = job.status.model_copy()
+        if status.state == "queued":
+            status.queue_position = self.pending.index(job.id) + 1
+        return status
+
+    def artefact(self, job_id: str, name: str) -> Path:
+        """The path of a finished job's artefact.
+
+        Raises:
+            ServiceError: ``not_found``, ``not_ready`` (409) or ``no_artefact`` (404).
+        """
+        job = self.get(job_id)
+        if not job.finished:
+            raise ServiceError("not_ready", f"job {job_id} is {job.status.state}: no artefacts yet", 409)
+        path = self.jobs_dir / job.id / name
+        if name not in ARTEFACTS or name not in job.status.artefacts or not path.is_file():
+            why = {"failed": "the job failed", "cancelled": "the job was cancelled"}.get(
+                job.status.state, f"a {job.status.kind} job writes none")
+            raise ServiceError("no_artefact", f"job {job_id} has no {name}: {why}", 404)
+        return path
+
+    # ------------------------------------------------------------ submitting
+    async def submit_request(self, kind: str, *, scene_xml: str | None = None,
+                             scene_path: str | None = None, overrides: dict | None = None,
+                             subscriber=None, request_id: str | None = None) -> Job:
+        """Read and check the scene (in a thread), then ``submit``."""
+        self._check_room()
+        scene_input = await asyncio.to_thread(read_scene_input, self.config.scene_root, scene_xml=scene_xml,
+                                              scene_path=scene_path, max_bytes=self.config.max_scene_bytes)
+        return self.submit(kind, scene_input, overrides or {}, subscriber, request_id)
+
+    def _check_room(self) -> None:
+        if len(self.pending) >= self.config.queue_size and not self.free_slots:
+            raise ServiceError("queue_full", f"the job queue is full ({self.config.queue_size} jobs "
+                                             f"waiting): try again later", 503)
+
+    def submit(self, kind: str, scene_input: SceneInput, overrides: dict, subscriber=None,
+               request_id: str | None = None) -> Job:
+        """Queue a checked job; ``subscriber`` gets ``accepted`` first, then everything else.
+
+        Raises:
+            ServiceError: ``queue_full`` (503), ``invalid_scene`` / ``limit_exceeded`` (422).
+        """
+        check_job(kind, scene_input.scene, overrides, self.config)
+        self._check_room()
+        job_id = uuid.uuid4().hex
+        folder = self.jobs_dir / job_id
+        folder.mkdir(parents=True)
+        (folder / "scene.xml").write_text(scene_input.text, encoding="utf-8")
+        status = JobStatus(job_id=job_id, kind=kind, state="queued", created_at=time.time(),
+                           scene=scene_input.source, overrides=overrides)
+        spec = {"kind": kind, "text": scene_input.text, "base_dir": str(scene_input.base_dir),
+                "filename": scene_input.filename, "overrides": overrides}
+        job = Job(status, spec)
+        self.jobs[job_id] = job
+        self.pending.append(job_id)
+        self._save(job)
+        if subscriber is not None:
+            job.subscribers[subscriber] = request_id
+            subscriber.deliver(job_id, AcceptedMessage(job_id=job_id, request_id=request_id, kind=kind,
+                                                       state="queued", queue_position=len(self.pending)))
+        self._dispatch()
+        return job
+
+    def _dispatch(self) -> None:
+        while self.free_slots and self.pending:
+            job = self.jobs[self.pending.popleft()]
+            slot = self.free_slots.pop()
+            job.slot = slot
+            job.status.state = "running"
+            job.status.started_at = time.time()
+            self._save(job)
+            self.pool.run(slot, job.id, job.spec, str(self.jobs_dir / job.id))
+
+    # ------------------------------------------------------------ cancelling, subscribing
+    def cancel(self, job_id: str) -> JobStatus:
+        """Cancel a queued job at once, a running one at its next iteration.
+
+        Raises:
+            ServiceError: ``not_found`` (404), ``not_cancellable`` (409, already finished).
+        """
+        job = self.get(job_id)
+        if job.finished:
+            raise ServiceError("not_cancellable", f"job {job_id} has already finished "
+                                                  f"({job.status.state})", 409)
+        if job.status.state == "queued":
+            self.pending.remove(job.id)
+            self._finish(job, "cancelled")
+        elif not job.cancel_requested:
+            job.cancel_requested = True
+            self.pool.cancel(job.slot)
+        return self.status(job_id)
+
+    def subscribe(self, job_id: str, subscriber, request_id: str | None = None) -> Job:
+        """Send ``subscriber`` the job's messages: all final ones now if it has finished."""
+        job = self.get(job_id)
+        if job.finished:
+            for message in self.final_messages(job):
+                subscriber.deliver(job.id, message.model_copy(update={"request_id": request_id}))
+        else:
+            job.subscribers[subscriber] = request_id
+            if job.status.progress is not None:
+                subscriber.deliver(job.id, ProgressMessage(job_id=job.id, request_id=request_id,
+                                                           **job.status.progress.model_dump()))
+        return job
+
+    def unsubscribe(self, job_id: str, subscriber) -> None:
+        job = self.jobs.get(job_id)
+        if job is not None:
+            job.subscribers.pop(subscriber, None)
+
+    # ------------------------------------------------------------ worker events
+    def _from_worker(self, event) -> None:
+        """Called from a pool thread: hand the event to the loop."""
+        try:
+            self.loop.call_soon_threadsafe(self._handle, event)
+        except RuntimeError:  # the loop is closed: the server is gone
+            pass
+
+    def _handle(self, event) -> None:
+        kind = event[0]
+        if kind == "ready":
+            return
+        job = self.jobs.get(event[1])
+        if job is None or job.finished:
+            return
+        if kind == "progress":
+            progress = Progress(**event[2])
+            job.status.progress = progress
+            self._notify(job, ProgressMessage(job_id=job.id, **progress.model_dump()))
+            return
+        slot = event[2]
+        if kind == "finished":
+            job.status.summary = event[3].get("summary")
+            job.status.artefacts = {name: artefact_url(job.id, name) for name in event[3].get("artefacts", [])
+                                    if name in ARTEFACTS}
+            self._finish(job, "done")
+        elif kind == "failed":
+            self._finish(job, "failed", ErrorInfo(code=event[3], message=event[4]))
+        elif kind == "cancelled":
+            self._finish(job, "cancelled")
+        if job.slot == slot:
+            job.slot = None
+            self.free_slots.append(slot)
+        self._dispatch()
+
+    def _finish(self, job: Job, state: str, error: ErrorInfo | None = None) -> None:
+        job.status.state = state
+        job.status.finished_at = time.time()
+        job.status.error = error
+        job.status.queue_position = None
+        job.spec = None
+        self._save(job)
+        messages = self.final_messages(job)
+        subscribers = list(job.subscribers.items())
+        job.subscribers.clear()
+        for subscriber, request_id in subscribers:
+            for message in messages:
+                subscriber.deliver(job.id, message.model_copy(update={"request_id": request_id}))
+        self._prune()
+
+    def _notify(self, job: Job, message) -> None:
+        for subscriber, request_id in list(job.subscribers.items()):
+            subscriber.deliver(job.id, message.model_copy(update={"request_id": request_id}))
+
+    # ------------------------------------------------------------ final messages
+    def final_messages(self, job: Job) -> list:
+        """What a subscriber gets when the job ends: trajectory, heatmap, result (each inline up to
+        the inline limit, always with a URL), or the error; then ``done``."""
+        jid, state, folder = job.id, job.status.state, self.jobs_dir / job.id
+        out = []
+        if state == "done":
+            names = job.status.artefacts
+            if "trajectory.csv" in names:
+                csv_text, size = self._inline(folder / "trajectory.csv")
+                out.append(TrajectoryMessage(job_id=jid, csv=csv_text, url=names["trajectory.csv"],
+                                             bytes=size))
+            if "heatmap.ppm" in names:
+                ppm, _ = self._inline(folder / "heatmap.ppm")
+                grid_text, _ = self._inline(folder / "heatmap.json") if "heatmap.json" in names else (None, 0)
+                out.append(HeatmapMessage(job_id=jid, ppm=ppm, ppm_url=names["heatmap.ppm"],
+                                          png_url=names.get("heatmap.png"),
+                                          grid=json.loads(grid_text) if grid_text else None,
+                                          grid_url=names.get("heatmap.json")))
+            if "result.json" in names:
+                text, _ = self._inline(folder / "result.json")
+                out.append(ResultMessage(job_id=jid, result=json.loads(text) if text else None,
+                                         url=names["result.json"]))
+        elif state == "failed" and job.status.error is not None:
+            out.append(ErrorMessage(job_id=jid, code=job.status.error.code, message=job.status.error.message))
+        out.append(DoneMessage(job_id=jid, state=state))
+        return out
+
+    def _inline(self, path: Path) -> tuple[str | None, int]:
+        """(text, size) of a file, text None when larger than the inline limit or unreadable."""
+        try:
+            size = path.stat().st_size
+            if size > self.config.inline_limit_bytes:
+                return None, size
+            return path.read_text(encoding="utf-8"), size
+        except (OSError, UnicodeDecodeError):
+            return None, 0
+
+    # ------------------------------------------------------------ records on disk
+    def _save(self, job: Job) -> None:
+        path = self.jobs_dir / job.id / "job.json"
+        tmp = path.with_name("job.json.tmp")
+        try:
+            tmp.write_text(job.status.model_dump_json(indent=2), encoding="utf-8")
+            os.replace(tmp, path)
+        except OSError as exc:
+            log.error("cannot write %s: %s", path, exc)
+
+    def _prune(self) -> None:
+        finished = [j for j in self.jobs.values() if j.finished]
+        excess = len(finished) - self.config.keep_jobs
+        if excess <= 0:
+            return
+        finished.sort(key=lambda j: j.status.finished_at or 0.0)
+        for job in finished[:excess]:
+            del self.jobs[job.id]
+            shutil.rmtree(self.jobs_dir / job.id, ignore_errors=True)

@@ -1,0 +1,105 @@
+"""Run a scene forward from its objects' given poses and velocities.
+
+``simulate(scene)`` is what ``dejaview simulate`` and the server's simulate
+jobs both call: build the World, take the scene's initial state, roll it out
+without gradients, and hand back the trajectory ready to be written as
+``trajectory.csv``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from dejaview.errors import SimulationError
+from dejaview.sim.integrate import Trajectory
+from dejaview.sim.world import World
+
+
+class SimulationStopped(Exception):
+    """``should_stop`` ended a simulation before its last step (cancellation)."""
+
+
+@dataclass
+class SimulationRun:
+    """Outcome of ``simulate``.
+
+    Attributes:
+        world: the World simulated.
+        trajectory: recorded states (T, 1, N, ...).
+        steps: number of steps simulated.
+        elapsed_s: wall time of the rollout (World building excluded).
+    """
+
+    world: World
+    trajectory: Trajectory
+    steps: int
+    elapsed_s: float
+
+    def csv(self) -> str:
+        """The trajectory CSV (scene-format spec, "Outputs") as text."""
+        from dejaview.io.trajectory import trajectory_csv
+
+        return trajectory_csv(self.world, self.trajectory)
+
+    def write(self, out_dir) -> dict[str, Path]:
+        """Write ``trajectory.csv`` into ``out_dir`` (created); returns ``{"trajectory": path}``."""
+        from dejaview.io.trajectory import write_trajectory_csv
+
+        return {"trajectory": write_trajectory_csv(Path(out_dir) / "trajectory.csv", self.world,
+                                                   self.trajectory)}
+
+
+def simulate(scene, *, steps: int | None = None, record_every: int = 1,
+             dtype: torch.dtype = torch.float64, callback=None, should_stop=None,
+             world: World | None = None) -> SimulationRun:
+    """Simulate a scene forward without gradients.
+
+    Args:
+        scene: a Scene (or a path to a scene file).
+        steps: number of steps (default: the scene's duration / dt).
+        record_every: record every k-th step (the first and last are always recorded).
+        dtype: floating type of the simulation.
+        callback: called as ``callback(step, steps)`` after every step (progress bars).
+        should_stop: polled before every step; True raises ``SimulationStopped``.
+        world: reuse an already built World of this scene.
+    Returns:
+        SimulationRun.
+    Raises:
+        SimulationError: ``steps`` or ``record_every`` below 1.
+        SimulationStopped: ``should_stop`` answered True.
+    """
+    from dejaview.scene import Scene
+    from dejaview.sim.build import initial_state
+    from dejaview.sim.integrate import rollout, step
+
+    if record_every < 1:
+        raise SimulationError(f"record_every must be >= 1, got {record_every}")
+    if not hasattr(scene, "objects"):
+        scene = Scene.from_xml(scene)
+    world = world or World.from_scene(scene, dtype=dtype)
+    n = world.steps if steps is None else int(steps)
+    if n < 1:
+        raise SimulationError(f"steps must be >= 1, got {n}")
+    state = initial_state(world, scene)
+    done = 0
+
+    def step_with_hooks(world_, state_, broadphase=None):
+        nonlocal done
+        if should_stop is not None and should_stop():
+            raise SimulationStopped(f"stopped after {done} of {n} steps")
+        out = step(world_, state_, broadphase)
+        done += 1
+        if callback is not None:
+            callback(done, n)
+        return out
+
+    hooked = callback is not None or should_stop is not None
+    start = time.perf_counter()
+    with torch.no_grad():
+        traj = rollout(world, state, steps=n, record_every=record_every,
+                       step_fn=step_with_hooks if hooked else None)
+    return SimulationRun(world=world, trajectory=traj, steps=n, elapsed_s=time.perf_counter() - start)

@@ -1,0 +1,256 @@
+"""REST routes under TestClient: every route, its errors, records on disk across restarts."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+from dejaview.io.trajectory import HEADER, read_trajectory_csv
+from dejaview.server.runner import ARTEFACTS
+
+from .conftest import FIXTURES, needs_heatmap
+
+BALL_XML = (FIXTURES / "ball.xml").read_text()
+
+
+def wait_state(client, job_id, states=("done", "failed", "cancelled"), timeout=60.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = client.get(f"/jobs/{job_id}").json()
+        if status["state"] in states:
+            return status
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id} still {status['state']} after {timeout} s")
+
+
+def submit(client, **body):
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 202, response.text
+    return response.json()["job_id"]
+
+
+def test_health(client):
+    body = client.get("/health").json()
+    assert body["status"] == "ok" and body["version"]
+    assert body["workers"] == 2 and body["executor"] == "thread" and body["queued"] == 0
+
+
+def test_docs_and_openapi_list_routes_and_message_schemas(client):
+    assert client.get("/docs").status_code == 200
+    schema = client.get("/openapi.json").json()
+    assert {"/health", "/jobs", "/jobs/{job_id}", "/jobs/{job_id}/{artefact}"} <= set(schema["paths"])
+    assert set(schema["paths"]["/jobs/{job_id}"]) == {"get", "delete"}
+    components = schema["components"]["schemas"]
+    assert {"ClientMessage", "ServerMessage", "JobRequest", "JobStatus", "ErrorBody"} <= set(components)
+    tags = set(components["ClientMessage"]["discriminator"]["mapping"])
+    assert tags == {"submit", "cancel", "subscribe", "ping"}
+
+
+def test_simulate_job_by_path(client):
+    job_id = submit(client, kind="simulate", scene_path="ball.xml")
+    status = wait_state(client, job_id)
+    assert status["state"] == "done", status
+    assert status["summary"]["steps"] == 20 and status["summary"]["bodies"] == ["ball"]
+    assert status["progress"]["iteration"] == status["progress"]["total"] == 20
+    assert status["scene"] == {"scene_path": "ball.xml"}
+    assert set(status["artefacts"]) == {"trajectory.csv"}
+    response = client.get(status["artefacts"]["trajectory.csv"])
+    assert response.status_code == 200 and response.headers["content-type"].startswith("text/csv")
+    traj = read_trajectory_csv(response.text)
+    assert response.text.splitlines()[0] == ",".join(HEADER)
+    assert traj["ball"]["position"][-1][0] == pytest.approx(0.1, abs=1e-9)  # 0.5 m/s for 0.2 s
+
+
+def test_solve_job_from_xml_text_with_overrides(client):
+    job_id = submit(client, kind="solve", scene_xml=BALL_XML,
+                    overrides={"iterations": 2, "optimizer": "gd", "seed": 3})
+    status = wait_state(client, job_id)
+    assert status["state"] == "done", status
+    assert status["overrides"] == {"iterations": 2, "optimizer": "gd", "seed": 3}
+    assert status["scene"]["scene_xml"].endswith("bytes>")
+    assert {"trajectory.csv", "result.json", "iterations.csv"} <= set(status["artefacts"])
+    result = client.get(f"/jobs/{job_id}/result.json").json()
+    assert result["optimizer"] == "gd" and len(result["iterations"]) == 2
+    assert status["summary"]["loss"] == pytest.approx(result["loss"])
+    assert client.get(f"/jobs/{job_id}/iterations.csv").text.startswith("iteration,loss")
+
+
+@needs_heatmap
+def test_heatmap_job(client):
+    job_id = submit(client, kind="heatmap", scene_path="ball.xml", overrides={"iterations": 1})
+    status = wait_state(client, job_id, timeout=120)
+    assert status["state"] == "done", status
+    ppm = client.get(f"/jobs/{job_id}/heatmap.ppm")
+    assert ppm.status_code == 200 and ppm.text.startswith("P3")
+    png = client.get(f"/jobs/{job_id}/heatmap.png")
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    grid = client.get(f"/jobs/{job_id}/heatmap.json").json()
+    assert grid["cells"] == [2, 2]
+    assert sum(map(sum, grid["probability"])) == pytest.approx(1.0)
+
+
+def test_cancel_running_job_stops_within_an_iteration(make_client):
+    client = make_client(workers=1)
+    job_id = submit(client, kind="solve", scene_path="solve_long.xml")
+    status = wait_state(client, job_id, states=("running",))
+    deadline = time.monotonic() + 60
+    while status["progress"] is None and time.monotonic() < deadline:
+        status = client.get(f"/jobs/{job_id}").json()
+    response = client.delete(f"/jobs/{job_id}")
+    assert response.status_code == 202
+    at_cancel = response.json()["progress"]["iteration"]
+    status = wait_state(client, job_id)
+    assert status["state"] == "cancelled"
+    assert status["progress"]["iteration"] <= at_cancel + 2  # the one running plus a report in flight
+    # finished: cannot cancel again, and it has no artefacts
+    assert client.delete(f"/jobs/{job_id}").json()["code"] == "not_cancellable"
+    assert client.get(f"/jobs/{job_id}/trajectory.csv").status_code == 404
+
+
+def test_queued_job_is_cancelled_at_once_and_queue_positions(make_client):
+    client = make_client(workers=1)
+    first = submit(client, kind="solve", scene_path="solve_long.xml")
+    second = submit(client, kind="simulate", scene_path="ball.xml")
+    third = submit(client, kind="simulate", scene_path="drop.xml")
+    assert client.get(f"/jobs/{second}").json()["queue_position"] == 1
+    assert client.get(f"/jobs/{third}").json()["queue_position"] == 2
+    assert client.get("/health").json()["queued"] == 2
+    cancelled = client.delete(f"/jobs/{second}")
+    assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
+    assert client.get(f"/jobs/{third}").json()["queue_position"] == 1
+    client.delete(f"/jobs/{first}")
+    assert wait_state(client, third)["state"] == "done"
+
+
+def test_full_queue_answers_503(make_client):
+    client = make_client(workers=1, queue_size=1)
+    submit(client, kind="solve", scene_path="solve_long.xml")  # runs
+    submit(client, kind="simulate", scene_path="ball.xml")     # waits
+    response = client.post("/jobs", json={"kind": "simulate", "scene_path": "ball.xml"})
+    assert response.status_code == 503
+    assert response.json()["code"] == "queue_full" and "try again" in response.json()["message"]
+
+
+@pytest.mark.parametrize("body, status, code", [
+    ({"kind": "solve"}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": "ball.xml", "scene_xml": BALL_XML}, 422, "invalid_message"),
+    ({"kind": "teleport", "scene_path": "ball.xml"}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": 7}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"iterations": -1}}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"bogus": 1}}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"iterations": 100000}}, 422, "limit_exceeded"),
+    ({"kind": "solve", "scene_path": "drop.xml"}, 422, "invalid_scene"),
+    ({"kind": "solve", "scene_xml": "<scene"}, 422, "invalid_scene"),
+    ({"kind": "solve", "scene_path": "../outside/secret.xml"}, 400, "path_outside_root"),
+    ({"kind": "solve", "scene_path": "/etc/passwd"}, 400, "path_outside_root"),
+    ({"kind": "solve", "scene_path": "escape.xml"}, 400, "path_outside_root"),
+    ({"kind": "solve", "scene_path": "nope.xml"}, 400, "scene_not_found"),
+    ({"kind": "simulate", "scene_xml": "<a/>" * 300_000}, 413, "scene_too_large"),
+])
+def test_bad_job_requests(client, body, status, code):
+    response = client.post("/jobs", json=body)
+    assert response.status_code == status, response.text
+    error = response.json()
+    assert error["code"] == code and error["message"] and "\n" not in error["message"]
+
+
+def test_bad_bodies(client):
+    assert client.post("/jobs", content=b"{not json", headers={"content-type": "application/json"}
+                       ).json()["code"] == "invalid_json"
+    assert client.post("/jobs", content=b'{"kind": NaN}', headers={"content-type": "application/json"}
+                       ).status_code in (400, 422)
+    assert client.post("/jobs", content=b"[1, 2]", headers={"content-type": "application/json"}
+                       ).status_code == 422
+    big = client.post("/jobs", content=b" " * (3 << 20), headers={"content-type": "application/json"})
+    assert big.status_code == 413 and big.json()["code"] == "message_too_large"
+
+    def chunks():  # no Content-Length: counted as it streams
+        for _ in range(40):
+            yield b" " * 100_000
+    assert client.post("/jobs", content=chunks(), headers={"content-type": "application/json"}
+                       ).status_code == 413
+
+
+def test_body_limit_is_configurable(make_client):
+    client = make_client(max_body_bytes=1000)
+    response = client.post("/jobs", json={"kind": "simulate", "scene_xml": BALL_XML})
+    assert response.status_code == 413 and "1000 bytes" in response.json()["message"]
+
+
+def test_unknown_jobs_routes_and_artefacts(client):
+    missing = "0" * 32
+    assert client.get(f"/jobs/{missing}").json()["code"] == "not_found"
+    assert client.get("/jobs/..%2F..%2Fetc").status_code == 404
+    assert client.delete(f"/jobs/{missing}").status_code == 404
+    assert client.get(f"/jobs/{missing}/trajectory.csv").status_code == 404
+    assert client.get("/no/such/route").json() == {"code": "not_found", "message": "Not Found"}
+    assert client.put("/jobs").status_code == 405
+    job_id = submit(client, kind="simulate", scene_path="ball.xml")
+    assert client.get(f"/jobs/{job_id}/scene.xml").status_code == 422  # not an artefact name
+    assert client.get(f"/jobs/{job_id}/job.json").status_code == 422
+    wait_state(client, job_id)
+    response = client.get(f"/jobs/{job_id}/result.json")
+    assert response.status_code == 404 and response.json()["code"] == "no_artefact"
+
+
+def test_artefact_before_done_is_not_ready(make_client):
+    client = make_client(workers=1)
+    job_id = submit(client, kind="solve", scene_path="solve_long.xml")
+    response = client.get(f"/jobs/{job_id}/trajectory.csv")
+    assert response.status_code == 409 and response.json()["code"] == "not_ready"
+    client.delete(f"/jobs/{job_id}")
+
+
+def test_records_survive_a_restart(make_client, tmp_path):
+    first = make_client()
+    done = submit(first, kind="simulate", scene_path="ball.xml")
+    wait_state(first, done)
+    csv_before = first.get(f"/jobs/{done}/trajectory.csv").text
+    first.__exit__(None, None, None)
+    # what a crash leaves behind: records of a job queued and one running
+    jobs = tmp_path / "results" / "jobs"
+    for state in ("queued", "running"):
+        job_id = (state[0] * 32).replace("q", "a").replace("r", "b")
+        (jobs / job_id).mkdir()
+        (jobs / job_id / "job.json").write_text(json.dumps(
+            {"job_id": job_id, "kind": "solve", "state": state, "created_at": 1.0}))
+    (jobs / ("c" * 32)).mkdir()
+    (jobs / ("c" * 32) / "job.json").write_text("{broken")  # skipped, not fatal
+
+    second = make_client()
+    status = second.get(f"/jobs/{done}").json()
+    assert status["state"] == "done"
+    assert second.get(f"/jobs/{done}/trajectory.csv").text == csv_before
+    for job_id in ("a" * 32, "b" * 32):
+        status = second.get(f"/jobs/{job_id}").json()
+        assert status["state"] == "failed" and status["error"]["code"] == "interrupted"
+        assert json.loads((jobs / job_id / "job.json").read_text())["state"] == "failed"
+    assert second.get(f"/jobs/{'c' * 32}").status_code == 404
+
+
+def test_graceful_shutdown_fails_unfinished_jobs(make_client, tmp_path):
+    first = make_client(workers=1)
+    running = submit(first, kind="solve", scene_path="solve_long.xml")
+    queued = submit(first, kind="simulate", scene_path="ball.xml")
+    first.__exit__(None, None, None)
+    second = make_client()
+    for job_id in (running, queued):
+        status = second.get(f"/jobs/{job_id}").json()
+        assert status["state"] == "failed" and status["error"]["code"] == "interrupted", status
+
+
+def test_old_jobs_are_pruned(make_client, tmp_path):
+    client = make_client(keep_jobs=2)
+    ids = []
+    for _ in range(3):
+        ids.append(submit(client, kind="simulate", scene_path="drop.xml"))
+        wait_state(client, ids[-1])
+    assert client.get(f"/jobs/{ids[0]}").status_code == 404
+    assert not (tmp_path / "results" / "jobs" / ids[0]).exists()
+    assert all(client.get(f"/jobs/{i}").status_code == 200 for i in ids[1:])
+
+
+def test_artefact_media_types():
+    assert ARTEFACTS["heatmap.ppm"] == "image/x-portable-pixmap" and ARTEFACTS["heatmap.png"] == "image/png"
