@@ -85,7 +85,7 @@ check_option = click.option("--check", is_flag=True,
 
 @click.group("bench", context_settings={"help_option_names": ["-h", "--help"]})
 def command():
-    """Benchmarks of the simulator, the sphere packing and the optimisers.
+    """Benchmarks of the simulator, the sphere packing, the optimisers and the service.
 
     Timings are wall clock on whatever else the machine runs; each table is
     printed with the load average.
@@ -158,6 +158,26 @@ def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
     module = bench_module("optimizers")
     module.run(print_fn=click.echo, iterations=(1, 2) if quick else iterations, modes=modes,
                optimizers=optimizers, scene=scene, csv_path=csv_path)
+
+
+@command.command("load")
+@click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
+              help="Concurrent WebSocket clients, one short simulate job each.")
+@click.option("--url", default=None, help="Benchmark this running server (ws://HOST:PORT/ws) instead of "
+                                          "starting one.")
+@click.option("--workers", default=None, type=click.IntRange(min=1),
+              help="Workers of the server started [default: one per core, at most 4].")
+@csv_option
+@check_option
+def load(clients, url, workers, csv_path, check):
+    """Service load: jobs per second and p50/p99 latency of many concurrent clients.
+
+    Starts `dejaview serve` on a free loopback port (unless --url), opens
+    --clients WebSocket connections at once, each submitting a 10-step
+    simulate job, and checks that no job was lost (--check: exit 1 if one was).
+    """
+    row = bench_module("load").run(print_fn=click.echo, clients=clients, url=url, workers=workers)
+    _finish([row], csv_path, check, [row["lost"] == 0])
 
 
 def _finish(rows, csv_path, check, verdicts):
