@@ -1,7 +1,7 @@
 """Load benchmark of the service: many WebSocket clients at once, each submitting a short simulate job.
 
     python bench/load.py                     # 50 clients against a fresh `dejaview serve`
-    python bench/load.py --clients 200 --workers 2
+    python bench/load.py --clients 200 --workers 2 --executor thread
     python bench/load.py --url ws://127.0.0.1:8765/ws   # an already running server
 
 Starts ``dejaview serve`` (process workers, a queue as long as the number of
@@ -59,7 +59,7 @@ async def _clients(url: str, clients: int, timeout: float):
 
 
 def run(print_fn=print, clients: int = 50, url: str | None = None, workers: int | None = None,
-        timeout: float = 600.0) -> dict:
+        executor: str = "process", timeout: float = 600.0) -> dict:
     """Run the benchmark; returns its numbers as a dict (``lost`` must be 0)."""
     from dejaview.server.client import get_json, http_base
     from dejaview.server.local import LocalServer
@@ -68,7 +68,7 @@ def run(print_fn=print, clients: int = 50, url: str | None = None, workers: int 
     if url is None:
         base = Path(tempfile.mkdtemp(prefix="dejaview-load-"))
         (base / "scenes").mkdir()
-        options = {"queue_size": max(64, clients), "max_jobs_per_connection": 4, "log_level": "warning"}
+        options = {"queue_size": max(64, clients), "executor": executor, "log_level": "warning"}
         if workers is not None:
             options["workers"] = workers
         server = LocalServer(base / "scenes", base / "results", log_path=base / "serve.log", **options)
@@ -113,8 +113,9 @@ def main(argv=None) -> int:
     parser.add_argument("--clients", type=int, default=50)
     parser.add_argument("--url", default=None, help="an already running server's ws://.../ws")
     parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--executor", choices=("process", "thread"), default="process")
     args = parser.parse_args(argv)
-    row = run(clients=args.clients, url=args.url, workers=args.workers)
+    row = run(clients=args.clients, url=args.url, workers=args.workers, executor=args.executor)
     return 0 if row["lost"] == 0 else 1
 
 

@@ -167,16 +167,19 @@ def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
                                           "starting one.")
 @click.option("--workers", default=None, type=click.IntRange(min=1),
               help="Workers of the server started [default: one per core, at most 4].")
+@click.option("--executor", type=click.Choice(["process", "thread"]), default="process", show_default=True,
+              help="Workers of the server started: processes or threads.")
 @csv_option
 @check_option
-def load(clients, url, workers, csv_path, check):
+def load(clients, url, workers, executor, csv_path, check):
     """Service load: jobs per second and p50/p99 latency of many concurrent clients.
 
     Starts `dejaview serve` on a free loopback port (unless --url), opens
     --clients WebSocket connections at once, each submitting a 10-step
     simulate job, and checks that no job was lost (--check: exit 1 if one was).
     """
-    row = bench_module("load").run(print_fn=click.echo, clients=clients, url=url, workers=workers)
+    row = bench_module("load").run(print_fn=click.echo, clients=clients, url=url, workers=workers,
+                                   executor=executor)
     _finish([row], csv_path, check, [row["lost"] == 0])
 
 

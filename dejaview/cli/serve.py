@@ -67,6 +67,6 @@ def command(host, port, scene_root, results_dir, workers, executor, queue_size, 
     click.echo(f"dejaview serve: scene root {config.scene_root}, results in {config.results_dir}, "
                f"{workers} {executor} worker(s); API docs http://{host}:{port}/docs, "
                f"WebSocket ws://{host}:{port}/ws", err=True)
-    uvicorn.run(create_app(config), host=host, port=port, log_level=log_level, ws="websockets-sansio",
+    uvicorn.run(create_app(config), host=host, port=port, log_level=log_level, ws="auto",
                 ws_max_size=config.ws_max_size, limit_concurrency=max_connections,
                 timeout_graceful_shutdown=10)

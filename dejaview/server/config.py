@@ -75,8 +75,8 @@ class ServerConfig:
         if self.executor not in ("process", "thread"):
             raise ValueError(f"executor must be 'process' or 'thread', got {self.executor!r}")
         for name in ("workers", "queue_size", "max_body_bytes", "max_message_bytes", "max_scene_bytes",
-                     "inline_limit_bytes", "max_bare_bytes", "max_jobs_per_connection", "max_objects", "max_steps",
-                     "max_iterations", "max_heatmap_runs", "keep_jobs"):
+                     "inline_limit_bytes", "max_bare_bytes", "max_jobs_per_connection", "max_objects",
+                     "max_steps", "max_iterations", "max_heatmap_runs", "keep_jobs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.messages_per_second > 0:

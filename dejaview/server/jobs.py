@@ -132,7 +132,7 @@ def _optimiser_progress(total: int, progress):
         for key in ("cells_done", "cells_total"):
             if getattr(p, key, None) is not None:
                 data[key] = int(getattr(p, key))
-        progress(data, last=data["iteration"] == total)
+        progress(data, last=total is not None and data["iteration"] == total)
     return report
 
 
@@ -158,7 +158,7 @@ def _solve(scene, overrides, out_dir, progress, stop):
 def _heatmap(scene, overrides, out_dir, progress, stop):
     from dejaview.heatmap import compute_heatmap
 
-    total = overrides.get("iterations", scene.inference.iterations)
+    total = None  # iterations run over chunks of cells: cells_done / cells_total tell how far it is
     kwargs = {k: overrides[k] for k in ("cells", "samples", "sigma", "iterations", "optimizer", "gradient",
                                         "seed", "backend") if k in overrides}
     if "cells" in kwargs:

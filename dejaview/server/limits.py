@@ -15,23 +15,29 @@ class BodyLimit:
     """ASGI middleware: HTTP request bodies over ``max_bytes`` get 413 before the app sees them.
 
     The body is read here (at most ``max_bytes`` of it are kept) and replayed to
-    the app, so a chunked body without a Content-Length is limited too.
+    the app, so a chunked body without a Content-Length is limited too. A body
+    up to 4x the limit is read to its end before the 413 goes out (a client
+    still sending would otherwise see a connection reset); beyond that the
+    connection is closed right after the 413.
     """
 
     def __init__(self, app, max_bytes: int):
         self.app = app
         self.max_bytes = max_bytes
+        self.drain_bytes = 4 * max_bytes  # bodies up to this size are read to the end before a 413
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         declared = dict(scope.get("headers") or ()).get(b"content-length")
-        if declared is not None:
-            try:
-                if int(declared) > self.max_bytes:
-                    return await self._refuse(send, int(declared))
-            except ValueError:
-                pass
+        try:
+            declared = int(declared) if declared is not None else None
+        except ValueError:
+            declared = None
+        if declared is not None and declared > self.max_bytes:
+            if declared <= self.drain_bytes:
+                await self._drain(receive)
+            return await self._refuse(send, declared)
         chunks, size = [], 0
         while True:
             message = await receive()
@@ -39,6 +45,8 @@ class BodyLimit:
                 return
             size += len(message.get("body", b""))
             if size > self.max_bytes:
+                if message.get("more_body", False):
+                    await self._drain(receive, size)
                 return await self._refuse(send, None)
             chunks.append(message.get("body", b""))
             if not message.get("more_body", False):
@@ -54,6 +62,15 @@ class BodyLimit:
             return await receive()
 
         await self.app(scope, replay, send)
+
+    async def _drain(self, receive, size: int = 0) -> None:
+        """Read and drop the rest of a refused body (up to ``drain_bytes``), so the client, still
+        sending, reads the 413 instead of a connection reset."""
+        while size <= self.drain_bytes:
+            message = await receive()
+            if message["type"] != "http.request" or not message.get("more_body", False):
+                return
+            size += len(message.get("body", b""))
 
     async def _refuse(self, send, size):
         what = f"{size} bytes" if size is not None else "larger"

@@ -298,7 +298,8 @@ def first_error_line(exc) -> str:
 
 
 def encode(message: BaseModel) -> str:
-    """A message as compact JSON text, ``type`` first, absent fields left out (NaN becomes null)."""
+    """A message as compact JSON text: ``type``, ``job_id`` and ``request_id`` first, absent fields
+    left out, NaN and infinities as null."""
     data = json.loads(message.model_dump_json(exclude_none=True))
-    head = {"type": data.pop("type")} if "type" in data else {}
+    head = {key: data.pop(key) for key in ("type", "job_id", "request_id") if key in data}
     return json.dumps({**head, **data}, separators=(",", ":"), allow_nan=False)

@@ -269,6 +269,12 @@ class JobRunner:
             pass
 
     def _handle(self, event) -> None:
+        try:
+            self._apply(event)
+        except Exception:  # a bug here must not leave a job hanging silently
+            log.exception("cannot handle worker event %r", event[:2])
+
+    def _apply(self, event) -> None:
         kind = event[0]
         if kind == "ready":
             return

@@ -1,14 +1,21 @@
 """The WebSocket endpoint ``/ws``: typed JSON messages, and the original client's bare-text mode.
 
 JSON mode (``shared/spec/protocol.md``): every frame is a JSON object with a
-``type`` (``dejaview.server.messages``). A session::
+``type`` (``dejaview.server.messages``). A session (ids shortened)::
 
-    -> {"type":"submit","kind":"solve","scene_path":"ball.xml","request_id":"r1"}
-    <- {"type":"accepted","job_id":"5f0c...","request_id":"r1","kind":"solve","state":"queued","queue_position":1}
-    <- {"type":"progress","job_id":"5f0c...","request_id":"r1","iteration":1,"total":3,"loss":0.12,...}
-    <- {"type":"trajectory","job_id":"5f0c...","request_id":"r1","csv":"step,time,object,...","url":"http://.../jobs/5f0c.../trajectory.csv","bytes":1234}
-    <- {"type":"result","job_id":"5f0c...","request_id":"r1","result":{"source":"ball",...},"url":"http://.../result.json"}
-    <- {"type":"done","job_id":"5f0c...","request_id":"r1","state":"done"}
+    -> {"type":"submit","kind":"solve","scene_path":"ball.xml","overrides":{"iterations":3},
+        "request_id":"r1"}
+    <- {"type":"accepted","job_id":"e236...","request_id":"r1","kind":"solve","state":"queued",
+        "queue_position":1}
+    <- {"type":"progress","job_id":"e236...","request_id":"r1","iteration":1,"total":3,
+        "loss":0.1229,"best_loss":0.1229,"elapsed_s":0.31,"evaluations":1}
+    <- {"type":"progress", ... "iteration":3,"total":3,"loss":0.0851,"best_loss":0.0851, ...}
+    <- {"type":"trajectory","job_id":"e236...","request_id":"r1",
+        "csv":"step,time,object,x,y,z,qw,qx,qy,qz\\n0,0.000000,ball,...",
+        "url":"http://127.0.0.1:8765/jobs/e236.../trajectory.csv","bytes":1333}
+    <- {"type":"result","job_id":"e236...","request_id":"r1","result":{"source":"ball",
+        "loss":0.0851,...},"url":"http://127.0.0.1:8765/jobs/e236.../result.json"}
+    <- {"type":"done","job_id":"e236...","request_id":"r1","state":"done"}
 
 Bad input never closes the connection: it is answered with an ``error``
 message (with the ``request_id`` when one could be read) and the connection
@@ -42,7 +49,6 @@ from dejaview.server.limits import TokenBucket
 from dejaview.server.messages import (
     CLIENT_MESSAGE,
     CancelMessage,
-    DoneMessage,
     ErrorMessage,
     PingMessage,
     PongMessage,

@@ -15,7 +15,6 @@ from dejaview.server.app import create_app
 from dejaview.server.local import LocalServer
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "server"
-FINAL = ("done",)
 
 
 def heatmap_available() -> bool:

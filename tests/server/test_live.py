@@ -13,7 +13,7 @@ from dejaview.io.trajectory import HEADER, read_trajectory_csv
 from dejaview.server.client import get_json, http_get, run_job, submit_job, wait_healthy
 from dejaview.server.local import LocalServer
 
-from .conftest import FIXTURES, needs_heatmap
+from .conftest import needs_heatmap
 
 
 def wait_state(base: str, job_id: str, timeout: float = 120.0) -> dict:
