@@ -160,6 +160,36 @@ def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
                optimizers=optimizers, scene=scene, csv_path=csv_path)
 
 
+@command.command("backends")
+@click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
+              help="Comma-separated iteration counts to report the best loss at.")
+@click.option("--scene", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Scene with an <inference> section [default: examples/scenes/ball_rolled.xml, "
+                   "a cheap one].")
+@click.option("--backends", "backends", default="spheres,warp", show_default=True,
+              callback=_comma_list(("spheres", "warp")), help="Backends to compare.")
+@click.option("--optimizers", "optimizers", default="gd,adam,lbfgs,bfgs", show_default=True,
+              callback=_comma_list(("gd", "adam", "lbfgs", "bfgs")), help="Optimisers to compare.")
+@click.option("--integrator", type=click.Choice(["xpbd", "semi-implicit"]), default=None,
+              help="Warp integrator [default: the scene's warp-integrator, else xpbd].")
+@click.option("--quick", is_flag=True, help="Iterations 1,2 (smoke test).")
+@csv_option
+def backends(iterations, scene, backends, optimizers, integrator, quick, csv_path):
+    """Best loss after N iterations and seconds per iteration of each backend and optimiser.
+
+    The original work's Table I: DejaView's sphere simulator (PyTorch) against
+    NVIDIA Warp (warp.sim, needs pip install 'dejaview[warp]'), reverse mode,
+    from the scene's initial guess without restarts, plus the ratio of their
+    seconds per iteration measured in the same run.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    bench_module("backends").run(print_fn=click.echo, iterations=(1, 2) if quick else iterations,
+                                 backends=backends, optimizers=optimizers, scene=scene, csv_path=csv_path,
+                                 warp_options={"integrator": integrator} if integrator else None)
+
+
 @command.command("load")
 @click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
               help="Concurrent WebSocket clients, one short simulate job each.")
