@@ -7,8 +7,9 @@ competes with the event loop for the GIL. Measured on the 2-core machine
 (while two other benchmarks kept it busy): two jobs of 3 x 300-step rollouts
 took 8.3 s one after the other, 8.4 s in two threads, 6.9 s in two
 processes; for the tiny 10-step jobs of ``bench/load.py`` the two are
-alike (~8 jobs/s), as scene parsing and I/O dominate. Worker processes (``spawn``, one
-torch thread each) run on separate cores, keep the event loop's latency flat
+alike (20-21 jobs/s with 50 clients), as scene parsing and I/O dominate.
+Worker processes (``spawn``, one torch thread each) run on separate cores,
+keep the event loop's latency flat
 while they compute, can be restarted when one dies (a crash fails its job
 with ``worker_crashed``, not the server), and stop by themselves when the
 server goes away. The cost is a start-up of a few seconds per worker (torch
@@ -18,7 +19,7 @@ imports) and progress travelling through a ``multiprocessing`` queue. Threads
 Both pools speak the same events, delivered to ``on_event`` from a
 background thread:
 
-- ``("ready", slot)`` a worker has imported torch and waits for jobs,
+- ``("ready", slot)`` a worker has imported torch, run one tiny rollout and waits for jobs,
 - ``("progress", job_id, data)`` throttled progress of a running job,
 - ``("finished", job_id, slot, {"summary": ..., "artefacts": [...]})``,
 - ``("failed", job_id, slot, code, message)``,
@@ -56,6 +57,7 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
     """
     from dejaview.server.jobs import JobStopped, StopCheck, run_job, worker_error
 
+    _warm_up()
     put_event(("ready", slot))
     while True:
         task = get_task()
@@ -117,6 +119,23 @@ class ThreadPool:
             inbox.put(None)
         for t in self._threads:
             t.join(timeout)
+
+
+WARM_UP_SCENE = """<scene version="1"><simulation dt="0.01" duration="0.01"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.05"><pose position="0 0 0.1"/></object></scene>"""
+
+
+def _warm_up() -> None:
+    """One tiny rollout before the first job: torch's first ops and the simulator's lazy imports
+    cost a second or two, which would otherwise land on the first client's latency."""
+    from dejaview.scene.xml import read_scene_string
+    from dejaview.sim.simulate import simulate
+
+    try:
+        simulate(read_scene_string(WARM_UP_SCENE), steps=1)
+    except Exception:  # never keep a worker from starting
+        log.exception("worker warm-up failed")
 
 
 def _process_main(slot, inbox, events, cancel, options, parent_pid):
