@@ -593,6 +593,32 @@ class WarpSimulator:
         return Trajectory(state, torch.tensor(kept), self.dt)
 
 
+def simulate_scene(scene, *, steps: int | None = None, record_every: int = 1, device: str | None = None,
+                   **options):
+    """Run a scene forward in Warp from its objects' given poses and velocities.
+
+    Needs no ``<inference>`` section (what ``dejaview simulate`` does with the sphere simulator).
+
+    Args:
+        scene: a Scene or a path to a scene file.
+        steps: number of steps (default: duration / dt).
+        record_every: record every k-th step (the first and the last always).
+        device, options: as ``WarpSimulator.from_scene`` (integrator, substeps, iterations, restitution).
+    Returns:
+        (BodyFrames, Trajectory with states (T, 1, N, ...)); write it with
+        ``dejaview.io.trajectory.write_trajectory_csv(path, frames, trajectory)``.
+    """
+    from dejaview.scene import Scene
+
+    if not hasattr(scene, "objects"):
+        scene = Scene.from_xml(scene)
+    sim = WarpSimulator.from_scene(scene, device=device, **options)
+    q, qd = sim.base_state(1)
+    kept, qs, qds, *_ = sim.run(q, qd, sim.duration_steps if steps is None else int(steps),
+                                record_every=record_every)
+    return sim.frames, sim.trajectory(kept, qs, qds)
+
+
 @dataclass
 class _LossSpec:
     """The numbers of the loss kernel (see ``_record_loss``)."""

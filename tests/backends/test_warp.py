@@ -87,14 +87,12 @@ def test_the_kernel_loss_is_the_loss_of_dejaview_losses(kind, evaluate):
 
 
 def test_both_backends_rest_a_ball_dropped_on_a_table_within_2_cm():
-    from dejaview.backends.warp import WarpSimulator
+    from dejaview.backends.warp import simulate_scene
 
     scene = Scene.from_xml(DROP)
-
-    sim = WarpSimulator.from_scene(scene)
-    q, qd = sim.base_state(1)
-    kept, qs, qds, *_ = sim.run(q, qd, sim.duration_steps, record_every=sim.duration_steps)
-    warp_end = qs[-1, 0, 0, :3]
+    frames, warp_traj = simulate_scene(scene, record_every=100)
+    assert frames.names == ("ball",) and warp_traj.steps.tolist()[-1] == 500
+    warp_end = frames.object_position(warp_traj.final)[0, 0].numpy()
     world = World.from_scene(scene)
     with torch.no_grad():
         traj = rollout(world, initial_state(world, scene), record_every=world.steps)
@@ -102,7 +100,7 @@ def test_both_backends_rest_a_ball_dropped_on_a_table_within_2_cm():
     assert np.linalg.norm(warp_end - spheres_end) < 0.02, (warp_end, spheres_end)
     # at rest on the table top (z = 0.75 m + radius 5 cm), not on the floor
     assert warp_end[2] == pytest.approx(0.8, abs=0.005) and spheres_end[2] == pytest.approx(0.8, abs=0.005)
-    assert np.linalg.norm(qds[-1, 0, 0, 3:]) < 0.01
+    assert warp_traj.final.linear_velocity.norm() < 0.01
     assert traj.final.linear_velocity.norm() < 0.01
 
 
