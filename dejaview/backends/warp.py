@@ -73,6 +73,7 @@ import contextlib
 import io
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -169,6 +170,9 @@ def _copy(src: wp.array(dtype=Any), dest: wp.array(dtype=Any)):
     dest[i] = src[i]
 
 
+_CLONE_LOCK = threading.Lock()  # the patched wp.clone is process-wide: one taped simulate at a time
+
+
 @contextlib.contextmanager
 def _tape_safe_clones(state_in):
     """``wp.clone`` inside ``XPBDIntegrator.simulate`` without wiping gradients.
@@ -196,11 +200,12 @@ def _tape_safe_clones(state_in):
                 wp.context.runtime.tape = tape
         return dest
 
-    wp.clone = clone
-    try:
-        yield
-    finally:
-        wp.clone = original
+    with _CLONE_LOCK:
+        wp.clone = clone
+        try:
+            yield
+        finally:
+            wp.clone = original
 
 
 # ----------------------------------------------------------------- settings
