@@ -75,7 +75,8 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
             if stop.reason == "cancelled":
                 put_event(("cancelled", job_id, slot))
                 continue
-            err = worker_error(exc)
+            # stopped for its time limit: whatever the library raised on the way out, say so
+            err = worker_error(JobStopped(stop.reason) if stop.reason else exc)
             if err.code == "internal_error" and not isinstance(exc, JobStopped):
                 log.error("job %s failed:\n%s", job_id, traceback.format_exc())
             put_event(("failed", job_id, slot, err.code, err.message))

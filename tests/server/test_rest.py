@@ -109,6 +109,14 @@ def test_cancel_running_job_stops_within_an_iteration(make_client):
     assert client.get(f"/jobs/{job_id}/trajectory.csv").status_code == 404
 
 
+def test_a_job_over_the_time_limit_fails_with_timeout(make_client):
+    client = make_client(workers=1, job_timeout_s=0.5)
+    job_id = submit(client, kind="solve", scene_path="solve_long.xml")
+    status = wait_state(client, job_id)
+    assert status["state"] == "failed" and status["error"]["code"] == "timeout", status
+    assert status["progress"] is None or status["progress"]["iteration"] < 500
+
+
 def test_queued_job_is_cancelled_at_once_and_queue_positions(make_client):
     client = make_client(workers=1)
     first = submit(client, kind="solve", scene_path="solve_long.xml")
