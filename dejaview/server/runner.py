@@ -102,6 +102,7 @@ class JobRunner:
         self.loop = asyncio.get_running_loop()
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
         self._load_records()
+        self._prune()
         self.pool = make_pool(self.config.executor, self.config.workers,
                               {"job_timeout_s": self.config.job_timeout_s,
                                "progress_interval_s": self.config.progress_interval_s})
