@@ -14,6 +14,7 @@ Run from the repository root after ``examples/build_meshes.py``:
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -156,11 +157,66 @@ def box_among_boxes():
     return with_truth(scene, truth, guess)
 
 
+RAMP_ANGLE = math.radians(20.0)
+
+
+def ramp() -> SceneObject:
+    """A 1.0 x 0.8 x 0.05 m board tilted 20 degrees about y, sloping down towards +x; its top
+    surface runs from z ~ 0.5 m (x = -0.47) to z ~ 0.16 m (x = +0.47), then a step to the floor."""
+    half = RAMP_ANGLE / 2.0
+    return SceneObject(id="ramp", shape="box", size=(1.0, 0.8, 0.05), fixed=True,
+                       pose=Pose((0.0, 0.0, 0.3), (math.cos(half), 0.0, math.sin(half), 0.0)))
+
+
+def ramp_scene(name: str, truth: SceneObject, guess: SceneObject, *, dt: float, duration: float,
+               area, cells, samples: int, sigma: float, loss: str, optimize: Optimize, extra: dict,
+               friction: float):
+    scene = Scene(
+        name=name,
+        objects=(floor(), ramp(), truth),
+        simulation=SimulationSettings(dt=dt, duration=duration, friction=friction, restitution=0.2,
+                                      extra=extra),
+        inference=InferenceSettings(
+            source=truth.id, target=Target((0, 0, 0)), iterations=60, optimizer="adam",
+            loss=loss, evaluate="final", optimize=optimize,
+            start_area=StartArea(*area),
+            heatmap=HeatmapSettings(cells=cells, samples=samples, sigma=sigma)))
+    return with_truth(scene, truth, guess)
+
+
+def ball_down_ramp():
+    """A ball let go at rest above a ramp: it drops onto it, rolls down and off onto the floor. Seen 1.2 s later: where was it let go?"""
+    truth = movable("ball", "ball", (-0.27, 0.08, 0.55), mass=0.4)
+    guess = movable("ball", "ball", (-0.2, 0.0, 0.55), mass=0.4)
+    return ramp_scene("ball-down-the-ramp", truth, guess, dt=0.005, duration=1.2,
+                      area=((-0.4, -0.25, 0.55), (0.0, 0.25, 0.55)), cells=(8, 10), samples=2,
+                      sigma=0.02, loss="position",
+                      optimize=Optimize(position=True, orientation=False, linear_velocity=False,
+                                        angular_velocity=False),
+                      extra={"substeps": "1", "contact-frequency": "100", "unload-velocity": "0.05"}, friction=0.5)
+
+
+def box_down_ramp():
+    """A box let go on a ramp: it slides down, off onto the floor, and comes to rest. Where was it let go?"""
+    truth = SceneObject(id="box", mesh="../meshes/box.obj", spheres="../packings/box_coarse.spheres",
+                        mass=0.8, pose=Pose((-0.22, -0.1, 0.56),
+                                            (math.cos(RAMP_ANGLE / 2), 0.0, math.sin(RAMP_ANGLE / 2), 0.0)))
+    guess = replace(truth, pose=replace(truth.pose, position=(-0.2, 0.0, 0.56)))
+    return ramp_scene("box-down-the-ramp", truth, guess, dt=0.005, duration=1.6,
+                      area=((-0.4, -0.25, 0.56), (0.0, 0.25, 0.56)), cells=(8, 10), samples=2,
+                      sigma=0.02, loss="pose",
+                      optimize=Optimize(position=True, orientation=False, linear_velocity=False,
+                                        angular_velocity=False),
+                      extra={"substeps": "1", "contact-frequency": "100", "unload-velocity": "0.05"}, friction=0.25)
+
+
 BUILDERS = {
     "ball_off_table": ball_off_table,
     "mug_off_counter": mug_off_counter,
     "box_along_shelf": box_along_shelf,
     "box_among_boxes": box_among_boxes,
+    "ball_down_ramp": ball_down_ramp,
+    "box_down_ramp": box_down_ramp,
 }
 
 

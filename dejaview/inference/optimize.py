@@ -88,6 +88,9 @@ class OptimizationResult:
         history: one ``Progress`` per iteration.
         best_index: which candidate of the batch found it.
         stopped: True when ``should_stop`` ended the run early (not set by ``tolerance``).
+        candidate_x: (K, P) best parameters each candidate of the batch reached (over the
+            whole run, restarts included).
+        candidate_loss: (K,) their losses (reported units; inf where never finite).
     """
 
     x: torch.Tensor
@@ -95,6 +98,8 @@ class OptimizationResult:
     history: list[Progress] = field(default_factory=list)
     best_index: int = 0
     stopped: bool = False
+    candidate_x: torch.Tensor | None = None
+    candidate_loss: torch.Tensor | None = None
 
 
 def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, torch.Tensor]],
@@ -142,6 +147,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
     best_index = 0
     cand_best = torch.full((k,), math.inf, dtype=x.dtype)
     since_improved = torch.zeros(k, dtype=torch.long)
+    keep_loss = torch.full((k,), math.inf, dtype=x.dtype)  # per candidate, never reset
+    keep_x = x.detach().clone()
     history: list[Progress] = []
     start = time.perf_counter()
     evaluations = 0
@@ -171,6 +178,9 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
             best_index = i
         improved = safe < cand_best
         cand_best.copy_(torch.where(improved, safe, cand_best))
+        kept = finite & (safe < keep_loss)
+        keep_loss.copy_(torch.where(kept, safe, keep_loss))
+        keep_x.copy_(torch.where(kept[:, None], x.detach(), keep_x))
         x.grad = grad.to(x.dtype)
         closure.last = safe
         return safe.sum()
@@ -220,5 +230,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
             callback(prog)
         if tolerance is not None and prog.best_loss <= tolerance:
             break
-    return OptimizationResult(x=best_x, loss=(report or (lambda v: v))(best_loss), history=history,
-                              best_index=best_index, stopped=stopped)
+    shown = report or (lambda v: v)
+    return OptimizationResult(x=best_x, loss=shown(best_loss), history=history,
+                              best_index=best_index, stopped=stopped, candidate_x=keep_x,
+                              candidate_loss=torch.tensor([shown(float(v)) for v in keep_loss],
+                                                          dtype=keep_loss.dtype))

@@ -35,7 +35,8 @@ class ParameterLayout:
     Attributes:
         free: which blocks are free, in BLOCKS order.
         position_axes: (A,) indices of the free position axes (start area with width).
-        lo, hi: (3,) start-area bounds (None without a start area).
+        lo, hi: (3,) start-area bounds (None without a start area), or (B, 3) per-candidate
+            boxes (the heatmap gives each candidate its cell; ``decode`` then wants B rows).
         base_position: (3,) given object-frame position (fixed axes take it, clamped into the area).
         base_orientation: (4,) given orientation.
         base_linear, base_angular: (3,) given velocities (used when not free).
@@ -97,7 +98,8 @@ class ParameterLayout:
             i += a
             axes = list(self.position_axes)
             if self.lo is not None:
-                vals = self.lo[axes] + (self.hi[axes] - self.lo[axes]) * torch.sigmoid(u)
+                lo, hi = self.lo[..., axes], self.hi[..., axes]
+                vals = lo + (hi - lo) * torch.sigmoid(u)
             else:
                 vals = self.base_position[axes] + self.scale["position"] * u
             cols = [pos[:, k:k + 1] for k in range(3)]

@@ -1,0 +1,401 @@
+"""``compute_heatmap``: where could the source have started?
+
+The x-y extent of ``<start-area>`` is cut into ``cells`` = nx x ny cells. In
+each cell ``samples`` optimisations run, with the start position free inside
+that cell only (the sigmoid reparameterisation of ``ParameterLayout`` with
+per-candidate boxes; z keeps the start area's range) and different initial
+guesses: sample 0 starts at the cell centre with the scene's own guess of
+orientation and velocities, the others at a random point of the cell with a
+random orientation (where free) and random velocities (uniform in balls of
+``max_speed`` m/s and ``max_spin`` rad/s).
+
+Every candidate of every cell is one row of a batch: the cells are taken in
+chunks of ``batch_size`` candidates, and each chunk is a single batched
+optimisation (``dejaview.inference.optimize``; the candidates' objectives are
+independent, so their sum has a block-diagonal Hessian). Adam (the default
+here) and GD step each candidate exactly as if it ran alone; L-BFGS/BFGS on a
+chunk share one line search and curvature history and are offered but not
+recommended. A chunk's best-per-candidate parameters are its solutions.
+
+The solutions are then deduplicated within each cell, their basins measured
+by batched perturbed rollouts (no gradients), and weighted into cell
+probabilities: see ``dejaview.heatmap.weighting`` for the formula.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dejaview.errors import InferenceError
+
+DEFAULT_OPTIMIZER = "adam"
+DEFAULT_ADAM_LR = 0.1
+"""Adam's step here: positions are logits of a cell (not of the whole area), so a cell is
+crossed in a few dozen steps; twice the solver's default."""
+DEFAULT_RADII = (0.01, 0.02, 0.05, 0.1, 0.2)
+"""Robustness radii in m/s of initial linear velocity (ascending)."""
+DEFAULT_DIRECTIONS = 8
+SPIN_PER_SPEED = 5.0
+"""rad/s of angular-velocity perturbation per m/s of linear (the parameter scales' ratio)."""
+
+
+@dataclass
+class HeatmapProgress:
+    """What the heatmap's progress callback receives after every iteration of every chunk.
+
+    ``iteration`` counts iterations over the whole run; ``loss`` is the chunk's lowest
+    current loss and ``best_loss`` the lowest found so far over all chunks.
+    """
+
+    iteration: int
+    loss: float
+    best_loss: float
+    elapsed_s: float
+    cells_done: int
+    cells_total: int
+    chunk: int
+    chunks: int
+    phase: str = "optimize"  # "optimize" | "robustness"
+
+
+@dataclass
+class HeatmapResult:
+    """Outcome of ``compute_heatmap``.
+
+    Attributes:
+        scene: the scene.
+        lo, hi: (2,) x-y corners of the start area.
+        cells: (nx, ny).
+        probability: (ny, nx) numpy array, row j from -y up, column i from -x; sums to 1.
+        solutions: one dict per kept (deduplicated) solution: cell (i, j), loss, level,
+            weight (normalised), initial_state.
+        candidates: number of optimisations run.
+        best: SolveResult of the best solution overall (its trajectory re-simulated).
+        settings: what ran (optimizer, gradient, iterations, sigma, samples, radii, ...).
+        seconds: wall time of the whole computation.
+    """
+
+    scene: object
+    lo: tuple[float, float]
+    hi: tuple[float, float]
+    cells: tuple[int, int]
+    probability: np.ndarray
+    solutions: list[dict]
+    candidates: int
+    best: object
+    settings: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        """(i, j) of the cell holding the point (x, y) (clamped to the grid)."""
+        nx, ny = self.cells
+        i = int(np.clip(np.floor((x - self.lo[0]) / (self.hi[0] - self.lo[0]) * nx), 0, nx - 1))
+        j = int(np.clip(np.floor((y - self.lo[1]) / (self.hi[1] - self.lo[1]) * ny), 0, ny - 1))
+        return i, j
+
+    def rank_of(self, x: float, y: float) -> int:
+        """Rank (0 = most probable) of the cell holding (x, y); ties share the better rank."""
+        i, j = self.cell_of(x, y)
+        return int((self.probability > self.probability[j, i]).sum())
+
+    def entropy_bits(self) -> float:
+        """Entropy (bits) of the cell distribution; uniform is log2(nx * ny)."""
+        from dejaview.heatmap.weighting import entropy_bits
+
+        return entropy_bits(torch.as_tensor(self.probability.reshape(-1)))
+
+    def to_json(self) -> dict:
+        """``heatmap.json`` (scene-format spec, "Outputs"), plus the settings and solutions."""
+        nx, ny = self.cells
+        return {
+            "min": [float(self.lo[0]), float(self.lo[1])],
+            "max": [float(self.hi[0]), float(self.hi[1])],
+            "cells": [nx, ny],
+            "probability": [[float(v) for v in row] for row in self.probability],
+            "entropy_bits": self.entropy_bits(),
+            "uniform_entropy_bits": math.log2(nx * ny),
+            "candidates": self.candidates,
+            "settings": self.settings,
+            "seconds": self.seconds,
+            "solutions": self.solutions,
+        }
+
+    def write(self, out_dir, plot: bool = True, truth=None) -> dict[str, Path]:
+        """Write heatmap.ppm, heatmap.json, heatmap.png (``plot``), result.json, iterations.csv and
+        trajectory.csv (the best solution) to out_dir. ``truth``: optional (x, y) marked in the PNG."""
+        import json
+
+        from dejaview.heatmap.images import write_png, write_ppm
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = self.best.write(out)
+        result = self.best.to_json()
+        result["heatmap"] = {"file": "heatmap.json", "cells": list(self.cells),
+                             "entropy_bits": self.entropy_bits(), "candidates": self.candidates,
+                             "kept_solutions": len(self.solutions), "seconds": self.seconds}
+        paths["result"].write_text(json.dumps(result, indent=2), encoding="utf-8")
+        paths["heatmap_json"] = out / "heatmap.json"
+        paths["heatmap_json"].write_text(json.dumps(self.to_json(), indent=2), encoding="utf-8")
+        paths["heatmap_ppm"] = write_ppm(out / "heatmap.ppm", self.probability)
+        if plot:
+            start = self.best.initial_state["position"]
+            paths["heatmap_png"] = write_png(out / "heatmap.png", self.probability, self.lo, self.hi,
+                                             truth=truth, best=(start[0], start[1]),
+                                             title=f"{self.scene.name or 'scene'}: where did "
+                                                   f"{self.scene.inference.source} start?")
+        return paths
+
+
+def cell_boxes(lo: torch.Tensor, hi: torch.Tensor, nx: int, ny: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boxes of the nx x ny cells of a start area, cell c = j * nx + i.
+
+    Args:
+        lo, hi: (3,) start-area corners.
+    Returns:
+        (C, 3) lower and upper corners (z keeps the area's range).
+    """
+    ii = torch.arange(nx, dtype=lo.dtype)
+    jj = torch.arange(ny, dtype=lo.dtype)
+    dx = (hi[0] - lo[0]) / nx
+    dy = (hi[1] - lo[1]) / ny
+    x0 = (lo[0] + ii * dx).repeat(ny)
+    y0 = (lo[1] + jj * dy).repeat_interleave(nx)
+    c = nx * ny
+    low = torch.stack([x0, y0, lo[2].expand(c)], -1)
+    high = torch.stack([x0 + dx, y0 + dy, hi[2].expand(c)], -1)
+    return low, high
+
+
+def split_cells(num_cells: int, samples: int, batch_size: int, workers: int = 1) -> list[list[int]]:
+    """Cells in chunks of whole cells, at most ``batch_size`` candidates each, and at least
+    ``workers`` chunks (when there are that many cells) so every worker has one."""
+    per = max(1, batch_size // samples)
+    n = max(-(-num_cells // per), min(workers, num_cells))
+    bounds = [round(i * num_cells / n) for i in range(n + 1)]
+    return [list(range(bounds[i], bounds[i + 1])) for i in range(n)]
+
+
+def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int | None = None,
+                    sigma: float | None = None, iterations: int | None = None,
+                    optimizer: str | None = None, gradient: str | None = None,
+                    seed: int | None = None, lr: float | None = None, batch_size: int = 1024,
+                    workers: int = 1,
+                    radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
+                    velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
+                    callback=None, should_stop=None, problem=None) -> HeatmapResult:
+    """Start-position heatmap of a scene's source (module docstring).
+
+    Args:
+        scene: Scene (or path) with ``<inference>`` and a ``<start-area>`` with x and y extent.
+        cells, samples, sigma: override ``<heatmap>`` (defaults 16 x 16, 4, 0.02).
+        iterations: optimiser iterations per candidate (default: the scene's).
+        optimizer: default ``adam`` (independent per candidate in a batch, lr
+            ``DEFAULT_ADAM_LR``); gradient: the scene's or reverse.
+        seed: seeds the guesses and the perturbation directions.
+        lr: learning rate (default per optimiser).
+        batch_size: candidates per batched optimisation (whole cells per chunk). Rollouts of
+            small bodies are bound by per-op overhead, so one large batch is much cheaper than
+            several small ones; memory grows with it.
+        workers: threads optimising chunks at once (torch releases the GIL inside ops, so two
+            threads keep two cores busy); the cells are split into at least this many chunks.
+        radii, directions: robustness perturbations (m/s, ascending; directions per radius).
+        velocity_tol, spin_tol, position_tol: deduplication tolerances.
+        callback: called with a ``HeatmapProgress`` after every iteration.
+        should_stop: polled every iteration; True stops the run (raises InferenceError).
+        problem: reuse an InferenceProblem of this scene.
+    Returns:
+        HeatmapResult.
+    Raises:
+        InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite.
+    """
+    from dejaview.heatmap.weighting import (cell_probability, deduplicate, log_weights,
+                                            perturbation_directions, robustness_levels)
+    from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, optimize
+    from dejaview.inference.problem import InferenceProblem, objective_to_loss
+    from dejaview.inference.solve import SolveResult, default_gradient
+    from dejaview.scene import HeatmapSettings, Scene
+
+    t_start = time.perf_counter()
+    if not hasattr(scene, "objects"):
+        scene = Scene.from_xml(scene)
+    inf = scene.inference
+    if inf is None:
+        raise InferenceError("the scene has no <inference> section: no source to place on a heatmap")
+    hs = inf.heatmap or HeatmapSettings()
+    nx, ny = cells if cells is not None else hs.cells
+    samples = hs.samples if samples is None else samples
+    sigma = hs.sigma if sigma is None else sigma
+    iterations = inf.iterations if iterations is None else iterations
+    optimizer = optimizer or DEFAULT_OPTIMIZER
+    seed = inf.seed if seed is None else seed
+    for name, value in (("cells", nx), ("cells", ny), ("samples", samples), ("iterations", iterations),
+                        ("batch_size", batch_size), ("directions", directions), ("workers", workers)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise InferenceError(f"heatmap {name} must be positive integers, got {value!r}")
+    if not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
+        raise InferenceError(f"heatmap sigma must be a positive number, got {sigma!r}")
+    if optimizer not in OPTIMIZERS:
+        raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+    if not radii or any(r <= 0 for r in radii) or list(radii) != sorted(radii):
+        raise InferenceError(f"robustness radii must be positive and ascending, got {radii!r}")
+    if inf.start_area is None:
+        raise InferenceError("a heatmap needs <start-area> in <inference>: the cells cover its x-y extent")
+    problem = problem or InferenceProblem.from_scene(scene)
+    layout = problem.layout
+    if not layout.free["position"] or 0 not in layout.position_axes or 1 not in layout.position_axes:
+        raise InferenceError("a heatmap needs the start position free with x and y extent in <start-area> "
+                             "(min < max in x and in y, and <optimize position='true'>)")
+    gradient = gradient or inf.gradient or default_gradient(problem.num_params)
+    if lr is None and optimizer == "adam":
+        lr = DEFAULT_ADAM_LR
+    if gradient not in ("forward", "reverse"):
+        raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+    dtype = problem.world.dtype
+    gen = torch.Generator().manual_seed(int(seed))
+
+    cell_lo, cell_hi = cell_boxes(layout.lo, layout.hi, nx, ny)
+    num_cells = nx * ny
+    chunks = split_cells(num_cells, samples, batch_size, workers)
+    # the scene's own guess of orientation and velocities, at the cell centre (logit 0)
+    given = layout.encode().to(dtype)
+    n_pos = len(layout.position_axes)
+    given[:, :n_pos] = 0.0
+    # every chunk's first guesses drawn here, in order, so results do not depend on the threads
+    guesses = []
+    for chunk in chunks:
+        idx = torch.tensor(chunk, dtype=torch.long).repeat_interleave(samples)
+        k = idx.numel()
+        chunk_layout = replace(layout, lo=cell_lo[idx], hi=cell_hi[idx])
+        x0 = chunk_layout.sample(k, gen).to(dtype)
+        first = torch.arange(k) % samples == 0
+        x0[first] = given.expand(int(first.sum()), -1)
+        guesses.append((idx, chunk_layout, x0))
+
+    lock = threading.Lock()
+    history = []
+    state = {"iteration": 0, "best": math.inf, "cells_done": 0}
+
+    def run_chunk(ci):
+        idx, chunk_layout, x0 = guesses[ci]
+        chunk_problem = replace(problem, layout=chunk_layout)
+
+        def progress(p):
+            with lock:
+                state["best"] = min(state["best"], p.best_loss)
+                hp = HeatmapProgress(iteration=state["iteration"], loss=p.loss, best_loss=state["best"],
+                                     elapsed_s=time.perf_counter() - t_start, cells_done=state["cells_done"],
+                                     cells_total=num_cells, chunk=ci, chunks=len(chunks))
+                state["iteration"] += 1
+                history.append(replace(p, iteration=hp.iteration, best_loss=state["best"]))
+                if callback is not None:
+                    callback(hp)
+
+        opt = optimize(chunk_problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
+                       gradient=gradient, lr=lr, epsilon=0.0, callback=progress,
+                       should_stop=should_stop, report=objective_to_loss, seed=seed + ci)
+        if opt.stopped:
+            raise InferenceError(f"heatmap stopped after {state['cells_done']} of {num_cells} cells")
+        with lock:
+            state["cells_done"] += len(chunks[ci])
+        return idx, opt.candidate_x, opt.candidate_loss, chunk_layout.lo, chunk_layout.hi
+
+    if workers > 1 and len(chunks) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="heatmap") as pool:
+            outcomes = list(pool.map(run_chunk, range(len(chunks))))
+    else:
+        outcomes = [run_chunk(ci) for ci in range(len(chunks))]
+    all_cell, all_x, all_loss, all_lo, all_hi = (list(v) for v in zip(*outcomes))
+    best_loss = state["best"]
+    iteration = state["iteration"]
+
+    cell = torch.cat(all_cell)
+    xs = torch.cat(all_x)
+    loss = torch.cat(all_loss).to(dtype)
+    lo_all, hi_all = torch.cat(all_lo), torch.cat(all_hi)
+    if not torch.isfinite(loss).any():
+        raise InferenceError("every heatmap candidate gave a non-finite loss: check the scene's numbers")
+    full_layout = replace(layout, lo=lo_all, hi=hi_all)
+    with torch.no_grad():
+        start = {k_: v.detach() for k_, v in full_layout.decode(xs).items()}
+    keep = deduplicate(cell, loss, start, velocity_tol=velocity_tol, spin_tol=spin_tol,
+                       position_tol=position_tol)
+
+    # robustness: perturbed rollouts of the kept solutions that the Gaussian does not already rule out
+    level = torch.zeros(keep.numel(), dtype=torch.long)
+    worth = (loss[keep] <= 3.0 * sigma).nonzero().flatten()
+    if worth.numel():
+        spin = layout.free["angular_velocity"]
+        sel = keep[worth]
+        dirs = perturbation_directions(sel.numel(), directions, spin, gen, dtype)  # (M, D, 6)
+        rad = torch.tensor(radii, dtype=dtype)
+        # (M, R, D, 6) offsets of (linear m/s, angular rad/s)
+        off = rad[None, :, None, None] * dirs[:, None]
+        off = torch.cat([off[..., :3], SPIN_PER_SPEED * off[..., 3:]], -1)
+        m, r, d = sel.numel(), len(radii), directions
+        rows = m * r * d
+        src = {k_: v[sel].repeat_interleave(r * d, 0) for k_, v in start.items()}
+        src["linear_velocity"] = src["linear_velocity"] + off[..., :3].reshape(rows, 3)
+        src["angular_velocity"] = src["angular_velocity"] + off[..., 3:].reshape(rows, 3)
+        perturbed = torch.empty(rows, dtype=dtype)
+        step = max(batch_size, 1) * 4
+        with torch.no_grad():
+            for a in range(0, rows, step):
+                if should_stop is not None and should_stop():
+                    raise InferenceError("heatmap stopped while measuring basins")
+                part = {k_: v[a:a + step] for k_, v in src.items()}
+                traj = _rollout(problem, part)
+                perturbed[a:a + step] = problem.loss_of_trajectory(traj)
+                if callback is not None:
+                    callback(HeatmapProgress(iteration=iteration, loss=math.nan, best_loss=best_loss,
+                                             elapsed_s=time.perf_counter() - t_start,
+                                             cells_done=num_cells, cells_total=num_cells,
+                                             chunk=len(chunks) - 1, chunks=len(chunks), phase="robustness"))
+        level[worth] = robustness_levels(loss[sel], perturbed.reshape(m, r, d), sigma)
+    logw = log_weights(loss[keep], level, len(radii), sigma)
+    p = cell_probability(cell[keep], logw, num_cells)
+    weight = torch.exp(logw - torch.logsumexp(logw, 0))
+
+    solutions = []
+    for n, i in enumerate(keep.tolist()):
+        c = int(cell[i])
+        solutions.append({"cell": [c % nx, c // nx], "loss": float(loss[i]), "level": int(level[n]),
+                          "weight": float(weight[n]),
+                          "initial_state": {k_: v[i].tolist() for k_, v in start.items()}})
+
+    # the best solution overall, re-simulated, as a solve result
+    b = int(torch.argmin(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))))
+    best_problem = replace(problem, layout=replace(layout, lo=lo_all[b:b + 1], hi=hi_all[b:b + 1]))
+    with torch.no_grad():
+        traj = best_problem.simulate(xs[b:b + 1], steps=problem.world.steps, record_every=1)
+    optres = OptimizationResult(x=xs[b], loss=float(loss[b]), history=history, best_index=b)
+    settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
+                "backend": "spheres", "sigma": sigma, "samples": samples, "cells": [nx, ny],
+                "radii": list(radii), "directions": directions, "batch_size": batch_size,
+                "velocity_tol": velocity_tol, "spin_tol": spin_tol, "position_tol": position_tol}
+    best = SolveResult(scene=scene, problem=best_problem, optimization=optres,
+                       initial_state={k_: v[b].tolist() for k_, v in start.items()}, loss=float(loss[b]),
+                       trajectory=traj, settings=settings)
+    lo2 = (float(layout.lo[0]), float(layout.lo[1]))
+    hi2 = (float(layout.hi[0]), float(layout.hi[1]))
+    return HeatmapResult(scene=scene, lo=lo2, hi=hi2, cells=(nx, ny),
+                         probability=p.reshape(ny, nx).numpy(), solutions=solutions,
+                         candidates=int(cell.numel()), best=best, settings=settings,
+                         seconds=time.perf_counter() - t_start)
+
+
+def _rollout(problem, source: dict):
+    """Rollout (no recording beyond the problem's) from explicit source initial states."""
+    from dejaview.sim.integrate import rollout
+
+    return rollout(problem.world, problem.initial_state_from_source(source), steps=problem.steps,
+                   record_every=problem.record_every)
