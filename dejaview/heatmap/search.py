@@ -190,7 +190,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     workers: int = 1,
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
-                    callback=None, should_stop=None, problem=None) -> HeatmapResult:
+                    callback=None, should_stop=None, problem=None, backend: str = "spheres") -> HeatmapResult:
     """Start-position heatmap of a scene's source (module docstring).
 
     Args:
@@ -210,7 +210,9 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         velocity_tol, spin_tol, position_tol: deduplication tolerances.
         callback: called with a ``HeatmapProgress`` after every iteration.
         should_stop: polled every iteration; True stops the run (raises InferenceError).
-        problem: reuse an InferenceProblem of this scene.
+        problem: reuse a problem of this scene (``dejaview.backends``; a bare InferenceProblem is
+            wrapped).
+        backend: ``spheres`` | ``warp`` (``dejaview.backends.make_problem``); ignored with ``problem``.
     Returns:
         HeatmapResult.
     Raises:
@@ -219,7 +221,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     from dejaview.heatmap.weighting import (cell_probability, deduplicate, log_weights,
                                             perturbation_directions, robustness_levels)
     from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, optimize
-    from dejaview.inference.problem import InferenceProblem, objective_to_loss
+    from dejaview.backends import as_problem, make_problem
+    from dejaview.inference.problem import objective_to_loss
     from dejaview.inference.solve import SolveResult, default_gradient
     from dejaview.scene import HeatmapSettings, Scene
 
@@ -248,7 +251,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         raise InferenceError(f"robustness radii must be positive and ascending, got {radii!r}")
     if inf.start_area is None:
         raise InferenceError("a heatmap needs <start-area> in <inference>: the cells cover its x-y extent")
-    problem = problem or InferenceProblem.from_scene(scene)
+    problem = as_problem(problem) if problem is not None else make_problem(scene, backend)
     layout = problem.layout
     if not layout.free["position"] or 0 not in layout.position_axes or 1 not in layout.position_axes:
         raise InferenceError("a heatmap needs the start position free with x and y extent in <start-area> "
@@ -258,7 +261,10 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         lr = DEFAULT_ADAM_LR
     if gradient not in ("forward", "reverse"):
         raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
-    dtype = problem.world.dtype
+    if gradient not in problem.gradient_modes:
+        raise InferenceError(f"the {problem.backend} backend offers {' and '.join(problem.gradient_modes)}"
+                             f"-mode gradients only, not {gradient} mode")
+    dtype = problem.dtype
     gen = torch.Generator().manual_seed(int(seed))
 
     cell_lo, cell_hi = cell_boxes(layout.lo, layout.hi, nx, ny)
@@ -285,7 +291,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
 
     def run_chunk(ci):
         idx, chunk_layout, x0 = guesses[ci]
-        chunk_problem = replace(problem, layout=chunk_layout)
+        chunk_problem = with_layout(problem, chunk_layout)
 
         def progress(p):
             with lock:
@@ -338,28 +344,30 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         sel = keep[worth]
         dirs = perturbation_directions(sel.numel(), directions, spin, gen, dtype)  # (M, D, 6)
         rad = torch.tensor(radii, dtype=dtype)
-        # (M, R, D, 6) offsets of (linear m/s, angular rad/s)
-        off = rad[None, :, None, None] * dirs[:, None]
-        off = torch.cat([off[..., :3], SPIN_PER_SPEED * off[..., 3:]], -1)
+        off = rad[None, :, None, None] * dirs[:, None]  # (M, R, D, 6): m/s, then rad/s per SPIN_PER_SPEED
         m, r, d = sel.numel(), len(radii), directions
         rows = m * r * d
-        src = {k_: v[sel].repeat_interleave(r * d, 0) for k_, v in start.items()}
-        src["linear_velocity"] = src["linear_velocity"] + off[..., :3].reshape(rows, 3)
-        src["angular_velocity"] = src["angular_velocity"] + off[..., 3:].reshape(rows, 3)
+        rep = lambda t: t[sel].repeat_interleave(r * d, 0)  # noqa: E731
+        rob_layout = replace(layout, free={**layout.free, "linear_velocity": True, "angular_velocity": True},
+                             lo=rep(lo_all), hi=rep(hi_all))
+        x_rob = state_parameters(rob_layout, rep(xs), layout,
+                                 rep(start["linear_velocity"]) + off[..., :3].reshape(rows, 3),
+                                 rep(start["angular_velocity"]) + SPIN_PER_SPEED * off[..., 3:].reshape(rows, 3))
         perturbed = torch.empty(rows, dtype=dtype)
         step = max(batch_size, 1) * 4
         with torch.no_grad():
             for a in range(0, rows, step):
                 if should_stop is not None and should_stop():
                     raise InferenceError("heatmap stopped while measuring basins")
-                part = {k_: v[a:a + step] for k_, v in src.items()}
-                traj = _rollout(problem, part)
-                perturbed[a:a + step] = problem.loss_of_trajectory(traj)
+                part = with_layout(problem, replace(rob_layout, lo=rob_layout.lo[a:a + step],
+                                                    hi=rob_layout.hi[a:a + step]))
+                perturbed[a:a + step] = part.loss(x_rob[a:a + step])
                 if callback is not None:
                     callback(HeatmapProgress(iteration=iteration, loss=math.nan, best_loss=best_loss,
                                              elapsed_s=time.perf_counter() - t_start,
                                              cells_done=num_cells, cells_total=num_cells,
                                              chunk=len(chunks) - 1, chunks=len(chunks), phase="robustness"))
+                    iteration += 1
         level[worth] = robustness_levels(loss[sel], perturbed.reshape(m, r, d), sigma)
     logw = log_weights(loss[keep], level, len(radii), sigma)
     p = cell_probability(cell[keep], logw, num_cells)
@@ -374,12 +382,12 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
 
     # the best solution overall, re-simulated, as a solve result
     b = int(torch.argmin(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))))
-    best_problem = replace(problem, layout=replace(layout, lo=lo_all[b:b + 1], hi=hi_all[b:b + 1]))
+    best_problem = with_layout(problem, replace(layout, lo=lo_all[b:b + 1], hi=hi_all[b:b + 1]))
     with torch.no_grad():
-        traj = best_problem.simulate(xs[b:b + 1], steps=problem.world.steps, record_every=1)
+        traj = best_problem.simulate(xs[b:b + 1], steps=problem.duration_steps, record_every=1)
     optres = OptimizationResult(x=xs[b], loss=float(loss[b]), history=history, best_index=b)
     settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
-                "backend": "spheres", "sigma": sigma, "samples": samples, "cells": [nx, ny],
+                "backend": problem.backend, "sigma": sigma, "samples": samples, "cells": [nx, ny],
                 "radii": list(radii), "directions": directions, "batch_size": batch_size,
                 "velocity_tol": velocity_tol, "spin_tol": spin_tol, "position_tol": position_tol}
     best = SolveResult(scene=scene, problem=best_problem, optimization=optres,
@@ -393,9 +401,30 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                          seconds=time.perf_counter() - t_start)
 
 
-def _rollout(problem, source: dict):
-    """Rollout (no recording beyond the problem's) from explicit source initial states."""
-    from dejaview.sim.integrate import rollout
+def with_layout(problem, layout):
+    """A problem like ``problem`` (``dejaview.backends`` interface) with another parameter layout,
+    leaving ``problem`` untouched (chunks run in threads at once)."""
+    import copy
 
-    return rollout(problem.world, problem.initial_state_from_source(source), steps=problem.steps,
-                   record_every=problem.record_every)
+    inner = getattr(problem, "inner", None)
+    if inner is not None:  # SpheresProblem: attributes live on the wrapped InferenceProblem
+        return type(problem)(replace(inner, layout=layout))
+    out = copy.copy(problem)
+    out.layout = layout
+    return out
+
+
+def state_parameters(target, x: torch.Tensor, source, linear: torch.Tensor, angular: torch.Tensor) -> torch.Tensor:
+    """Parameters (B, P') of layout ``target`` (``source`` with both velocity blocks free) for the
+    start of parameters x (B, P) of layout ``source`` with the given velocities (B, 3) m/s, rad/s."""
+    parts, i = [], 0
+    if source.free["position"]:
+        a = len(source.position_axes)
+        parts.append(x[:, i:i + a])
+        i += a
+    if source.free["orientation"]:
+        parts.append(x[:, i:i + 3])
+        i += 3
+    parts.append(linear / target.scale["linear_velocity"])
+    parts.append(angular / target.scale["angular_velocity"])
+    return torch.cat(parts, -1)
