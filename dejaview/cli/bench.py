@@ -160,6 +160,34 @@ def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
                optimizers=optimizers, scene=scene, csv_path=csv_path)
 
 
+@command.command("heatmap")
+@click.option("--scene", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Scene [default: examples/scenes/ball_down_ramp.xml].")
+@click.option("--cells", default="16x16", show_default=True, help="Grid NXxNY.")
+@click.option("--samples", default=4, show_default=True, type=click.IntRange(min=1))
+@click.option("--iterations", default=30, show_default=True, type=click.IntRange(min=1))
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1))
+@click.option("--batch-size", default=1024, show_default=True, type=click.IntRange(min=1))
+@click.option("--serial", default=8, show_default=True, type=int,
+              help="Candidates run one at a time for the comparison (-1: all, 0: none).")
+@click.option("--quick", is_flag=True, help="4x4 cells, 1 sample, 2 iterations, 1 serial (smoke test).")
+@csv_option
+def heatmap(scene, cells, samples, iterations, workers, batch_size, serial, quick, csv_path):
+    """Time of a 16 x 16 x 4 heatmap, batched versus one at a time, and the ratio (target: < 5 min)."""
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    try:
+        nx, ny = (int(v) for v in cells.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"expected NXxNY, got {cells!r}", param_hint="--cells") from None
+    if quick:
+        nx, ny, samples, iterations, serial = 4, 4, 1, 2, 1
+    bench_module("heatmap").run(print_fn=click.echo, scene=scene, cells=(nx, ny), samples=samples,
+                                iterations=iterations, workers=workers, batch_size=batch_size,
+                                serial=serial, csv_path=csv_path)
+
+
 @command.command("backends")
 @click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
               help="Comma-separated iteration counts to report the best loss at.")

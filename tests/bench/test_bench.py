@@ -119,3 +119,14 @@ def test_cli_rejects_bad_iterations():
     result = CliRunner().invoke(command, ["optimizers", "--iterations", "0,x"])
     assert result.exit_code == 2
     assert "iterations" in result.output
+
+
+def test_heatmap_quick(tmp_path):
+    out = tmp_path / "heatmap.csv"
+    result = CliRunner().invoke(cli, ["bench", "heatmap", "--quick", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "ratio one-at-a-time / batched" in result.output
+    rows = list(csv.DictReader(out.open()))
+    names = [r["name"] for r in rows]
+    assert "batched total" in names and "one at a time per candidate" in names
+    assert all(math.isfinite(float(r["value"])) and float(r["value"]) > 0 for r in rows)
