@@ -4,7 +4,8 @@
 workers start with the app (its lifespan) and stop with it. REST errors are
 ``{"code": ..., "message": ...}`` with the status listed in
 ``dejaview.server.messages``; the OpenAPI page is at ``/docs`` and includes
-the WebSocket message schemas (``ClientMessage``, ``ServerMessage``).
+the WebSocket message schemas (``ClientMessage``, ``ServerMessage``). The web viewer is served
+at ``/`` (``dejaview.server.viewer``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from dejaview.server.messages import (
     JobStatus,
 )
 from dejaview.server.runner import ARTEFACTS, JobRunner
+from dejaview.server.viewer import add_viewer_routes
 from dejaview.server.websocket import Connection
 
 Artefact = enum.Enum("Artefact", {name.replace(".", "_"): name for name in ARTEFACTS}, type=str)
@@ -149,4 +151,5 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi
+    add_viewer_routes(app, config.scene_root)
     return app

@@ -1,0 +1,95 @@
+"""The web viewer's routes: the built app at ``/``, the scenes of the scene root, and their files.
+
+The viewer (sources in ``web/``, built by ``npm run build`` into ``dejaview/server/static``) is a
+static three.js page; it lists scenes with ``GET /scenes``, reads a scene and its meshes and sphere
+packings with ``GET /files/{path}``, and runs jobs over ``/ws``. ``/files`` serves only scene,
+mesh and packing files, and only inside the scene root, with the same resolve-then-check as job
+scenes (``dejaview.server.scenes``), so a default scene root of ``.`` exposes no other file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.staticfiles import StaticFiles
+
+from dejaview.server.errors import ServiceError
+from dejaview.server.scenes import inside, resolve_scene_path
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+SERVED_SUFFIXES = {
+    ".xml": "application/xml",
+    ".obj": "text/plain",
+    ".mtl": "text/plain",
+    ".stl": "model/stl",
+    ".ply": "application/octet-stream",
+    ".glb": "model/gltf-binary",
+    ".spheres": "text/plain",
+}
+MAX_LISTED = 2000
+SKIPPED_DIRS = {"node_modules", "__pycache__", "results"}
+
+
+def list_scenes(root: Path, limit: int = MAX_LISTED) -> list[str]:
+    """Scene files (``*.xml`` holding a ``<scene``) below ``root``, as sorted relative POSIX paths.
+
+    Hidden folders and files, symlinks that lead outside the root and files that are not scenes
+    are left out; at most ``limit`` entries.
+    """
+    found = []
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and d not in SKIPPED_DIRS)
+        for name in sorted(files):
+            if name.startswith(".") or not name.lower().endswith(".xml"):
+                continue
+            path = Path(folder) / name
+            if not inside(path, root):
+                continue
+            try:
+                with open(path, "rb") as fh:
+                    head = fh.read(4096)
+            except OSError:
+                continue
+            if b"<scene" in head:
+                found.append(path.relative_to(root).as_posix())
+                if len(found) >= limit:
+                    return sorted(found)
+    return sorted(found)
+
+
+def add_viewer_routes(app: FastAPI, root: Path) -> None:
+    """``GET /``, ``/static/*``, ``GET /scenes`` and ``GET /files/{path}`` on ``app``."""
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    async def index():
+        page = STATIC_DIR / "index.html"
+        if not page.is_file():
+            raise ServiceError("not_found", "the web viewer is not built: run 'npm run build' in web/", 404)
+        return FileResponse(page, media_type="text/html")
+
+    @app.get("/scenes", summary="Scene files in the scene root (for the web viewer)")
+    async def scenes():
+        return {"scenes": list_scenes(root)}
+
+    @app.get("/files/{path:path}", response_class=FileResponse,
+             summary="A scene, mesh or sphere packing file inside the scene root")
+    async def files(path: str):
+        suffix = Path(path).suffix.lower()
+        if suffix not in SERVED_SUFFIXES:
+            raise ServiceError("not_found", f"{path!r}: only scene, mesh and packing files are served "
+                                            f"({', '.join(sorted(SERVED_SUFFIXES))})", 404)
+        try:
+            resolved = resolve_scene_path(root, path)
+        except ServiceError as exc:
+            if exc.code == "scene_not_found":
+                raise ServiceError("not_found", f"{path!r}: no such file in the scene root", 404) from None
+            raise
+        if resolved.suffix.lower() not in SERVED_SUFFIXES:  # a link to some other kind of file
+            raise ServiceError("not_found", f"{path!r}: no such file in the scene root", 404)
+        return FileResponse(resolved, media_type=SERVED_SUFFIXES[suffix])
+
+    if STATIC_DIR.is_dir():
+        app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

@@ -1,0 +1,136 @@
+// Job results in the scene: the trajectory (a spline through the source's positions, poses over
+// time for playback) and the heatmap (a coloured decal on the surface under the start area).
+import * as THREE from 'three';
+import { DecalGeometry } from 'three/addons/geometries/DecalGeometry.js';
+
+const HEADER = 'step,time,object,x,y,z,qw,qx,qy,qz';
+
+// trajectory.csv -> {duration, objects: {id: {time: [], position: [[x,y,z]], orientation: [[w,x,y,z]]}}}
+export function parseTrajectory(csv) {
+  const lines = csv.trim().split(/\r?\n/);
+  if (lines[0].trim() !== HEADER) throw new Error(`trajectory.csv: header is not ${HEADER}`);
+  const objects = {};
+  let duration = 0;
+  for (const line of lines.slice(1)) {
+    const f = line.split(',');
+    if (f.length < 10) continue;
+    const t = Number(f[1]);
+    const track = (objects[f[2]] ??= { time: [], position: [], orientation: [] });
+    track.time.push(t);
+    track.position.push([Number(f[3]), Number(f[4]), Number(f[5])]);
+    track.orientation.push([Number(f[6]), Number(f[7]), Number(f[8]), Number(f[9])]);
+    duration = Math.max(duration, t);
+  }
+  return { duration, objects };
+}
+
+const qa = new THREE.Quaternion();
+const qb = new THREE.Quaternion();
+
+// The pose of one track at time t (linear in position, slerp in orientation), into obj3d.
+export function applyPose(track, t, obj3d) {
+  const times = track.time;
+  let hi = times.findIndex((x) => x >= t);
+  if (hi < 0) hi = times.length - 1;
+  const lo = Math.max(0, hi - 1);
+  const span = times[hi] - times[lo];
+  const u = span > 0 ? Math.min(1, Math.max(0, (t - times[lo]) / span)) : 1;
+  const a = track.position[lo];
+  const b = track.position[hi];
+  obj3d.position.set(a[0] + (b[0] - a[0]) * u, a[1] + (b[1] - a[1]) * u, a[2] + (b[2] - a[2]) * u);
+  const [aw, ax, ay, az] = track.orientation[lo];
+  const [bw, bx, by, bz] = track.orientation[hi];
+  qa.set(ax, ay, az, aw).normalize();
+  qb.set(bx, by, bz, bw).normalize();
+  obj3d.quaternion.slerpQuaternions(qa, qb, u);
+}
+
+export function trajectorySpline(track, color = 0xff7f0e) {
+  const stride = Math.max(1, Math.floor(track.position.length / 300));
+  const points = track.position.filter((_, i) => i % stride === 0 || i === track.position.length - 1)
+    .map((p) => new THREE.Vector3(...p));
+  const group = new THREE.Group();
+  group.name = 'trajectory';
+  if (points.length < 2) return group;
+  const curve = new THREE.CatmullRomCurve3(points, false, 'centripetal');
+  const tube = new THREE.Mesh(new THREE.TubeGeometry(curve, Math.min(600, points.length * 4), 0.006, 8),
+    new THREE.MeshStandardMaterial({ color, emissive: color, emissiveIntensity: 0.3 }));
+  group.add(tube);
+  const dot = new THREE.SphereGeometry(0.018, 16, 8);
+  const start = new THREE.Mesh(dot, new THREE.MeshStandardMaterial({ color: 0x2ca02c }));
+  start.position.copy(points[0]);
+  const end = new THREE.Mesh(dot, new THREE.MeshStandardMaterial({ color: 0xd62728 }));
+  end.position.copy(points[points.length - 1]);
+  group.add(start, end);
+  return group;
+}
+
+// viridis at a few stops, linearly interpolated
+const VIRIDIS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]];
+
+function colour(u) {
+  const x = Math.min(1, Math.max(0, u)) * (VIRIDIS.length - 1);
+  const i = Math.min(VIRIDIS.length - 2, Math.floor(x));
+  const f = x - i;
+  return VIRIDIS[i].map((c, k) => Math.round(c + (VIRIDIS[i + 1][k] - c) * f));
+}
+
+// heatmap.json -> an RGBA texture, row j from -y up (texture v grows with y), alpha by probability.
+export function heatmapTexture(grid) {
+  const [nx, ny] = grid.cells;
+  const p = grid.probability;
+  const peak = Math.max(1e-12, ...p.flat());
+  const data = new Uint8Array(nx * ny * 4);
+  for (let j = 0; j < ny; j++) {
+    for (let i = 0; i < nx; i++) {
+      const u = p[j][i] / peak;
+      const [r, g, b] = colour(u);
+      data.set([r, g, b, Math.round(90 + 165 * u)], (j * nx + i) * 4);
+    }
+  }
+  const texture = new THREE.DataTexture(data, nx, ny, THREE.RGBAFormat);
+  texture.magFilter = THREE.NearestFilter;
+  texture.colorSpace = THREE.SRGBColorSpace;
+  texture.needsUpdate = true;
+  return texture;
+}
+
+// The heatmap on the surface under the start area: a decal projected straight down onto the first
+// surface below the area's centre, or a flat square at that height when there is none to project on.
+// world: the z-up group holding the scene; surfaces: meshes it may land on; topZ: the start area's top.
+export function heatmapDecal(grid, world, surfaces, topZ) {
+  const [x0, y0] = grid.min;
+  const [x1, y1] = grid.max;
+  const sx = Math.max(1e-3, x1 - x0);
+  const sy = Math.max(1e-3, y1 - y0);
+  const centre = new THREE.Vector3((x0 + x1) / 2, (y0 + y1) / 2, topZ + 0.01);
+  const material = new THREE.MeshBasicMaterial({
+    map: heatmapTexture(grid), transparent: true, depthWrite: false,
+    polygonOffset: true, polygonOffsetFactor: -4, side: THREE.DoubleSide,
+  });
+  world.updateMatrixWorld(true);
+  const ray = new THREE.Raycaster(world.localToWorld(centre.clone()),
+    new THREE.Vector3(0, 0, -1).transformDirection(world.matrixWorld));
+  const hit = ray.intersectObjects(surfaces, true)[0];
+  let mesh;
+  if (hit && hit.object.isMesh && !hit.object.isInstancedMesh) {
+    // project along the scene's -z: the projector's z axis is the scene's z (the world group's y)
+    const q = world.getWorldQuaternion(new THREE.Quaternion());
+    const orientation = new THREE.Euler().setFromQuaternion(q);
+    const depth = Math.max(sx, sy) + 0.5;
+    const geometry = new DecalGeometry(hit.object, hit.point, orientation, new THREE.Vector3(sx, sy, depth));
+    if (geometry.attributes.position.count > 0) {
+      mesh = new THREE.Mesh(geometry, material);
+      world.attach(mesh); // the decal's vertices are in world coordinates
+    }
+  }
+  if (!mesh) {
+    mesh = new THREE.Mesh(new THREE.PlaneGeometry(sx, sy), material);
+    const z = hit ? world.worldToLocal(hit.point.clone()).z + 0.002 : 0.002;
+    mesh.position.set(centre.x, centre.y, z);
+    world.add(mesh);
+  }
+  mesh.name = 'heatmap';
+  mesh.renderOrder = 2;
+  return mesh;
+}

@@ -1,0 +1,209 @@
+// Scene XML (shared/spec/scene-format.md) read into a small model that keeps its DOM, so an
+// edited scene is written back with everything the viewer does not touch (comments, backend
+// attributes of <simulation>, penalties, exploration) exactly as it was.
+
+const XML_HEADER = '<?xml version="1.0" encoding="UTF-8"?>\n';
+
+// The declaration, then the document's top-level nodes (comments, <scene>) one per line.
+// (Browsers differ on whether XMLSerializer writes the declaration itself, so it never does here.)
+function serialize(doc) {
+  const serializer = new XMLSerializer();
+  return XML_HEADER + [...doc.childNodes].map((n) => serializer.serializeToString(n)).join('\n') + '\n';
+}
+
+export function numbers(text, fallback) {
+  if (text == null || text.trim() === '') return fallback;
+  return text.trim().split(/\s+/).map(Number);
+}
+
+// Six decimals (micrometres, micro-radians), no exponent, no "-0".
+export function fmt(x) {
+  const s = Number(Number(x).toFixed(6)).toString();
+  return s === '-0' ? '0' : s;
+}
+
+const vec = (values) => values.map(fmt).join(' ');
+
+function child(el, tag) {
+  for (const c of el.children) if (c.tagName === tag) return c;
+  return null;
+}
+
+function ensureChild(el, tag, attrs = {}) {
+  let c = child(el, tag);
+  if (!c) {
+    c = el.ownerDocument.createElementNS(null, tag);
+    for (const [k, v] of Object.entries(attrs)) c.setAttribute(k, v);
+    el.appendChild(c);
+  }
+  return c;
+}
+
+function normalizePath(path) {
+  const out = [];
+  for (const part of path.split('/')) {
+    if (part === '' || part === '.') continue;
+    if (part === '..' && out.length && out[out.length - 1] !== '..') out.pop();
+    else out.push(part);
+  }
+  return out.join('/');
+}
+
+export class SceneModel {
+  // text: the XML; origin: the scene's path inside the server's scene root ('' for an upload).
+  constructor(text, origin = '') {
+    const doc = new DOMParser().parseFromString(text, 'application/xml');
+    const bad = doc.getElementsByTagName('parsererror')[0];
+    if (bad) throw new Error(`not well-formed XML: ${bad.textContent.trim().split('\n')[0]}`);
+    if (doc.documentElement.tagName !== 'scene') {
+      throw new Error(`the root element is <${doc.documentElement.tagName}>, not <scene>`);
+    }
+    this.doc = doc;
+    this.root = doc.documentElement;
+    this.origin = origin;
+    this.name = this.root.getAttribute('name') || origin || 'scene';
+    this.objects = [...this.root.children].filter((e) => e.tagName === 'object').map((el) => {
+      const pose = child(el, 'pose');
+      return {
+        id: el.getAttribute('id'),
+        el,
+        shape: el.getAttribute('shape'),
+        mesh: el.getAttribute('mesh'),
+        spheres: el.getAttribute('spheres'),
+        size: numbers(el.getAttribute('size'), [1, 1, 1]),
+        radius: Number(el.getAttribute('radius') ?? 0.5),
+        height: Number(el.getAttribute('height') ?? 1),
+        position: numbers(pose?.getAttribute('position'), [0, 0, 0]),
+        orientation: numbers(pose?.getAttribute('orientation'), [1, 0, 0, 0]),
+      };
+    });
+  }
+
+  object(id) {
+    return this.objects.find((o) => o.id === id) || null;
+  }
+
+  isFixed(id) {
+    return this.object(id)?.el.getAttribute('fixed') === 'true';
+  }
+
+  setFixed(id, fixed) {
+    const obj = this.object(id);
+    if (fixed) obj.el.setAttribute('fixed', 'true');
+    else obj.el.removeAttribute('fixed');
+  }
+
+  // position: [x, y, z]; orientation: [w, x, y, z].
+  setPose(id, position, orientation) {
+    const obj = this.object(id);
+    obj.position = [...position];
+    obj.orientation = [...orientation];
+    const pose = ensureChild(obj.el, 'pose');
+    pose.setAttribute('position', vec(position));
+    pose.setAttribute('orientation', vec(orientation));
+  }
+
+  get inference() {
+    return child(this.root, 'inference');
+  }
+
+  get source() {
+    return this.inference?.getAttribute('source') || null;
+  }
+
+  // Make `id` the source; a scene without <inference> gets one, its target where the object is.
+  setSource(id) {
+    const obj = this.object(id);
+    let inf = this.inference;
+    if (!inf) {
+      inf = this.doc.createElementNS(null, 'inference');
+      this.root.appendChild(inf);
+    }
+    inf.setAttribute('source', id);
+    ensureChild(inf, 'target', { position: vec(obj.position), orientation: vec(obj.orientation) });
+    this.setFixed(id, false);
+  }
+
+  get target() {
+    const t = this.inference && child(this.inference, 'target');
+    if (!t) return null;
+    return {
+      position: numbers(t.getAttribute('position'), [0, 0, 0]),
+      orientation: numbers(t.getAttribute('orientation'), [1, 0, 0, 0]),
+    };
+  }
+
+  setTarget(position, orientation) {
+    const t = ensureChild(this.inference, 'target');
+    t.setAttribute('position', vec(position));
+    t.setAttribute('orientation', vec(orientation));
+  }
+
+  get startArea() {
+    const a = this.inference && child(this.inference, 'start-area');
+    if (!a) return null;
+    return { min: numbers(a.getAttribute('min')), max: numbers(a.getAttribute('max')) };
+  }
+
+  // The inference settings the panel edits; '' means "the default" (attribute absent).
+  get settings() {
+    const inf = this.inference;
+    const heat = inf && child(inf, 'heatmap');
+    return {
+      iterations: Number(inf?.getAttribute('iterations') || 200),
+      optimizer: inf?.getAttribute('optimizer') || 'lbfgs',
+      gradient: inf?.getAttribute('gradient') || '',
+      heatmap: Boolean(heat),
+      cells: numbers(heat?.getAttribute('cells'), [32, 32]),
+    };
+  }
+
+  setSettings({ iterations, optimizer, gradient, heatmap, cells }) {
+    const inf = this.inference;
+    if (!inf) throw new Error('choose a source first: the scene has no <inference>');
+    if (iterations !== undefined) inf.setAttribute('iterations', String(Math.max(1, Math.round(iterations))));
+    if (optimizer !== undefined) inf.setAttribute('optimizer', optimizer);
+    if (gradient !== undefined) {
+      if (gradient) inf.setAttribute('gradient', gradient);
+      else inf.removeAttribute('gradient');
+    }
+    if (heatmap === false) child(inf, 'heatmap')?.remove();
+    if (heatmap || (cells && child(inf, 'heatmap'))) {
+      const heat = ensureChild(inf, 'heatmap', { cells: '32 32' });
+      if (cells) heat.setAttribute('cells', cells.map((c) => String(Math.max(1, Math.round(c)))).join(' '));
+      if (!child(inf, 'start-area')) {
+        // a heatmap needs a start area: +-0.25 m around the source's set-up position
+        const p = this.object(this.source).position;
+        ensureChild(inf, 'start-area', {
+          min: vec([p[0] - 0.25, p[1] - 0.25, p[2]]),
+          max: vec([p[0] + 0.25, p[1] + 0.25, p[2]]),
+        });
+      }
+    }
+  }
+
+  // The scene as the user would save it: file names as written, relative to the scene's folder.
+  toXml() {
+    return serialize(this.doc);
+  }
+
+  // A file name of the scene as a path inside the scene root (how the server resolves scene_xml).
+  rootPath(name) {
+    if (name.startsWith('/') || /^[A-Za-z]:/.test(name)) return name;
+    const dir = this.origin.includes('/') ? this.origin.slice(0, this.origin.lastIndexOf('/') + 1) : '';
+    return normalizePath(dir + name);
+  }
+
+  // The scene as a job's scene_xml: mesh and packing names rewritten relative to the scene root.
+  toServerXml() {
+    const doc = this.doc.cloneNode(true);
+    for (const el of doc.documentElement.children) {
+      if (el.tagName !== 'object') continue;
+      for (const attr of ['mesh', 'spheres']) {
+        const name = el.getAttribute(attr);
+        if (name) el.setAttribute(attr, this.rootPath(name));
+      }
+    }
+    return serialize(doc);
+  }
+}

@@ -1,0 +1,72 @@
+// WebXR: the "Enter VR" button, and two controllers that grab and move objects (trigger) and
+// start a solve (squeeze).
+import * as THREE from 'three';
+import { VRButton } from 'three/addons/webxr/VRButton.js';
+
+export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, onSolve }) {
+  renderer.xr.enabled = true;
+  const button = VRButton.createButton(renderer);
+  document.body.appendChild(button);
+
+  const state = { sessions: 0, grabs: 0, releases: 0, solves: 0, held: [null, null] };
+  renderer.xr.addEventListener('sessionstart', () => { state.sessions += 1; });
+
+  const raycaster = new THREE.Raycaster();
+  const rayGeometry = new THREE.BufferGeometry().setFromPoints([new THREE.Vector3(), new THREE.Vector3(0, 0, -1)]);
+  const controllers = [0, 1].map((index) => {
+    const controller = renderer.xr.getController(index);
+    const ray = new THREE.Line(rayGeometry, new THREE.LineBasicMaterial({ color: 0xffaa55 }));
+    ray.scale.z = 3;
+    controller.add(ray);
+    const grip = new THREE.Mesh(new THREE.SphereGeometry(0.015, 12, 8),
+      new THREE.MeshStandardMaterial({ color: 0xffaa55 }));
+    controller.add(grip);
+    scene.add(controller);
+
+    controller.addEventListener('selectstart', () => {
+      raycaster.setFromXRController(controller);
+      const hits = raycaster.intersectObjects(grabbable(), true);
+      const hit = hits.find((h) => h.object.visible);
+      if (!hit) return;
+      let group = hit.object;
+      while (group.parent && group.parent !== world) group = group.parent;
+      if (group.parent !== world) return;
+      onGrab(group);
+      controller.attach(group); // keeps its world pose; follows the controller from now on
+      state.held[index] = group;
+      state.grabs += 1;
+    });
+    controller.addEventListener('selectend', () => {
+      const group = state.held[index];
+      if (!group) return;
+      world.attach(group);
+      state.held[index] = null;
+      state.releases += 1;
+      onRelease(group);
+    });
+    controller.addEventListener('squeezestart', () => {
+      state.solves += 1;
+      try {
+        onSolve();
+      } catch (err) {
+        console.error(err);
+      }
+    });
+    return controller;
+  });
+
+  return {
+    button,
+    controllers,
+    update() {},
+    state: () => ({
+      presenting: renderer.xr.isPresenting,
+      sessions: state.sessions,
+      grabs: state.grabs,
+      releases: state.releases,
+      solves: state.solves,
+      holding: state.held.map((g) => g?.userData.objectId ?? null),
+      button: button.textContent,
+    }),
+  };
+}
