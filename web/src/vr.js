@@ -8,7 +8,7 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
   const button = VRButton.createButton(renderer);
   document.body.appendChild(button);
 
-  const state = { sessions: 0, grabs: 0, releases: 0, solves: 0, held: [null, null] };
+  const state = { sessions: 0, connected: 0, selects: 0, grabs: 0, releases: 0, solves: 0, held: [null, null] };
   renderer.xr.addEventListener('sessionstart', () => { state.sessions += 1; });
 
   const raycaster = new THREE.Raycaster();
@@ -23,7 +23,10 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
     controller.add(grip);
     scene.add(controller);
 
+    controller.addEventListener('connected', () => { state.connected += 1; });
+    controller.addEventListener('disconnected', () => { state.connected -= 1; });
     controller.addEventListener('selectstart', () => {
+      state.selects += 1;
       raycaster.setFromXRController(controller);
       const hits = raycaster.intersectObjects(grabbable(), true);
       const hit = hits.find((h) => h.object.visible);
@@ -62,6 +65,9 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
     state: () => ({
       presenting: renderer.xr.isPresenting,
       sessions: state.sessions,
+      connected: state.connected,
+      selects: state.selects,
+      controllers: controllers.map((c) => c.getWorldPosition(new THREE.Vector3()).toArray()),
       grabs: state.grabs,
       releases: state.releases,
       solves: state.solves,
