@@ -2,7 +2,7 @@
 Debian's chromium driven by Playwright (``executable_path``; no browser is ever downloaded).
 
 Screenshots go to ``$DEJAVIEW_TEST_ARTIFACTS/web`` (default ``out/test-artifacts/web`` in the
-repository). Without ``/usr/bin/chromium`` (``apt-get install chromium``; ``scripts/setup``
+repository). Without ``/usr/bin/chromium`` (``apt-get install chromium``; ``scripts/setup-browser``
 installs it when it can) or the ``playwright`` package the tests are skipped, saying which.
 """
 
@@ -26,7 +26,7 @@ CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ig
 
 def _why_no_browser() -> str | None:
     if not CHROMIUM.is_file():
-        return f"{CHROMIUM} is missing (apt-get install chromium; scripts/setup does it as root)"
+        return f"{CHROMIUM} is missing (apt-get install chromium; scripts/setup-browser does it as root)"
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
