@@ -133,3 +133,17 @@ def test_a_bad_scene_is_reported_not_fatal(page, web_server):
     errors = [n["text"] for n in state(page)["notifications"] if n["kind"] == "error"]
     assert any("limit_exceeded" in e for e in errors), errors
     assert state(page)["connected"]
+
+
+def test_upload_a_scene_with_its_mesh_and_packing(page, web_server, web_root):
+    """The file input takes the XML with its files; names resolve by file name; packings toggle."""
+    open_viewer(page, web_server)
+    page.set_input_files("#upload", [str(web_root / "scenes" / "toss.xml"),
+                                     str(web_root / "meshes" / "cube.obj"),
+                                     str(web_root / "packings" / "cube.spheres")])
+    page.wait_for_function("(s => s.origin === '' && s.meshesLoaded === 4)(window.dejaview.state())")
+    s = state(page)
+    assert s["scene"] == "web-toss" and s["packings"] == {"cube": {"spheres": 8, "visible": False}}
+    page.check("#show-spheres")
+    assert state(page)["packings"]["cube"]["visible"]
+    assert not [n for n in s["notifications"] if n["kind"] == "error"]

@@ -663,6 +663,8 @@ window.dejaview = {
     origin: app.model?.origin ?? null,
     objects: app.model ? app.model.objects.map((o) => o.id) : [],
     meshesLoaded: [...app.nodes.values()].filter((n) => n.visual).length,
+    packings: Object.fromEntries([...app.nodes].filter(([, n]) => n.packing)
+      .map(([id, n]) => [id, { spheres: n.packing.count, visible: n.packing.visible }])),
     source: app.model?.source ?? null,
     target: app.model?.target ?? null,
     selected: app.selected,
