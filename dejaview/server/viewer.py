@@ -30,6 +30,7 @@ SERVED_SUFFIXES = {
     ".spheres": "text/plain",
 }
 MAX_LISTED = 2000
+MAX_VISITED = 20_000  # files looked at: a huge scene root answers with what was found by then
 SKIPPED_DIRS = {"node_modules", "__pycache__", "results"}
 
 
@@ -37,11 +38,15 @@ def list_scenes(root: Path, limit: int = MAX_LISTED) -> list[str]:
     """Scene files (``*.xml`` holding a ``<scene``) below ``root``, as sorted relative POSIX paths.
 
     Hidden folders and files, symlinks that lead outside the root and files that are not scenes
-    are left out; at most ``limit`` entries.
+    are left out; at most ``limit`` entries, from at most ``MAX_VISITED`` files looked at.
     """
     found = []
+    visited = 0
     for folder, dirs, files in os.walk(root, followlinks=False):
         dirs[:] = sorted(d for d in dirs if not d.startswith(".") and d not in SKIPPED_DIRS)
+        visited += len(files)
+        if visited > MAX_VISITED:
+            break
         for name in sorted(files):
             if name.startswith(".") or not name.lower().endswith(".xml"):
                 continue
