@@ -5,7 +5,7 @@
     python bench/heatmap.py --serial 0          # batched only
 
 Batched: ``compute_heatmap`` as the CLI runs it (all candidates of a chunk as
-one batch, ``--batch-size`` candidates per chunk, ``--workers`` threads running
+one batch, ``--batch-size`` candidates per chunk, ``--workers`` processes running
 chunks at once), the whole pipeline (optimisation, deduplication, basin
 measurement, weighting).
 
@@ -107,7 +107,7 @@ def run(print_fn=print, scene=None, cells=(16, 16), samples=4, iterations=30, wo
     rows.append({"name": "batched total", "value": batched, "unit": "s",
                  "note": f"{len(result.solutions)} distinct solutions, entropy {result.entropy_bits():.2f} bits"})
     rows.append({"name": "batched CPU time", "value": cpu, "unit": "s",
-                 "note": "all threads; on a busy machine wall time >> CPU time / workers"})
+                 "note": "this process only (not the worker processes)"})
     rows.append({"name": "batched optimisation", "value": optimise, "unit": "s", "note": ""})
     rows.append({"name": "batched per candidate", "value": optimise / total, "unit": "s",
                  "note": "optimisation phase / candidates"})

@@ -35,7 +35,7 @@ def _cells(ctx, param, value):
 @click.option("--batch-size", type=click.IntRange(min=1), default=1024, show_default=True,
               help="candidates per batched optimisation")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="threads optimising chunks at once (default: the CPU count, at most 2 per chunk split)")
+              help="processes optimising chunks at once (default: the CPU count, at most 2)")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
 def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_plot, backend, iterations,

@@ -25,7 +25,6 @@ probabilities: see ``dejaview.heatmap.weighting`` for the formula.
 from __future__ import annotations
 
 import math
-import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -204,8 +203,11 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         batch_size: candidates per batched optimisation (whole cells per chunk). Rollouts of
             small bodies are bound by per-op overhead, so one large batch is much cheaper than
             several small ones; memory grows with it.
-        workers: threads optimising chunks at once (torch releases the GIL inside ops, so two
-            threads keep two cores busy); the cells are split into at least this many chunks.
+        workers: processes optimising chunks at once (1: in this process). Threads do not
+            help (the per-op Python overhead holds the GIL: 2 threads measured 34.5 s vs 36.2 s
+            for 1); each worker process is spawned and rebuilds the problem from the scene with
+            the backend's defaults (a few seconds), so use them for large grids. The cells are
+            split into at least this many chunks.
         radii, directions: robustness perturbations (m/s, ascending; directions per radius).
         velocity_tol, spin_tol, position_tol: deduplication tolerances.
         callback: called with a ``HeatmapProgress`` after every iteration.
@@ -274,7 +276,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     given = layout.encode().to(dtype)
     n_pos = len(layout.position_axes)
     given[:, :n_pos] = 0.0
-    # every chunk's first guesses drawn here, in order, so results do not depend on the threads
+    # every chunk's first guesses drawn here, in order, so results do not depend on the workers
     guesses = []
     for chunk in chunks:
         idx = torch.tensor(chunk, dtype=torch.long).repeat_interleave(samples)
@@ -285,41 +287,34 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         x0[first] = given.expand(int(first.sum()), -1)
         guesses.append((idx, chunk_layout, x0))
 
-    lock = threading.Lock()
     history = []
     state = {"iteration": 0, "best": math.inf, "cells_done": 0}
 
-    def run_chunk(ci):
-        idx, chunk_layout, x0 = guesses[ci]
-        chunk_problem = with_layout(problem, chunk_layout)
+    def progress(ci, p):
+        state["best"] = min(state["best"], p.best_loss)
+        hp = HeatmapProgress(iteration=state["iteration"], loss=p.loss, best_loss=state["best"],
+                             elapsed_s=time.perf_counter() - t_start, cells_done=state["cells_done"],
+                             cells_total=num_cells, chunk=ci, chunks=len(chunks))
+        state["iteration"] += 1
+        history.append(replace(p, iteration=hp.iteration, best_loss=state["best"]))
+        if callback is not None:
+            callback(hp)
 
-        def progress(p):
-            with lock:
-                state["best"] = min(state["best"], p.best_loss)
-                hp = HeatmapProgress(iteration=state["iteration"], loss=p.loss, best_loss=state["best"],
-                                     elapsed_s=time.perf_counter() - t_start, cells_done=state["cells_done"],
-                                     cells_total=num_cells, chunk=ci, chunks=len(chunks))
-                state["iteration"] += 1
-                history.append(replace(p, iteration=hp.iteration, best_loss=state["best"]))
-                if callback is not None:
-                    callback(hp)
-
-        opt = optimize(chunk_problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
-                       gradient=gradient, lr=lr, epsilon=0.0, callback=progress,
-                       should_stop=should_stop, report=objective_to_loss, seed=seed + ci)
-        if opt.stopped:
-            raise InferenceError(f"heatmap stopped after {state['cells_done']} of {num_cells} cells")
-        with lock:
-            state["cells_done"] += len(chunks[ci])
-        return idx, opt.candidate_x, opt.candidate_loss, chunk_layout.lo, chunk_layout.hi
-
+    opts = dict(optimizer=optimizer, iterations=iterations, gradient=gradient, lr=lr, seed=seed)
     if workers > 1 and len(chunks) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="heatmap") as pool:
-            outcomes = list(pool.map(run_chunk, range(len(chunks))))
+        results = _chunks_in_processes(scene, problem.backend, guesses, opts, workers, progress, should_stop,
+                                       state, chunks)
     else:
-        outcomes = [run_chunk(ci) for ci in range(len(chunks))]
+        results = []
+        for ci, (idx, chunk_layout, x0) in enumerate(guesses):
+            results.append(optimise_chunk(with_layout(problem, chunk_layout), x0, ci, opts,
+                                          lambda p, _ci=ci: progress(_ci, p), should_stop))
+            if results[-1][2]:
+                break
+            state["cells_done"] += len(chunks[ci])
+    if any(stopped for _, _, stopped in results) or len(results) < len(chunks):
+        raise InferenceError(f"heatmap stopped after {state['cells_done']} of {num_cells} cells")
+    outcomes = [(g[0], r[0], r[1], g[1].lo, g[1].hi) for g, r in zip(guesses, results)]
     all_cell, all_x, all_loss, all_lo, all_hi = (list(v) for v in zip(*outcomes))
     best_loss = state["best"]
     iteration = state["iteration"]
@@ -401,9 +396,72 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                          seconds=time.perf_counter() - t_start)
 
 
+def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, should_stop):
+    """One chunk's batched optimisation: (candidate_x (K, P), candidate_loss (K,), stopped)."""
+    from dejaview.inference.optimize import optimize
+    from dejaview.inference.problem import objective_to_loss
+
+    opt = optimize(problem.objective_and_grad, x0, optimizer=opts["optimizer"], iterations=opts["iterations"],
+                   gradient=opts["gradient"], lr=opts["lr"], epsilon=0.0, callback=callback,
+                   should_stop=should_stop, report=objective_to_loss, seed=opts["seed"] + ci)
+    return opt.candidate_x, opt.candidate_loss, opt.stopped
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(scene, backend: str) -> None:
+    """Process-pool initialiser: one torch thread, the scene's problem built once per process."""
+    torch.set_num_threads(1)
+    from dejaview.backends import make_problem
+
+    _WORKER["problem"] = make_problem(scene, backend)
+
+
+def _worker_chunk(ci: int, lo: torch.Tensor, hi: torch.Tensor, x0: torch.Tensor, opts: dict, queue, stop):
+    problem = _WORKER["problem"]
+    chunk = with_layout(problem, replace(problem.layout, lo=lo, hi=hi))
+    return optimise_chunk(chunk, x0, ci, opts, lambda p: queue.put((ci, p)), stop.is_set)
+
+
+def _chunks_in_processes(scene, backend, guesses, opts, workers, progress, should_stop, state, chunks):
+    """Optimise the chunks in a pool of ``workers`` processes (spawned; each builds the problem from the
+    scene once); progress comes back through a queue and is reported from this thread."""
+    import multiprocessing
+    import queue as queue_mod
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Manager() as manager:
+        q, stop = manager.Queue(), manager.Event()
+        with ProcessPoolExecutor(max_workers=min(workers, len(guesses)), mp_context=ctx,
+                                 initializer=_worker_init, initargs=(scene, backend)) as pool:
+            futures = [pool.submit(_worker_chunk, ci, layout.lo, layout.hi, x0, opts, q, stop)
+                       for ci, (_, layout, x0) in enumerate(guesses)]
+            pending = set(range(len(futures)))
+            while pending:
+                try:
+                    ci, p = q.get(timeout=0.1)
+                    progress(ci, p)
+                except queue_mod.Empty:
+                    pass
+                if should_stop is not None and should_stop():
+                    stop.set()
+                for ci in [c for c in pending if futures[c].done()]:
+                    pending.discard(ci)
+                    futures[ci].result()  # raise a worker's error here
+                    state["cells_done"] += len(chunks[ci])
+            while True:  # the last progress messages
+                try:
+                    progress(*q.get_nowait())
+                except queue_mod.Empty:
+                    break
+            return [f.result() for f in futures]
+
+
 def with_layout(problem, layout):
     """A problem like ``problem`` (``dejaview.backends`` interface) with another parameter layout,
-    leaving ``problem`` untouched (chunks run in threads at once)."""
+    leaving ``problem`` untouched."""
     import copy
 
     inner = getattr(problem, "inner", None)

@@ -130,3 +130,14 @@ def test_cli_heatmap_writes_the_files(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "dejaview", "heatmap", SCENES / "ball_down_ramp.xml",
                           "-o", out, "--cells", "2by2"], capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "NXxNY" in bad.stderr
+
+
+def test_worker_processes_give_the_same_heatmap_as_one_process():
+    scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
+    kw = dict(cells=(2, 2), samples=2, iterations=2, radii=(0.01, 0.05), directions=2)
+    one = compute_heatmap(scene, workers=1, **kw)
+    progress = []
+    two = compute_heatmap(scene, workers=2, callback=progress.append, **kw)
+    np.testing.assert_allclose(two.probability, one.probability, rtol=1e-9, atol=1e-12)
+    assert two.best.loss == pytest.approx(one.best.loss, rel=1e-9)
+    assert progress[-1].cells_done == 4 and {p.chunk for p in progress} == {0, 1}
