@@ -90,7 +90,7 @@ def run(print_fn=print, scene=None, cells=(16, 16), samples=4, iterations=30, wo
     say(f"heatmap bench: {path.name}, {nx} x {ny} cells x {samples} samples = {total} optimisations, "
         f"{iterations} Adam iterations each, reverse mode")
     say(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op thread(s), {workers} worker "
-        f"thread(s), batch {batch_size}; {_load()}")
+        f"process(es), batch {batch_size}; {_load()}")
     rows = []
     t0 = time.perf_counter()
     c0 = time.process_time()
