@@ -63,7 +63,7 @@ def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_p
 
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
-                             batch_size=batch_size, workers=workers, callback=progress)
+                             batch_size=batch_size, workers=workers, callback=progress, backend=backend)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)

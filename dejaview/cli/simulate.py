@@ -32,6 +32,9 @@ def command(scene, out_dir, steps, record_every, float32, backend, iterations, o
     if steps is not None and steps < 1:
         raise click.BadParameter("must be >= 1", param_hint="--steps")
     sc = Scene.from_xml(scene)
+    if backend == "warp":
+        _simulate_warp(sc, out_dir, steps, record_every, quiet)
+        return
     bar = tqdm(desc="simulate", unit="step", disable=not show_progress(quiet))
 
     def progress(done, total):
@@ -46,3 +49,23 @@ def command(scene, out_dir, steps, record_every, float32, backend, iterations, o
     if not quiet:
         click.echo(f"simulated {run.steps} steps ({run.steps * run.world.dt:.3f} s) of "
                    f"{len(run.world.names)} bodies in {run.elapsed_s:.2f} s -> {path}")
+
+
+def _simulate_warp(scene, out_dir, steps, record_every, quiet) -> None:
+    """``--backend warp``: the scene forward in NVIDIA Warp (``dejaview.backends.warp.simulate_scene``)."""
+    import time
+
+    from dejaview.backends import WARP_MISSING, warp_available
+    from dejaview.errors import SimulationError
+    from dejaview.io.trajectory import write_trajectory_csv
+
+    if not warp_available():
+        raise SimulationError(WARP_MISSING)
+    from dejaview.backends.warp import simulate_scene
+
+    start = time.perf_counter()
+    frames, traj = simulate_scene(scene, steps=steps, record_every=record_every)
+    path = write_trajectory_csv(out_dir / "trajectory.csv", frames, traj)
+    if not quiet:
+        n = int(traj.steps[-1])
+        click.echo(f"simulated {n} steps in Warp in {time.perf_counter() - start:.2f} s -> {path}")

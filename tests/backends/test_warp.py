@@ -172,3 +172,15 @@ def test_solve_an_example_scene_with_warp():
     end, _ = result.final_pose()
     target = Scene.from_xml(scene).inference.target.position
     assert np.linalg.norm(np.subtract(end, target)) < 0.01
+
+
+def test_cli_simulate_with_warp_rests_the_dropped_ball_where_spheres_does(tmp_path):
+    for backend in ("warp", "spheres"):
+        with pytest.raises(SystemExit) as done:
+            main(["simulate", str(DROP), "-o", str(tmp_path / backend), "--backend", backend, "--quiet"])
+        assert done.value.code in (0, None)
+    warp = read_trajectory_csv(tmp_path / "warp" / "trajectory.csv")
+    spheres = read_trajectory_csv(tmp_path / "spheres" / "trajectory.csv")
+    assert warp["ball"]["step"][-1] == spheres["ball"]["step"][-1]
+    gap = np.asarray(warp["ball"]["position"][-1]) - np.asarray(spheres["ball"]["position"][-1])
+    assert np.linalg.norm(gap) < 0.02
