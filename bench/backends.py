@@ -25,9 +25,7 @@ contact): compare Warp's best losses with that floor in mind.
 
 from __future__ import annotations
 
-import csv
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -39,11 +37,9 @@ OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
 
 
 def _load() -> str:
-    try:
-        one, five, fifteen = os.getloadavg()
-    except OSError:
-        return "load average unknown"
-    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
+    from dejaview.cli.bench import load_average
+
+    return load_average()
 
 
 def _fmt(v: float) -> str:
@@ -152,16 +148,9 @@ def run(print_fn=print, iterations=ITERATIONS, backends=BACKENDS, optimizers=OPT
 
 def write_csv(rows: list[dict], path) -> Path:
     """Write ``run``'s rows as CSV (one column per key, blank where a row has none)."""
-    fields: dict[str, None] = {}
-    for row in rows:
-        fields.update(dict.fromkeys(row))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(fields) or ["backend"], restval="", lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
+    from dejaview.cli.bench import write_rows_csv
+
+    return write_rows_csv(rows, path)
 
 
 def parse_list(text: str, choices) -> tuple[str, ...]:

@@ -38,11 +38,9 @@ TARGET_S = 300.0
 
 
 def _load() -> str:
-    try:
-        one, five, fifteen = os.getloadavg()
-    except OSError:
-        return "load average unknown"
-    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
+    from dejaview.cli.bench import load_average
+
+    return load_average()
 
 
 def serial_seconds(scene, cells, samples, iterations, count, seed=0) -> tuple[float, int]:

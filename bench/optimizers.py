@@ -33,7 +33,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -77,11 +76,9 @@ def make_default_scene() -> Path:
 
 
 def _load() -> str:
-    try:
-        one, five, fifteen = os.getloadavg()
-    except OSError:
-        return "load average unknown"
-    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
+    from dejaview.cli.bench import load_average
+
+    return load_average()
 
 
 def _fmt(v: float) -> str:

@@ -119,11 +119,9 @@ def _best_time(fn, repeats: int = 1) -> float:
 
 
 def _load() -> str:
-    try:
-        one, five, fifteen = os.getloadavg()
-    except OSError:
-        return "load average unknown"
-    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
+    from dejaview.cli.bench import load_average
+
+    return load_average()
 
 
 def _compile_offered() -> bool:

@@ -41,6 +41,17 @@ def bench_module(name: str):
     return sys.modules[key]
 
 
+def load_average() -> str:
+    """``load average 1 5 15 (N CPUs)`` for benchmark headers (machines are shared: say how busy)."""
+    import os
+
+    try:
+        one, five, fifteen = os.getloadavg()
+    except OSError:
+        return "load average unknown"
+    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
+
+
 def write_rows_csv(rows: list[dict], path) -> Path:
     """Write benchmark rows as CSV: one column per key (first-seen order), blank where absent."""
     fields: dict[str, None] = {}
