@@ -701,16 +701,11 @@ class WarpProblem:
             InferenceError: as ``InferenceProblem.from_scene``, plus ``<penalty>`` terms.
         """
         from dejaview.inference.params import layout_from_scene
+        from dejaview.inference.problem import check_inference
         from dejaview.losses.pose import DEFAULT_ORIENTATION_WEIGHT, SMOOTH_EPS
         from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
 
-        inf = scene.inference
-        if inf is None:
-            raise InferenceError("the scene has no <inference> section: nothing to solve")
-        if not inf.optimize.any():
-            raise InferenceError("<optimize> frees no part of the initial state: nothing to solve")
-        if any(o.id == inf.source and o.fixed for o in scene.objects):
-            raise InferenceError(f"source {inf.source!r} is fixed; the source must be movable")
+        inf = check_inference(scene)
         if inf.penalties:
             raise InferenceError("the warp backend does not support <penalty> terms; use --backend spheres")
         if isinstance(max_envs, bool) or not isinstance(max_envs, int) or max_envs < 1:

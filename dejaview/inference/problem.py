@@ -74,14 +74,7 @@ class InferenceProblem:
         """
         from dejaview.sim.build import initial_state
 
-        inf = scene.inference
-        if inf is None:
-            raise InferenceError("the scene has no <inference> section: nothing to solve")
-        if not inf.optimize.any():
-            raise InferenceError("<optimize> frees no part of the initial state: nothing to solve")
-        # before building the world: a fixed source may leave it with no movable body at all
-        if any(o.id == inf.source and o.fixed for o in scene.objects):
-            raise InferenceError(f"source {inf.source!r} is fixed; the source must be movable")
+        inf = check_inference(scene)
         world = world if world is not None else World.from_scene(scene, dtype=dtype)
         try:
             src = world.body_index(inf.source)
@@ -185,6 +178,23 @@ class InferenceProblem:
         """
         loss, grad = self.value_and_grad(x, mode)
         return 0.5 * loss * loss, loss.unsqueeze(-1) * grad
+
+
+def check_inference(scene):
+    """The scene's ``<inference>``, after the checks every backend makes before building anything.
+
+    Raises:
+        InferenceError: no inference section, nothing free, or a fixed source (checked before
+            a world is built: a fixed source may leave it with no movable body at all).
+    """
+    inf = scene.inference
+    if inf is None:
+        raise InferenceError("the scene has no <inference> section: nothing to solve")
+    if not inf.optimize.any():
+        raise InferenceError("<optimize> frees no part of the initial state: nothing to solve")
+    if any(o.id == inf.source and o.fixed for o in scene.objects):
+        raise InferenceError(f"source {inf.source!r} is fixed; the source must be movable")
+    return inf
 
 
 def objective_to_loss(value: float) -> float:
