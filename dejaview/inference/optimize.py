@@ -154,6 +154,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
     evaluations = 0
 
     cache = {}
+    shown = report or (lambda v: v)
 
     def evaluate(xv):
         # L-BFGS re-evaluates the point its line search ended on: reuse that result
@@ -221,7 +222,6 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
                 restarted = True
         last = closure.last
         current = float(last.min()) if last is not None else math.nan
-        shown = report or (lambda v: v)
         prog = Progress(iteration=it, loss=shown(current), best_loss=shown(best_loss),
                         duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - start,
                         restarted=restarted, evaluations=evaluations)
@@ -230,7 +230,6 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
             callback(prog)
         if tolerance is not None and prog.best_loss <= tolerance:
             break
-    shown = report or (lambda v: v)
     return OptimizationResult(x=best_x, loss=shown(best_loss), history=history,
                               best_index=best_index, stopped=stopped, candidate_x=keep_x,
                               candidate_loss=torch.tensor([shown(float(v)) for v in keep_loss],

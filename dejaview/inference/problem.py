@@ -108,17 +108,8 @@ class InferenceProblem:
     # ----------------------------------------------------------------- rollout
     def initial_state(self, x: torch.Tensor) -> State:
         """State (B, N, ...) with the source's initial state from parameters x (B, P)."""
-        return self.initial_state_from_source(self.layout.decode(x))
-
-    def initial_state_from_source(self, s: dict[str, torch.Tensor]) -> State:
-        """State (B, N, ...) with the source's initial state given directly.
-
-        Args:
-            s: ``position`` (B, 3) object-frame origin, ``orientation`` (B, 4),
-                ``linear_velocity`` (B, 3), ``angular_velocity`` (B, 3)
-                (what ``ParameterLayout.decode`` returns).
-        """
-        b = s["position"].shape[0]
+        s = self.layout.decode(x)
+        b = x.shape[0]
         # the source alone (World.state wants every body): object-frame origin -> centre of mass
         q = normalize_quat(s["orientation"])
         com = quat_rotate(q, self.world.com[self.source].expand_as(s["position"]))
