@@ -70,6 +70,7 @@ this means the target is met well inside the criteria (3 mm, 3.4 degrees)."""
 POSITION_TOL = 0.01
 ANGLE_TOL = 5.0
 MULTISTART = 1
+SCREEN = 0
 MAX_EVALUATIONS = 60
 COARSE_BOX = ROOT / "tests" / "fixtures" / "inference" / "box_coarse.spheres"
 
@@ -260,7 +261,8 @@ def pose_errors(result) -> dict:
 
 def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLERANCE,
                multistart: int = MULTISTART, optimizer: str | None = None,
-               max_evaluations: int = MAX_EVALUATIONS, callback=None) -> dict:
+               max_evaluations: int = MAX_EVALUATIONS, screen: int = SCREEN, compile: bool = False,
+               callback=None) -> dict:
     """Draw, simulate and solve one case; the row of the table (``callback``: solve's)."""
     from dejaview.inference import solve
 
@@ -274,7 +276,7 @@ def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLE
 
     t0 = time.perf_counter()
     result = solve(scene, iterations=iterations, tolerance=tolerance, multistart=multistart,
-                   optimizer=optimizer, callback=progress,
+                   optimizer=optimizer, callback=progress, screen=screen, compile=compile,
                    should_stop=lambda: spent[0] >= max_evaluations)
     seconds = time.perf_counter() - t0
     errors = pose_errors(result)
@@ -292,7 +294,7 @@ def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLE
         "evaluations": history[-1].evaluations if history else 0, "seconds": seconds,
         "record_time_s": errors["record_time_s"], "duration_s": scene.simulation.duration,
         "optimizer": result.settings["optimizer"], "gradient": result.settings["gradient"],
-        "multistart": multistart, "out_of_budget": result.optimization.stopped, "truth_draws": draws,
+        "multistart": multistart, "screen": screen, "out_of_budget": result.optimization.stopped, "truth_draws": draws,
         "truth": json.dumps({k: truth[k] for k in ("position", "orientation", "linear", "angular")}),
         "solution": json.dumps(result.initial_state),
     }
@@ -392,6 +394,9 @@ def main(argv=None) -> int:
     parser.add_argument("--multistart", type=int, default=MULTISTART)
     parser.add_argument("--optimizer", default=None, help="override the scenes' optimizer")
     parser.add_argument("--max-evaluations", type=int, default=MAX_EVALUATIONS)
+    parser.add_argument("--screen", type=int, default=SCREEN,
+                        help="random guesses ranked by loss before optimising (solve's screen)")
+    parser.add_argument("--compile", action="store_true", help="compiled rollouts (solve's compile)")
     parser.add_argument("--verbose", action="store_true", help="print every iteration")
     args = parser.parse_args(argv)
     cases = args.cases.split(",") if args.cases else None
@@ -402,7 +407,8 @@ def main(argv=None) -> int:
 
     rows = run(cases=cases, csv_path=args.csv, iterations=args.iterations, tolerance=args.tolerance,
                multistart=args.multistart, optimizer=args.optimizer,
-               max_evaluations=args.max_evaluations, callback=show if args.verbose else None)
+               max_evaluations=args.max_evaluations, screen=args.screen, compile=args.compile,
+               callback=show if args.verbose else None)
     return 0 if rows and all(r["success"] for r in rows) else 1
 
 

@@ -15,6 +15,44 @@ from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, Progress
 from dejaview.inference.problem import objective_to_loss
 from dejaview.sim.integrate import Trajectory
 
+SCREEN_BATCH = 64
+"""Candidates per batch while screening (bounds memory; batching amortises the per-op overhead)."""
+
+
+def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Generator,
+                   should_stop=None, batch: int = SCREEN_BATCH) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rank initial guesses by their loss, without gradients (a cheap global step).
+
+    The guesses are ``first`` plus ``count`` random draws
+    (``problem.layout.sample``: start area, any orientation, velocities in
+    the layout's bounds), simulated in batches of ``batch`` without autograd:
+    on the mug scene one batched rollout costs ~0.3 s per candidate against
+    ~13 s for one loss + gradient at B = 1, so screening a few hundred draws
+    costs a handful of gradient evaluations and moves the start into the
+    right basin where the scene's guess tells a different story.
+
+    Args:
+        problem: a backend problem (``loss(x) -> (K,)``).
+        first: (F, P) guesses that always take part (the scene's own).
+        count: number of random draws.
+        generator: seeds the draws.
+        should_stop: polled between batches; True ends screening with what was ranked.
+    Returns:
+        guesses (M, P) sorted by loss (best first; non-finite losses last) and their losses (M,).
+    """
+    x = torch.cat([first, problem.layout.sample(count, generator).to(first.dtype)], 0)
+    losses = []
+    with torch.no_grad():
+        for chunk in x.split(batch):
+            if losses and should_stop is not None and should_stop():
+                break
+            losses.append(problem.loss(chunk).detach().to(first.dtype))
+    loss = torch.cat(losses)
+    loss = torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
+    order = torch.argsort(loss, stable=True)
+    return x[: loss.shape[0]][order], loss[order]
+
+
 def default_gradient(num_params: int) -> str:
     """The faster gradient mode for a problem (scene format: ``gradient`` defaults to it).
 
@@ -138,14 +176,19 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
-          compile: bool = False, backend: str | None = None) -> SolveResult:
+          compile: bool = False, backend: str | None = None, screen: int = 0) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
     Args:
         scene: a Scene (or a path to a scene file) with an ``<inference>`` section.
         iterations, optimizer, gradient, seed: override the scene's settings.
         lr: learning rate (default per optimiser).
-        multistart: K initial guesses run as one batch (the scene's guess plus K-1 random).
+        multistart: K initial guesses run as one batch (the scene's guess plus K-1 random,
+            or the K best screened guesses).
+        screen: rank the scene's guess and ``screen`` random guesses by their loss
+            (``screen_guesses``, no gradients) and start from the best ``multistart``;
+            epsilon-greedy restarts then take the next-best screened guesses before
+            fresh random draws. 0: no screening.
         epsilon, patience: override ``<exploration>``.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops early (cancellation).
@@ -176,6 +219,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if multistart < 1:
         raise InferenceError(f"multistart must be >= 1, got {multistart}")
+    if isinstance(screen, bool) or not isinstance(screen, int) or screen < 0:
+        raise InferenceError(f"screen must be a non-negative integer, got {screen!r}")
     seed = inf.seed if seed is None else seed
     if problem is None:
         options = {} if world is None else {"world": world}
@@ -195,13 +240,28 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     eps = epsilon if epsilon is not None else (exploration.epsilon if exploration else 0.0)
     pat = patience if patience is not None else (exploration.patience if exploration else 25)
     gen = torch.Generator().manual_seed(int(seed))
+    sample = problem.layout.sample
+    screened = 0
     if x0 is None:
-        x0 = problem.layout.encode()
-        if multistart > 1:
+        x0 = problem.layout.encode().to(problem.dtype)
+        if screen > 0:
+            ranked, _ = screen_guesses(problem, x0, max(screen, multistart - 1), gen,
+                                       should_stop=should_stop)
+            screened = ranked.shape[0]
+            x0, pool = ranked[:multistart], list(ranked[multistart:])
+
+            def sample(n, generator):
+                """Restarts: the next-best screened guesses, then fresh draws."""
+                taken = [pool.pop(0) for _ in range(min(n, len(pool)))]
+                parts = [torch.stack(taken)] if taken else []
+                if n > len(taken):
+                    parts.append(problem.layout.sample(n - len(taken), generator).to(x0.dtype))
+                return torch.cat(parts, 0)
+        elif multistart > 1:
             x0 = torch.cat([x0, problem.layout.sample(multistart - 1, gen)], 0)
     x0 = x0.to(problem.dtype)
     opt = optimize(problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
-                   gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=problem.layout.sample,
+                   gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=sample,
                    seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance,
                    report=objective_to_loss)
     if not math.isfinite(opt.loss):
@@ -213,6 +273,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
         traj = problem.simulate(best, steps=problem.duration_steps, record_every=1)
     settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
-                "backend": problem.backend, "multistart": multistart, "epsilon": eps, "patience": pat}
+                "backend": problem.backend, "multistart": multistart, "epsilon": eps, "patience": pat,
+                "screened": screened}
     return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
                        loss=opt.loss, trajectory=traj, settings=settings)

@@ -178,6 +178,30 @@ def test_no_restarts_without_epsilon():
     assert torch.equal(res.x, x0[0])
 
 
+def creeping_slope(x, mode=None):
+    """A shallow slope whose GD steps shrink the loss by 1e-4 relative per iteration
+    (loss 1 + 1e-4 x_0 from x_0 = 0 going negative): progress too small to count."""
+    value = 1.0 + 1e-4 * x[:, 0] + 0.0 * x[:, 1]
+    grad = torch.zeros_like(x)
+    grad[:, 0] = 1e-4
+    return value, grad
+
+
+def test_creeping_counts_as_a_stall_and_triggers_restarts():
+    """A candidate whose best loss falls by less than STALL_RATIO per iteration is
+    stalled: with patience 3 and epsilon 1 it restarts. Without the ratio (every
+    decrease an improvement) it would creep on and never restart."""
+    from dejaview.inference.optimize import STALL_RATIO
+
+    x0 = torch.zeros(1, 2, **F64)
+    res = optimize(creeping_slope, x0, optimizer="gd", iterations=12, lr=1.0, epsilon=1.0,
+                   patience=3, sample=sample_box(-1.0, 0.0), seed=0)
+    losses = [p.best_loss for p in res.history]
+    assert all(b < a for a, b in zip(losses, losses[1:4]))  # it does go down...
+    assert (losses[0] - losses[3]) / losses[0] < STALL_RATIO  # ...by too little
+    assert any(p.restarted for p in res.history[:5])
+
+
 def test_restarts_need_a_sampler():
     with pytest.raises(InferenceError, match="sample"):
         optimize(quadratic(), torch.zeros(1, 3, **F64), epsilon=0.5)

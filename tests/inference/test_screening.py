@@ -1,0 +1,57 @@
+"""Screening (``solve(screen=N)``): random guesses ranked by their loss before optimising."""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from dejaview.backends import as_problem, make_problem
+from dejaview.errors import InferenceError
+from dejaview.inference import solve
+from dejaview.inference.solve import screen_guesses
+from dejaview.scene import Scene
+
+ROOT = Path(__file__).resolve().parents[2]
+BALL = ROOT / "tests" / "fixtures" / "inference" / "ball_throw.xml"
+
+
+def test_screened_guesses_are_ranked_by_their_own_loss_and_keep_the_first():
+    """Every returned guess carries the loss ``problem.loss`` gives it, best first; the
+    scene's guess is among them; batches do not change the numbers."""
+    problem = as_problem(make_problem(Scene.from_xml(BALL)))
+    first = problem.layout.encode().to(problem.dtype)
+    ranked, losses = screen_guesses(problem, first, 9, torch.Generator().manual_seed(1), batch=4)
+    assert ranked.shape == (10, problem.num_params) and losses.shape == (10,)
+    assert torch.all(losses[1:] >= losses[:-1])
+    with torch.no_grad():
+        again = problem.loss(ranked)
+    torch.testing.assert_close(again, losses, rtol=1e-10, atol=1e-12)
+    assert any(torch.equal(row, first[0]) for row in ranked)
+
+
+def test_a_stop_request_ends_screening_with_what_was_ranked():
+    problem = as_problem(make_problem(Scene.from_xml(BALL)))
+    first = problem.layout.encode().to(problem.dtype)
+    ranked, losses = screen_guesses(problem, first, 9, torch.Generator().manual_seed(1), batch=4,
+                                    should_stop=lambda: True)
+    assert ranked.shape[0] == losses.shape[0] == 4  # the first batch only
+
+
+def test_solve_starts_from_the_best_screened_guess():
+    """The first evaluation of a screened solve is the best screened loss, which beats the
+    scene's own guess here; result settings say how many guesses were screened."""
+    scene = Scene.from_xml(BALL)
+    plain = solve(scene, iterations=1, optimizer="adam")
+    screened = solve(scene, iterations=1, optimizer="adam", screen=15)
+    problem = as_problem(make_problem(scene))
+    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
+                               torch.Generator().manual_seed(scene.inference.seed))
+    assert screened.settings["screened"] == 16 and plain.settings["screened"] == 0
+    assert screened.iterations[0].loss == pytest.approx(float(losses[0]), rel=1e-9)
+    assert screened.iterations[0].loss < plain.iterations[0].loss
+
+
+@pytest.mark.parametrize("bad", [-1, True, 2.5])
+def test_bad_screen_counts_are_one_line_errors(bad):
+    with pytest.raises(InferenceError, match="screen must be a non-negative integer"):
+        solve(Scene.from_xml(BALL), iterations=1, screen=bad)
