@@ -15,6 +15,8 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
               required=True, help="output folder (created)")
 @click.option("--multistart", type=int, default=1, show_default=True,
               help="initial guesses run as one batch")
+@click.option("--screen", type=click.IntRange(min=0), default=0, show_default=True,
+              help="rank this many random guesses by loss (no gradients) and start from the best")
 @click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
 @click.option("--compile", "use_compile", is_flag=True,
@@ -22,7 +24,7 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, multistart, lr, plot, use_compile, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
+def command(scene, out_dir, multistart, screen, lr, plot, use_compile, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the initial state of SCENE's source object; write result.json, iterations.csv
     and trajectory.csv (the best solution re-simulated) to DIR."""
     from tqdm import tqdm
@@ -42,7 +44,7 @@ def command(scene, out_dir, multistart, lr, plot, use_compile, tolerance, backen
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
-                   lr=lr, multistart=multistart, callback=progress, tolerance=tolerance,
+                   lr=lr, multistart=multistart, screen=screen, callback=progress, tolerance=tolerance,
                    compile=use_compile, backend=backend)
     bar.close()
     paths = result.write(out_dir, plot=plot)

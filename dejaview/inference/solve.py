@@ -117,6 +117,8 @@ class SolveResult:
             "loss_kind": self.problem.loss_kind,
             "evaluate": self.problem.evaluate,
             "seed": self.settings.get("seed", 0),
+            "multistart": self.settings.get("multistart", 1),
+            "screened": self.settings.get("screened", 0),
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,

@@ -70,7 +70,7 @@ class Overrides(_Strict):
 
     simulate: ``steps``, ``record_every``; solve: ``iterations``,
     ``optimizer``, ``gradient``, ``seed``, ``lr``, ``multistart``,
-    ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
+    ``screen``, ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
     ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to solve and heatmap.
     """
 
@@ -81,6 +81,7 @@ class Overrides(_Strict):
     seed: Annotated[int, Field(ge=0, lt=2**63)] | None = None
     lr: Annotated[float, Field(gt=0)] | None = None
     multistart: Annotated[int, Field(ge=1, le=64)] | None = None
+    screen: Annotated[int, Field(ge=0, le=1024)] | None = None
     tolerance: Annotated[float, Field(ge=0)] | None = None
     steps: Annotated[int, Field(ge=1)] | None = None
     record_every: Annotated[int, Field(ge=1)] | None = None
@@ -97,7 +98,7 @@ class Overrides(_Strict):
 OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
     "simulate": frozenset({"steps", "record_every"}),
     "solve": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "lr", "multistart",
-                        "tolerance"}),
+                        "screen", "tolerance"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",
                           "sigma"}),
 }

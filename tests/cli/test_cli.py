@@ -62,7 +62,16 @@ def test_solve_writes_results(tmp_path):
     assert data["loss"] < 0.01
 
 
+def test_solve_screens_random_guesses(tmp_path):
+    """``--screen 5``: the scene's guess and 5 random ones are ranked before optimising."""
+    result = run_cli("solve", BALL, "-o", tmp_path, "--quiet", "--iterations", "1", "--screen", "5")
+    assert result.returncode == 0, result.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["screened"] == 6 and data["multistart"] == 1
+
+
 @pytest.mark.parametrize("args, needle", [
+    (["solve", BALL, "--screen", "-1"], "screen"),
     (["solve", BALL, "--optimizer", "newton"], "newton"),
     (["solve", BALL, "--iterations", "0"], "iterations"),
     (["simulate", FIXTURES / "scenes" / "broken" / "nan-position.xml"], "nan-position.xml:"),

@@ -65,14 +65,15 @@ def test_simulate_job_by_path(client):
 
 def test_solve_job_from_xml_text_with_overrides(client):
     job_id = submit(client, kind="solve", scene_xml=BALL_XML,
-                    overrides={"iterations": 2, "optimizer": "gd", "seed": 3})
+                    overrides={"iterations": 2, "optimizer": "gd", "seed": 3, "screen": 3})
     status = wait_state(client, job_id)
     assert status["state"] == "done", status
-    assert status["overrides"] == {"iterations": 2, "optimizer": "gd", "seed": 3}
+    assert status["overrides"] == {"iterations": 2, "optimizer": "gd", "seed": 3, "screen": 3}
     assert status["scene"]["scene_xml"].endswith("bytes>")
     assert {"trajectory.csv", "result.json", "iterations.csv"} <= set(status["artefacts"])
     result = client.get(f"/jobs/{job_id}/result.json").json()
     assert result["optimizer"] == "gd" and len(result["iterations"]) == 2
+    assert result["screened"] == 4
     assert status["summary"]["loss"] == pytest.approx(result["loss"])
     assert client.get(f"/jobs/{job_id}/iterations.csv").text.startswith("iteration,loss")
 
@@ -148,6 +149,7 @@ def test_full_queue_answers_503(make_client):
     ({"kind": "solve", "scene_path": 7}, 422, "invalid_message"),
     ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"iterations": -1}}, 422, "invalid_message"),
     ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"bogus": 1}}, 422, "invalid_message"),
+    ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"screen": -1}}, 422, "invalid_message"),
     ({"kind": "solve", "scene_path": "ball.xml", "overrides": {"iterations": 100000}}, 422, "limit_exceeded"),
     ({"kind": "solve", "scene_path": "drop.xml"}, 422, "invalid_scene"),
     ({"kind": "solve", "scene_xml": "<scene"}, 422, "invalid_scene"),
