@@ -24,6 +24,7 @@ long optimisations, heatmaps and benchmarks.
 
 from __future__ import annotations
 
+import types
 from dataclasses import dataclass
 
 import torch
@@ -149,6 +150,12 @@ def compiled_chunk(world: World, steps: int):
                 out.extend(s.tensors())
             return tuple(out)
 
+        # a code object of its own per (world, steps): dynamo keeps its cache, and its limit of
+        # ``torch._dynamo.config.recompile_limit`` (8) recompiles, per code object, and each World
+        # is a recompile of the same closure; a process compiling for a ninth World (a recovery
+        # suite, a long-lived worker) would otherwise fall back to eager without a word
+        chunk = types.FunctionType(chunk.__code__.replace(), chunk.__globals__, chunk.__name__,
+                                   chunk.__defaults__, chunk.__closure__)
         _COMPILED[key] = (world, torch.compile(chunk, dynamic=False, fullgraph=True))
     return _COMPILED[key][1]
 
