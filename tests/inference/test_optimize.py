@@ -279,3 +279,25 @@ def test_a_nan_candidate_does_not_poison_the_others(optimizer):
                          lr=LR.get(optimizer))
         assert res.loss == alone.loss
         assert torch.equal(res.x, alone.x)
+
+
+def misleading_cone(x, mode=None):
+    """|x| with a gradient pointing uphill: no line search can find a decrease."""
+    value = x.abs().sum(-1) + 1.0
+    return value, -torch.sign(x)
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "bfgs"])
+def test_a_point_where_line_searches_keep_failing_is_a_stall(optimizer):
+    """Two failed line searches in a row (the second from steepest descent) mark the
+    candidate stalled at once: with epsilon = 1 it restarts after the second failed
+    search (iteration 2; iteration 0 improves on nothing yet), not only after
+    ``patience`` iterations of wasted line searches."""
+    x0 = torch.tensor([[0.5, -0.3]], **F64)
+    res = optimize(misleading_cone, x0, optimizer=optimizer, iterations=4, epsilon=1.0, patience=50,
+                   sample=sample_box(-1.0, 1.0), seed=0)
+    flags = [p.restarted for p in res.history]
+    assert flags[:3] == [False, False, True]
+    no_restart = optimize(misleading_cone, x0, optimizer=optimizer, iterations=4, patience=50,
+                          sample=sample_box(-1.0, 1.0), seed=0)
+    assert torch.equal(no_restart.x, x0[0])  # without restarts it never leaves
