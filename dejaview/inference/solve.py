@@ -64,6 +64,15 @@ def default_gradient(num_params: int) -> str:
     mode (bench/sim.py: 61 s vs 12.8 s on the reference mug scene). Reverse mode is therefore the default for
     every size; forward mode stays available (``gradient="forward"``) and
     gives the same gradients.
+
+    Why (measured, torch 2.13 CPU, one thread): an op between a tangent-carrying
+    tensor and a constant (a World tensor, a Python number) gives the constant
+    a zero tangent (an "efficient zero tensor"), whose kernels size their
+    output through the Python meta registrations (``torch._refs``): ``x * c``
+    costs ~1.5 ms under ``torch.func.jvp`` against ~80 us for ``x * x`` and
+    ~20 us without AD; plain ``torch.autograd.forward_ad`` dual tensors behave
+    the same (1.7 ms, 60 us with ``c`` made dual). Nearly every op of a step
+    has a constant operand.
     """
     del num_params
     return "reverse"
