@@ -153,14 +153,6 @@ def write_csv(rows: list[dict], path) -> Path:
     return write_rows_csv(rows, path)
 
 
-def parse_list(text: str, choices) -> tuple[str, ...]:
-    items = tuple(v for v in text.replace(" ", "").split(",") if v)
-    bad = [v for v in items if v not in choices]
-    if not items or bad:
-        raise ValueError(f"expected a comma-separated list of {', '.join(choices)}, got {text!r}")
-    return items
-
-
 def main(argv=None) -> int:
     import argparse
 
@@ -175,14 +167,14 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", default=None, help="write the rows as CSV")
     args = parser.parse_args(argv)
     sys.path.insert(0, str(ROOT))
+    from dejaview.cli.bench import parse_counts, parse_names
     from dejaview.cli.options import configure_torch
     from dejaview.errors import DejaViewError
 
     configure_torch()
     try:
-        counts = tuple(int(v) for v in args.iterations.split(","))
-        run(iterations=counts, backends=parse_list(args.backends, BACKENDS),
-            optimizers=parse_list(args.optimizers, OPTIMIZERS), scene=args.scene, csv_path=args.csv,
+        run(iterations=parse_counts(args.iterations), backends=parse_names(args.backends, BACKENDS),
+            optimizers=parse_names(args.optimizers, OPTIMIZERS), scene=args.scene, csv_path=args.csv,
             warp_options={"integrator": args.integrator} if args.integrator else None)
     except (ValueError, DejaViewError) as exc:
         print(f"error: {exc}", file=sys.stderr)

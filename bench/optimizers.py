@@ -175,17 +175,6 @@ def write_csv(rows: list[dict], path) -> Path:
     return path
 
 
-def parse_iterations(text: str) -> tuple[int, ...]:
-    """``"100,500,1000"`` -> (100, 500, 1000)."""
-    try:
-        counts = tuple(int(v) for v in text.replace(" ", "").split(",") if v)
-    except ValueError:
-        raise ValueError(f"iterations must be comma-separated integers, got {text!r}") from None
-    if not counts or min(counts) < 1:
-        raise ValueError(f"iterations must be positive integers, got {text!r}")
-    return counts
-
-
 def main(argv=None) -> int:
     import argparse
 
@@ -202,11 +191,17 @@ def main(argv=None) -> int:
     if args.make_scene:
         print(make_default_scene())
         return 0
+    from dejaview.cli.bench import parse_counts, parse_names
     from dejaview.cli.options import configure_torch
 
     configure_torch()
-    run(iterations=parse_iterations(args.iterations), modes=tuple(args.modes.split(",")),
-        optimizers=tuple(args.optimizers.split(",")), scene=args.scene, csv_path=args.csv)
+    try:
+        iterations = parse_counts(args.iterations)
+        modes, optimizers = parse_names(args.modes, MODES), parse_names(args.optimizers, OPTIMIZERS)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    run(iterations=iterations, modes=modes, optimizers=optimizers, scene=args.scene, csv_path=args.csv)
     return 0
 
 

@@ -9,9 +9,13 @@ initial state of its source (seeded; inside the scene's start area; with
 velocities that keep the scene's story, e.g. the ball still rolls off the
 table: each draw is simulated and redrawn until the story holds), simulates it
 with DejaView and gives the solver only the source's final pose as the
-``<target>``. The solver starts from the scene's own initial guess (the pose a
-robot might assume), with the scene's optimiser and loss, for at most
-``ITERATIONS`` iterations with an early stop at ``TOLERANCE``.
+``<target>``. The solver (``dejaview.solve`` with the scene's optimiser and
+loss) first ranks the scene's own guess (the pose a robot might assume) and
+``SCREEN`` random guesses by their loss, without gradients, and starts from
+the best; when the best loss stalls for ``PATIENCE`` iterations it restarts
+with probability ``EPSILON`` (decaying) from the next-best screened guess.
+It runs at most ``ITERATIONS`` iterations with an early stop at ``TOLERANCE``,
+with compiled rollouts (``COMPILE``).
 
 Success: the best solution, re-simulated, comes within ``POSITION_TOL`` (1 cm)
 and ``ANGLE_TOL`` (5 degrees) of the target pose, both measured at the
@@ -41,6 +45,7 @@ touched) keep the suite within about half an hour on two CPU cores:
 Budget: at most ``ITERATIONS`` iterations and ``MAX_EVALUATIONS`` loss +
 gradient evaluations per case (L-BFGS's line search may take several per
 iteration), whichever comes first; a case that runs out is a failure.
+Screening evaluates losses only and is not counted; its time is in ``seconds``.
 
 Rows (one per case): ``case``, ``scene``, ``success``, ``position_error_m``,
 ``angle_error_deg``, ``start_error_m``, ``loss``, ``iterations``,

@@ -66,13 +66,40 @@ def write_rows_csv(rows: list[dict], path) -> Path:
     return path
 
 
+def parse_names(text: str, choices) -> tuple[str, ...]:
+    """``"gd, adam"`` -> ("gd", "adam"), each one of ``choices``.
+
+    Raises:
+        ValueError: empty, or a name not in ``choices``.
+    """
+    items = tuple(v for v in text.replace(" ", "").split(",") if v)
+    bad = [v for v in items if v not in choices]
+    if not items or bad:
+        raise ValueError(f"expected a comma-separated list of {', '.join(choices)}, got {text!r}")
+    return items
+
+
+def parse_counts(text: str) -> tuple[int, ...]:
+    """``"100,500,1000"`` -> (100, 500, 1000).
+
+    Raises:
+        ValueError: empty, not integers, or not positive.
+    """
+    try:
+        counts = tuple(int(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 1:
+        raise ValueError(f"expected comma-separated positive integers (e.g. 100,500,1000), got {text!r}")
+    return counts
+
+
 def _comma_list(choices):
     def convert(ctx, param, value):
-        items = tuple(v for v in value.replace(" ", "").split(",") if v)
-        bad = [v for v in items if v not in choices]
-        if not items or bad:
-            raise click.BadParameter(f"expected a comma-separated list of {', '.join(choices)}")
-        return items
+        try:
+            return parse_names(value, choices)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc)) from None
     return convert
 
 
@@ -80,12 +107,9 @@ def _iterations(ctx, param, value):
     if value is None:
         return None
     try:
-        counts = tuple(int(v) for v in value.replace(" ", "").split(",") if v)
-    except ValueError:
-        counts = ()
-    if not counts or min(counts) < 1:
-        raise click.BadParameter("expected comma-separated positive integers, e.g. 100,500,1000")
-    return counts
+        return parse_counts(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 csv_option = click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
