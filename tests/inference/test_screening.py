@@ -55,3 +55,23 @@ def test_solve_starts_from_the_best_screened_guess():
 def test_bad_screen_counts_are_one_line_errors(bad):
     with pytest.raises(InferenceError, match="screen must be a non-negative integer"):
         solve(Scene.from_xml(BALL), iterations=1, screen=bad)
+
+
+def test_restarts_take_the_next_best_screened_guesses_in_order():
+    """GD with a zero step never moves, so every iteration stalls; with epsilon 1 and
+    patience 1 each restart must bring in the next screened guess: the losses seen are
+    the screened ranking, best first."""
+    scene = Scene.from_xml(BALL)
+    iterations = []
+    result = solve(scene, iterations=200, optimizer="gd", lr=0.0, screen=15, epsilon=1.0, patience=1,
+                   callback=iterations.append, should_stop=lambda: len(iterations) >= 12)
+    problem = as_problem(make_problem(scene))
+    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
+                               torch.Generator().manual_seed(scene.inference.seed))
+    seen = []
+    for p in iterations:
+        if not seen or abs(p.loss - seen[-1]) > 1e-12:
+            seen.append(p.loss)
+    assert len(seen) >= 4
+    assert seen == pytest.approx(losses[:len(seen)].tolist(), rel=1e-9)
+    assert result.loss == pytest.approx(float(losses[0]), rel=1e-9)
