@@ -168,6 +168,22 @@ def packing(max_spheres, csv_path, check):
     _finish(rows, csv_path, check, [rows[-1]["ok"]] if rows else [])
 
 
+@command.command("profile")
+@click.option("--scene", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Scene file (default: examples/scenes/mug_thrown.xml).")
+@click.option("--steps", type=click.IntRange(min=1), default=None, help="Rollout length (default: the scene's).")
+@click.option("--compile", "use_compile", is_flag=True, help="Compiled rollouts (first compile excluded).")
+@click.option("--mode", type=click.Choice(["reverse", "forward"]), default="reverse", show_default=True)
+@click.option("--rows", type=click.IntRange(min=1), default=20, show_default=True)
+def profile(scene, steps, use_compile, mode, rows):
+    """Where one loss + gradient spends its time (torch.profiler, top ops by self time)."""
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    bench_module("op_profile").run(scene=scene, steps=steps, compile=use_compile, mode=mode, rows=rows,
+                                print_fn=click.echo)
+
+
 @command.command("optimizers")
 @click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
               help="Comma-separated iteration counts to report the best loss at.")

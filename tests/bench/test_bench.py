@@ -130,3 +130,9 @@ def test_heatmap_quick(tmp_path):
     names = [r["name"] for r in rows]
     assert "batched total" in names and "one at a time per candidate" in names
     assert all(math.isfinite(float(r["value"])) and float(r["value"]) > 0 for r in rows)
+
+
+def test_profile_reports_time_per_evaluation_and_the_top_ops():
+    out = bench_module("op_profile").run(steps=3, rows=5, print_fn=None)
+    assert out["seconds_per_evaluation"] > 0 and out["warmup_s"] > 0
+    assert "Self CPU" in out["table"]
