@@ -207,8 +207,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         x_before = x.detach().clone()
         evals_before = evaluations
         opt.step(closure)
-        stuck = optimizer in ("lbfgs", "bfgs") and torch.equal(x.detach(), x_before)
-        if stuck:
+        if optimizer in ("lbfgs", "bfgs") and torch.equal(x.detach(), x_before):
             # a failed line search leaves x where it was and would fail the same way again:
             # drop the curvature history so the next step starts from steepest descent
             opt = make_optimizer(optimizer, [x], p, lr)
@@ -226,7 +225,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         if failed and failed_before:
             # two in a row: a kink of the loss (a contact that starts or ends) where more line
             # searches only burn evaluations; the candidates are stalled now
-            since_improved = torch.maximum(since_improved, torch.full_like(since_improved, patience))
+            since_improved = since_improved.clamp(min=patience)
         failed_before = failed
         restarted = False
         if epsilon > 0:

@@ -141,9 +141,8 @@ def _solve(scene, overrides, out_dir, progress, stop):
 
     total = overrides.get("iterations", scene.inference.iterations)
     kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "gradient", "seed", "lr", "tolerance",
-                                        "backend") if k in overrides}
-    result = solve(scene, multistart=overrides.get("multistart", 1), screen=overrides.get("screen", 0),
-                   callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
+                                        "backend", "multistart", "screen") if k in overrides}
+    result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
     if stop.reason is not None:
         raise JobStopped(stop.reason)
     paths = result.write(out_dir)
