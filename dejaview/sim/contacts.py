@@ -238,12 +238,17 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     stick = weight.reshape(b, p, s1, s2) / (inv_mass * h)
     ft = friction_force(vt, mu_p[None, :, None, None] * fn, stick)
     f_b = fn.unsqueeze(-1) * n + ft  # on b
-    fa_tot = -f_b.sum((2, 3))
     fb_tot = f_b.sum((2, 3))
     ta = torch.linalg.cross(arm_a, -f_b, dim=-1).sum((2, 3))
     tb = torch.linalg.cross(arm_b, f_b, dim=-1).sum((2, 3))
-    force = force.index_add(1, ia, fa_tot).index_add(1, ib, fb_tot)
-    torque = torque.index_add(1, ia, ta).index_add(1, ib, tb)
+    # scatter to the bodies through one-hot incidence matrices (P, N), not ``index_add``:
+    # inductor (torch 2.13) miscompiled the index_add of a training graph of two substeps
+    # (forward values off by 1e-3 at the first body-pair contact; tests/sim/test_compile.py)
+    n_bodies = state.position.shape[1]
+    one_a = torch.nn.functional.one_hot(ia, n_bodies).to(fb_tot.dtype)
+    one_b = torch.nn.functional.one_hot(ib, n_bodies).to(fb_tot.dtype)
+    force = force + torch.einsum("bpk,pn->bnk", fb_tot, one_b - one_a)
+    torque = torque + torch.einsum("bpk,pn->bnk", ta, one_a) + torch.einsum("bpk,pn->bnk", tb, one_b)
     return force, torque
 
 
