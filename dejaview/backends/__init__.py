@@ -50,6 +50,28 @@ def warp_available() -> bool:
     return True
 
 
+def simulate_warp(scene, out_dir, steps: int | None = None, record_every: int = 1):
+    """Run a scene forward in Warp and write ``out_dir/trajectory.csv`` (``dejaview simulate
+    --backend warp`` and the service's simulate jobs).
+
+    Returns:
+        (path of trajectory.csv, Trajectory with states (T, 1, N, ...), body names (N,)).
+    Raises:
+        SimulationError: Warp is not installed.
+    """
+    from pathlib import Path
+
+    from dejaview.errors import SimulationError
+    from dejaview.io.trajectory import write_trajectory_csv
+
+    if not warp_available():
+        raise SimulationError(WARP_MISSING)
+    from dejaview.backends.warp import simulate_scene
+
+    frames, traj = simulate_scene(scene, steps=steps, record_every=record_every)
+    return write_trajectory_csv(Path(out_dir) / "trajectory.csv", frames, traj), traj, frames.names
+
+
 def make_problem(scene, backend: str = "spheres", **options):
     """The inference problem of a scene's ``<inference>`` on one backend.
 

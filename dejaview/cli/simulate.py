@@ -52,20 +52,13 @@ def command(scene, out_dir, steps, record_every, float32, backend, iterations, o
 
 
 def _simulate_warp(scene, out_dir, steps, record_every, quiet) -> None:
-    """``--backend warp``: the scene forward in NVIDIA Warp (``dejaview.backends.warp.simulate_scene``)."""
+    """``--backend warp``: the scene forward in NVIDIA Warp (``dejaview.backends.simulate_warp``)."""
     import time
 
-    from dejaview.backends import WARP_MISSING, warp_available
-    from dejaview.errors import SimulationError
-    from dejaview.io.trajectory import write_trajectory_csv
-
-    if not warp_available():
-        raise SimulationError(WARP_MISSING)
-    from dejaview.backends.warp import simulate_scene
+    from dejaview.backends import simulate_warp
 
     start = time.perf_counter()
-    frames, traj = simulate_scene(scene, steps=steps, record_every=record_every)
-    path = write_trajectory_csv(out_dir / "trajectory.csv", frames, traj)
+    path, traj, _ = simulate_warp(scene, out_dir, steps=steps, record_every=record_every)
     if not quiet:
         n = int(traj.steps[-1])
         click.echo(f"simulated {n} steps in Warp in {time.perf_counter() - start:.2f} s -> {path}")

@@ -71,7 +71,7 @@ class Overrides(_Strict):
     simulate: ``steps``, ``record_every``; solve: ``iterations``,
     ``optimizer``, ``gradient``, ``seed``, ``lr``, ``multistart``,
     ``screen``, ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
-    ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to solve and heatmap.
+    ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to all three.
     """
 
     backend: Literal["spheres", "warp"] | None = None
@@ -96,7 +96,7 @@ class Overrides(_Strict):
 
 
 OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
-    "simulate": frozenset({"steps", "record_every"}),
+    "simulate": frozenset({"backend", "steps", "record_every"}),
     "solve": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "lr", "multistart",
                         "screen", "tolerance"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",

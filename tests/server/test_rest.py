@@ -7,6 +7,7 @@ import time
 
 import pytest
 
+from dejaview.backends import warp_available
 from dejaview.io.trajectory import HEADER, read_trajectory_csv
 from dejaview.server.runner import ARTEFACTS
 
@@ -53,6 +54,7 @@ def test_simulate_job_by_path(client):
     status = wait_state(client, job_id)
     assert status["state"] == "done", status
     assert status["summary"]["steps"] == 20 and status["summary"]["bodies"] == ["ball"]
+    assert status["summary"]["backend"] == "spheres"
     assert status["progress"]["iteration"] == status["progress"]["total"] == 20
     assert status["scene"] == {"scene_path": "ball.xml"}
     assert set(status["artefacts"]) == {"trajectory.csv"}
@@ -61,6 +63,18 @@ def test_simulate_job_by_path(client):
     traj = read_trajectory_csv(response.text)
     assert response.text.splitlines()[0] == ",".join(HEADER)
     assert traj["ball"]["position"][-1][0] == pytest.approx(0.1, abs=1e-9)  # 0.5 m/s for 0.2 s
+
+
+@pytest.mark.skipif(not warp_available(), reason="the warp backend needs warp-lang (the warp extra)")
+def test_simulate_job_on_the_warp_backend(client):
+    job_id = submit(client, kind="simulate", scene_path="ball.xml", overrides={"backend": "warp"})
+    status = wait_state(client, job_id, timeout=120.0)
+    assert status["state"] == "done", status
+    assert status["summary"]["backend"] == "warp" and status["summary"]["steps"] == 20
+    assert status["progress"]["iteration"] == status["progress"]["total"] == 20
+    traj = read_trajectory_csv(client.get(status["artefacts"]["trajectory.csv"]).text)
+    assert traj["ball"]["position"][-1][0] == pytest.approx(0.1, abs=1e-3)  # 0.5 m/s for 0.2 s
+    assert traj["ball"]["position"][-1][2] == pytest.approx(0.4 - 0.5 * 9.81 * 0.2 ** 2, abs=0.01)
 
 
 def test_solve_job_from_xml_text_with_overrides(client):
