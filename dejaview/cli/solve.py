@@ -17,6 +17,8 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
               help="initial guesses run as one batch")
 @click.option("--screen", type=click.IntRange(min=0), default=0, show_default=True,
               help="rank this many random guesses by loss (no gradients) and start from the best")
+@click.option("--screen-rounds", type=click.IntRange(min=1), default=1, show_default=True,
+              help="rounds of screening; later rounds draw around the best so far (cross-entropy method)")
 @click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
 @click.option("--compile", "use_compile", is_flag=True,
@@ -24,7 +26,7 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, multistart, screen, lr, plot, use_compile, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
+def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_compile, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the initial state of SCENE's source object; write result.json, iterations.csv
     and trajectory.csv (the best solution re-simulated) to DIR."""
     from tqdm import tqdm
@@ -44,7 +46,8 @@ def command(scene, out_dir, multistart, screen, lr, plot, use_compile, tolerance
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
-                   lr=lr, multistart=multistart, screen=screen, callback=progress, tolerance=tolerance,
+                   lr=lr, multistart=multistart, screen=screen, screen_rounds=screen_rounds,
+                   callback=progress, tolerance=tolerance,
                    compile=use_compile, backend=backend)
     bar.close()
     paths = result.write(out_dir, plot=plot)

@@ -20,7 +20,8 @@ SCREEN_BATCH = 64
 
 
 def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Generator,
-                   should_stop=None, batch: int = SCREEN_BATCH) -> tuple[torch.Tensor, torch.Tensor]:
+                   should_stop=None, batch: int = SCREEN_BATCH, rounds: int = 1,
+                   elite: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Rank initial guesses by their loss, without gradients (a cheap global step).
 
     The guesses are ``first`` plus ``count`` random draws
@@ -31,26 +32,52 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
     costs a handful of gradient evaluations and moves the start into the
     right basin where the scene's guess tells a different story.
 
+    ``rounds > 1`` refines the ranking by the cross-entropy method: each further
+    round draws ``count`` guesses from a normal distribution (diagonal, in the
+    scaled parameters) fitted to the ``elite`` best guesses so far (default
+    ``max(4, count // 8)``), so the search narrows onto the most promising basin
+    where the loss is flat or kinked and a gradient step would not get far.
+
     Args:
         problem: a backend problem (``loss(x) -> (K,)``).
         first: (F, P) guesses that always take part (the scene's own).
-        count: number of random draws.
+        count: number of random draws per round.
         generator: seeds the draws.
         should_stop: polled between batches; True ends screening with what was ranked.
+        rounds: 1 + the number of cross-entropy refinements.
+        elite: guesses the refinements fit their distribution to.
     Returns:
         guesses (M, P) sorted by loss (best first; non-finite losses last) and their losses (M,).
     """
-    x = torch.cat([first, problem.layout.sample(count, generator).to(first.dtype)], 0)
-    losses = []
-    with torch.no_grad():
-        for chunk in x.split(batch):
-            if losses and should_stop is not None and should_stop():
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        raise InferenceError(f"screen rounds must be a positive integer, got {rounds!r}")
+    elite = max(4, count // 8) if elite is None else int(elite)
+    guesses, losses = [], []
+    stopped = False
+    for r in range(rounds):
+        if r == 0:
+            x = torch.cat([first, problem.layout.sample(count, generator).to(first.dtype)], 0)
+        else:
+            loss = torch.cat(losses)
+            keep = torch.argsort(loss, stable=True)[:elite]
+            best = torch.cat(guesses)[keep[torch.isfinite(loss[keep])]]
+            if best.shape[0] < 2:
                 break
-            losses.append(problem.loss(chunk).detach().to(first.dtype))
-    loss = torch.cat(losses)
-    loss = torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
+            mean, std = best.mean(0), best.std(0).clamp_min(1e-3)
+            x = mean + std * torch.randn(count, first.shape[1], generator=generator, dtype=first.dtype)
+        with torch.no_grad():
+            for chunk in x.split(batch):
+                if (guesses or losses) and should_stop is not None and should_stop():
+                    stopped = True
+                    break
+                value = problem.loss(chunk).detach().to(first.dtype)
+                guesses.append(chunk)
+                losses.append(torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf)))
+        if stopped:
+            break
+    x, loss = torch.cat(guesses), torch.cat(losses)
     order = torch.argsort(loss, stable=True)
-    return x[: loss.shape[0]][order], loss[order]
+    return x[order], loss[order]
 
 
 def default_gradient(num_params: int) -> str:
@@ -187,7 +214,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
-          compile: bool = False, backend: str | None = None, screen: int = 0) -> SolveResult:
+          compile: bool = False, backend: str | None = None, screen: int = 0,
+          screen_rounds: int = 1) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
     Args:
@@ -200,6 +228,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
             (``screen_guesses``, no gradients) and start from the best ``multistart``;
             epsilon-greedy restarts then take the next-best screened guesses before
             fresh random draws. 0: no screening.
+        screen_rounds: rounds of screening, ``screen`` guesses each; rounds after the first
+            draw around the best so far (cross-entropy method, ``screen_guesses``).
         epsilon, patience: override ``<exploration>``.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops early (cancellation).
@@ -232,6 +262,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         raise InferenceError(f"multistart must be >= 1, got {multistart}")
     if isinstance(screen, bool) or not isinstance(screen, int) or screen < 0:
         raise InferenceError(f"screen must be a non-negative integer, got {screen!r}")
+    if isinstance(screen_rounds, bool) or not isinstance(screen_rounds, int) or screen_rounds < 1:
+        raise InferenceError(f"screen rounds must be a positive integer, got {screen_rounds!r}")
     seed = inf.seed if seed is None else seed
     if problem is None:
         options = {} if world is None else {"world": world}
@@ -257,7 +289,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         x0 = problem.layout.encode().to(problem.dtype)
         if screen > 0:
             ranked, _ = screen_guesses(problem, x0, max(screen, multistart - 1), gen,
-                                       should_stop=should_stop)
+                                       should_stop=should_stop, rounds=screen_rounds)
             screened = ranked.shape[0]
             x0, pool = ranked[:multistart], list(ranked[multistart:])
 

@@ -156,7 +156,8 @@ def _solve(scene, overrides, out_dir, progress, stop):
 
     total = overrides.get("iterations", scene.inference.iterations)
     kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "gradient", "seed", "lr", "tolerance",
-                                        "backend", "multistart", "screen") if k in overrides}
+                                        "backend", "multistart", "screen", "screen_rounds")
+              if k in overrides}
     result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
     if stop.reason is not None:
         raise JobStopped(stop.reason)

@@ -70,7 +70,7 @@ class Overrides(_Strict):
 
     simulate: ``steps``, ``record_every``; solve: ``iterations``,
     ``optimizer``, ``gradient``, ``seed``, ``lr``, ``multistart``,
-    ``screen``, ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
+    ``screen``, ``screen_rounds``, ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
     ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to all three.
     """
 
@@ -82,6 +82,7 @@ class Overrides(_Strict):
     lr: Annotated[float, Field(gt=0)] | None = None
     multistart: Annotated[int, Field(ge=1, le=64)] | None = None
     screen: Annotated[int, Field(ge=0, le=1024)] | None = None
+    screen_rounds: Annotated[int, Field(ge=1, le=16)] | None = None
     tolerance: Annotated[float, Field(ge=0)] | None = None
     steps: Annotated[int, Field(ge=1)] | None = None
     record_every: Annotated[int, Field(ge=1)] | None = None
@@ -98,7 +99,7 @@ class Overrides(_Strict):
 OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
     "simulate": frozenset({"backend", "steps", "record_every"}),
     "solve": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "lr", "multistart",
-                        "screen", "tolerance"}),
+                        "screen", "screen_rounds", "tolerance"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",
                           "sigma"}),
 }

@@ -75,3 +75,26 @@ def test_restarts_take_the_next_best_screened_guesses_in_order():
     assert len(seen) >= 4
     assert seen == pytest.approx(losses[:len(seen)].tolist(), rel=1e-9)
     assert result.loss == pytest.approx(float(losses[0]), rel=1e-9)
+
+
+def test_refinement_rounds_draw_around_the_best_guesses():
+    """Round 2 (cross-entropy method) samples a normal fitted to round 1's elite: its guesses
+    are better than round 1's random ones on the whole, and the first round is unchanged."""
+    problem = as_problem(make_problem(Scene.from_xml(BALL)))
+    first = problem.layout.encode().to(problem.dtype)
+    one, loss_one = screen_guesses(problem, first, 24, torch.Generator().manual_seed(2))
+    two, loss_two = screen_guesses(problem, first, 24, torch.Generator().manual_seed(2), rounds=2,
+                                   elite=6)
+    assert two.shape == (49, problem.num_params)
+    assert torch.all(loss_two[1:] >= loss_two[:-1])
+    new = torch.stack([loss for row, loss in zip(two, loss_two)
+                       if not any(torch.equal(row, r) for r in one)])
+    assert new.shape == (24,)
+    assert new.median() < loss_one.median()
+    assert new.median() < loss_one.sort().values[6]  # as good as round 1's elite, typically
+    assert loss_two[0] <= loss_one[0]
+
+
+def test_bad_screen_rounds_are_one_line_errors():
+    with pytest.raises(InferenceError, match="screen rounds must be a positive integer"):
+        solve(Scene.from_xml(BALL), iterations=1, screen=3, screen_rounds=0)
