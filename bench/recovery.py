@@ -72,8 +72,9 @@ SCENES = ROOT / "examples" / "scenes"
 
 ITERATIONS = 300
 TOLERANCE = 0.003
-"""Early stop: the solver's loss (metres; the pose loss adds 0.05 m per radian) at or below
-this means the target is met well inside the criteria (3 mm, 3.4 degrees)."""
+"""Early stop: the solver's loss (metres; the pose loss is the position error and 0.05 m per
+radian of orientation error in quadrature) at or below this means the target is met well inside
+the criteria (3 mm, 3.4 degrees)."""
 POSITION_TOL = 0.01
 ANGLE_TOL = 5.0
 MULTISTART = 1

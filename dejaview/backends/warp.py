@@ -49,8 +49,8 @@ to NaN (the optimiser loop then counts that candidate as infinitely bad);
 contact-free and frictionless segments give gradients that match central
 differences in both integrators.
 
-Loss and gradients: the per-record loss (``pose``: centre-of-mass distance +
-``orientation_weight`` x geodesic angle; ``position``: origin distance;
+Loss and gradients: the per-record loss (``pose``: centre-of-mass distance and
+``orientation_weight`` x geodesic angle in quadrature; ``position``: origin distance;
 ``add``: mean model-point distance; plus the target's velocity terms; all
 pseudo-Huber smoothed exactly as ``dejaview.losses``) is computed by a Warp
 kernel after every step; ``evaluate="final"`` (or a pinned target time)
@@ -150,7 +150,9 @@ def _record_loss(body_q: wp.array(dtype=wp.transform), body_qd: wp.array(dtype=w
             rel = wp.quat_inverse(target_rot) * rot
             sq = rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2]
             angle = 2.0 * wp.atan2(wp.sqrt(sq + 1.0e-30), wp.abs(rel[3]))
-            value = _smooth(wp.dot(dc, dc), eps) + orientation_weight * _smooth(angle * angle, eps)
+            a = _smooth(wp.dot(dc, dc), eps)
+            b = orientation_weight * _smooth(angle * angle, eps)
+            value = wp.sqrt(a * a + b * b + 1.0e-30)
         if kind == 1:
             do = origin - target_origin
             value = _smooth(wp.dot(do, do), eps)

@@ -108,9 +108,21 @@ def velocity_error(v: torch.Tensor, target_v: torch.Tensor, eps: float = SMOOTH_
 def pose_error(pos: torch.Tensor, q: torch.Tensor, target_pos: torch.Tensor, target_q: torch.Tensor,
                orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
                eps: float = SMOOTH_EPS) -> torch.Tensor:
-    """Position error plus weighted geodesic orientation error, in metres.
+    """Position error plus weighted geodesic orientation error, added in quadrature, in metres.
 
-    ``position_error(pos, target_pos) + orientation_weight * orientation_error(q, target_q)``.
+    ``sqrt(position_error(pos, target_pos)^2 + (orientation_weight * orientation_error(q, target_q))^2)``.
+
+    Why in quadrature and not as a plain sum: the optimisers minimise
+    ``0.5 * loss^2``. For the sum ``a + w b`` that has a cross term ``w a b``,
+    which is a V-shaped valley along every pose whose position matches
+    (``a = 0``) while its orientation does not: L-BFGS lands on the valley
+    floor and stalls there. Measured on ``box_among_boxes`` (recovery case 0):
+    the sum ended at 0.0 mm and 5.7 degrees after 400 evaluations; the
+    quadrature loss, started from that point, fell from 5.0 mm to 0.45 mm in
+    51 evaluations. In quadrature ``0.5 * loss^2 = 0.5 (a^2 + w^2 b^2)`` is
+    smooth wherever either part vanishes. Both parts stay bounded by the loss:
+    a loss of 3 mm means a position within 3 mm and an angle within
+    3 mm / ``orientation_weight`` (3.4 degrees at 0.05 m/rad).
 
     Args:
         pos: (..., 3) positions (compare like with like: centres of mass or object origins).
@@ -122,4 +134,7 @@ def pose_error(pos: torch.Tensor, q: torch.Tensor, target_pos: torch.Tensor, tar
     Returns:
         (...) losses in metres.
     """
-    return position_error(pos, target_pos, eps) + orientation_weight * orientation_error(q, target_q, eps)
+    a = position_error(pos, target_pos, eps)
+    b = orientation_weight * orientation_error(q, target_q, eps)
+    # the smallest normal number keeps the gradient finite (zero) where both parts are exactly zero
+    return torch.sqrt(a * a + b * b + torch.finfo(a.dtype).tiny)

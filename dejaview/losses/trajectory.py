@@ -64,7 +64,7 @@ def pose_record_loss(world, body: int, states: State, target_position: torch.Ten
                      target_orientation: torch.Tensor, *,
                      orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
                      points: torch.Tensor | None = None, eps: float = SMOOTH_EPS) -> torch.Tensor:
-    """``pose``: COM position error + ``orientation_weight`` x geodesic angle, per record.
+    """``pose``: COM position error and ``orientation_weight`` x geodesic angle in quadrature, per record.
 
     Args:
         world: the World.

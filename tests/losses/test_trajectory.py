@@ -84,7 +84,7 @@ def test_targets_are_object_origins_converted_through_the_com():
     assert trajectory_loss(world, traj, "box", wrong, kind="position").item() < 1e-5
     pose = trajectory_loss(world, traj, "box", wrong, kind="pose", eps=0.0).item()
     com_shift = 0.05 * math.sqrt(2)  # R(90 deg) off - off
-    assert abs(pose - (com_shift + 0.05 * math.pi / 2)) < 1e-9
+    assert abs(pose - math.hypot(com_shift, 0.05 * math.pi / 2)) < 1e-9
 
 
 def test_velocity_terms_are_weighted_and_only_where_the_target_has_them():
