@@ -67,7 +67,7 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
             x = mean + std * torch.randn(count, first.shape[1], generator=generator, dtype=first.dtype)
         with torch.no_grad():
             for chunk in x.split(batch):
-                if (guesses or losses) and should_stop is not None and should_stop():
+                if guesses and should_stop is not None and should_stop():
                     stopped = True
                     break
                 value = problem.loss(chunk).detach().to(first.dtype)

@@ -127,7 +127,8 @@ def _simulate(scene, overrides, out_dir, progress, stop):
 
 
 def _simulate_warp(scene, overrides, out_dir, progress, start):
-    """A simulate job on the Warp backend: one run (no per-step progress, stop polled around it)."""
+    """A simulate job on the Warp backend: one run (no per-step progress; a stop request
+    takes effect when the run returns, as ``run_job`` checks it then)."""
     from dejaview.backends import simulate_warp
 
     path, traj, names = simulate_warp(scene, out_dir, steps=overrides.get("steps"),
