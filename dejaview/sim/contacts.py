@@ -133,22 +133,25 @@ SLIP_EPS = 1e-3
 """Slip speed (m/s) below which a contact's effective mass fades to its all-direction bound."""
 
 
-def _inverse_mass(arm: torch.Tensor, slip: torch.Tensor, inv_inertia_w: torch.Tensor,
+def _slip_direction(slip: torch.Tensor) -> torch.Tensor:
+    """``t = v_t / sqrt(|v_t|^2 + SLIP_EPS^2)`` (..., 3): a unit vector while slipping, 0 at rest."""
+    return slip / torch.sqrt((slip * slip).sum(-1, keepdim=True) + SLIP_EPS * SLIP_EPS)
+
+
+def _inverse_mass(arm: torch.Tensor, t: torch.Tensor, inv_inertia_w: torch.Tensor,
                   inv_inertia_min: torch.Tensor) -> torch.Tensor:
     """Rotational part of 1 / m_i (see the module docstring) for arms (B, N, ..., 3).
 
-    ``(r x t)^T I_w^-1 (r x t) + (1 - |t|^2) |r|^2 / I_min`` with
-    ``t = v_t / sqrt(|v_t|^2 + SLIP_EPS^2)``: the effective mass along the slip
-    while slipping, its lower bound over all directions at rest.
+    ``(r x t)^T I_w^-1 (r x t) + (1 - |t|^2) |r|^2 / I_min``: the effective mass
+    along the slip while slipping, its lower bound over all directions at rest.
 
     Args:
-        arm: (B, N, ..., 3) lever arms; slip: tangential velocities alike.
+        arm: (B, N, ..., 3) lever arms; t: ``_slip_direction`` of the tangential velocities alike.
         inv_inertia_w: (B, N, 3, 3) world-frame inverse inertia.
         inv_inertia_min: (N,) 1 / smallest principal moment.
     Returns:
         (B, N, ...) inverse-mass terms.
     """
-    t = slip / torch.sqrt((slip * slip).sum(-1, keepdim=True) + SLIP_EPS * SLIP_EPS)
     u = torch.linalg.cross(arm, t, dim=-1)
     shape = u.shape
     flat = u.reshape(shape[0], shape[1], -1, 3)
@@ -200,7 +203,8 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     weight = depth_weights(flat_depth)
     fn = normal_force(flat_depth, weight, vn.reshape(b, nb, k * s), stiff, unload,
                       world.contact.unload_velocity).reshape(b, nb, k, s)
-    inv_mass = (1.0 / m)[:, None, None] + _inverse_mass(arm, vt, inv_inertia_w, world.inv_inertia_min)
+    inv_mass = (1.0 / m)[:, None, None] + _inverse_mass(arm, _slip_direction(vt), inv_inertia_w,
+                                                       world.inv_inertia_min)
     stick = weight.reshape(b, nb, k, s) / (inv_mass * h)
     ft = friction_force(vt, world.mu_static[None, :, :, None] * fn, stick)
     force = fn.unsqueeze(-1) * normal + ft  # (B, N, K, S, 3)
@@ -262,9 +266,10 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     fn = normal_force(flat_depth, weight, vn.reshape(b, p, s1 * s2), stiff, unload,
                       world.contact.unload_velocity).reshape(b, p, s1, s2)
     inv_i = world.inv_inertia_min
+    t = _slip_direction(vt)  # once for both bodies of each pair
     inv_mass = ((1.0 / world.mass[ia] + 1.0 / world.mass[ib])[:, None, None]
-                + _inverse_mass(arm_a, vt, inv_inertia_w[:, ia], inv_i[ia])
-                + _inverse_mass(arm_b, vt, inv_inertia_w[:, ib], inv_i[ib]))
+                + _inverse_mass(arm_a, t, inv_inertia_w[:, ia], inv_i[ia])
+                + _inverse_mass(arm_b, t, inv_inertia_w[:, ib], inv_i[ib]))
     stick = weight.reshape(b, p, s1, s2) / (inv_mass * h)
     ft = friction_force(vt, mu_p[None, :, None, None] * fn, stick)
     f_b = fn.unsqueeze(-1) * n + ft  # on b
