@@ -19,6 +19,13 @@ SCREEN_BATCH = 64
 """Candidates per batch while screening (bounds memory; batching amortises the per-op overhead)."""
 
 
+def _check_count(value, what: str, minimum: int) -> None:
+    """One-line error unless ``value`` is an int (not a bool) of at least ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        kind = "positive" if minimum == 1 else "non-negative"
+        raise InferenceError(f"{what} must be a {kind} integer, got {value!r}")
+
+
 def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Generator,
                    should_stop=None, batch: int = SCREEN_BATCH, rounds: int = 1,
                    elite: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -49,8 +56,7 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
     Returns:
         guesses (M, P) sorted by loss (best first; non-finite losses last) and their losses (M,).
     """
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
-        raise InferenceError(f"screen rounds must be a positive integer, got {rounds!r}")
+    _check_count(rounds, "screen rounds", 1)
     elite = max(4, count // 8) if elite is None else int(elite)
     guesses, losses = [], []
     stopped = False
@@ -253,17 +259,14 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     if inf is None:
         raise InferenceError("the scene has no <inference> section: nothing to solve")
     iterations = inf.iterations if iterations is None else iterations
-    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
-        raise InferenceError(f"iterations must be a positive integer, got {iterations!r}")
+    _check_count(iterations, "iterations", 1)
     optimizer = inf.optimizer if optimizer is None else optimizer
     if optimizer not in OPTIMIZERS:
         raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if multistart < 1:
         raise InferenceError(f"multistart must be >= 1, got {multistart}")
-    if isinstance(screen, bool) or not isinstance(screen, int) or screen < 0:
-        raise InferenceError(f"screen must be a non-negative integer, got {screen!r}")
-    if isinstance(screen_rounds, bool) or not isinstance(screen_rounds, int) or screen_rounds < 1:
-        raise InferenceError(f"screen rounds must be a positive integer, got {screen_rounds!r}")
+    _check_count(screen, "screen", 0)
+    _check_count(screen_rounds, "screen rounds", 1)
     seed = inf.seed if seed is None else seed
     if problem is None:
         options = {} if world is None else {"world": world}
