@@ -67,6 +67,8 @@ def test_simulate_job_by_path(client):
 
 @pytest.mark.skipif(not warp_available(), reason="the warp backend needs warp-lang (the warp extra)")
 def test_simulate_job_on_the_warp_backend(client):
+    """The ``backend`` override runs a simulate job in Warp. Skipped only where warp-lang (the
+    ``warp`` extra, which ``scripts/setup`` installs) cannot be imported."""
     job_id = submit(client, kind="simulate", scene_path="ball.xml", overrides={"backend": "warp"})
     status = wait_state(client, job_id, timeout=120.0)
     assert status["state"] == "done", status
