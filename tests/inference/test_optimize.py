@@ -178,6 +178,35 @@ def test_no_restarts_without_epsilon():
     assert torch.equal(res.x, x0[0])
 
 
+def egg_crate(x, mode=None):
+    """A bowl 2 |x|^2 under ripples 0.1 (1 - cos(2 pi x_i / 0.25)): a local minimum
+    near every point of the 0.25 grid; the global one is 0 at the origin."""
+    w = 2.0 * math.pi / 0.25
+    value = 2.0 * (x * x).sum(-1) + 0.1 * (1.0 - torch.cos(w * x)).sum(-1)
+    grad = 4.0 * x + 0.1 * w * torch.sin(w * x)
+    return value, grad
+
+
+def test_stalled_candidates_hop_from_their_best_into_neighbouring_basins():
+    """With epsilon ~0 a stalled candidate never draws a fresh guess (the sampler would
+    fail the test) but hops: it restarts near its best point, and hop by hop it walks
+    down the ripples from its start at (0.75, 0.75), where GD alone stalls at a loss
+    of 0.94, to the basin of the origin or one next to it (loss 0.12)."""
+
+    def no_fresh_draws(n, gen):
+        raise AssertionError("epsilon ~0 must not draw fresh guesses")
+
+    x0 = torch.tensor([[0.75, 0.75]], **F64)
+    stuck = optimize(egg_crate, x0, optimizer="gd", iterations=300, lr=0.01, patience=3)
+    assert stuck.loss > 0.9 and not any(p.restarted for p in stuck.history)
+    for seed in range(3):
+        res = optimize(egg_crate, x0, optimizer="gd", iterations=300, lr=0.01, patience=3,
+                       epsilon=1e-12, sample=no_fresh_draws, seed=seed)
+        assert sum(p.restarted for p in res.history) >= 3
+        assert res.loss < 0.15
+        assert loss_of(egg_crate, res.x) == pytest.approx(res.loss, abs=1e-12)
+
+
 def creeping_slope(x, mode=None):
     """A shallow slope whose GD steps shrink the loss by 1e-4 relative per iteration
     (loss 1 + 1e-4 x_0 from x_0 = 0 going negative): progress too small to count."""
