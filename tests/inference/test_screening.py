@@ -42,13 +42,28 @@ def test_solve_starts_from_the_best_screened_guess():
     scene's own guess here; result settings say how many guesses were screened."""
     scene = Scene.from_xml(BALL)
     plain = solve(scene, iterations=1, optimizer="adam")
-    screened = solve(scene, iterations=1, optimizer="adam", screen=15)
+    screened = solve(scene, iterations=1, optimizer="adam", screen=31)
     problem = as_problem(make_problem(scene))
-    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
+    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 31,
                                torch.Generator().manual_seed(scene.inference.seed))
-    assert screened.settings["screened"] == 16 and plain.settings["screened"] == 0
+    assert screened.settings["screened"] == 32 and plain.settings["screened"] == 0
     assert screened.iterations[0].loss == pytest.approx(float(losses[0]), rel=1e-9)
     assert screened.iterations[0].loss < plain.iterations[0].loss
+
+
+def test_half_the_first_round_is_drawn_around_the_scenes_guess():
+    """With ``near`` 0.5 half the draws lie around the scene's guess (normal, ``sigma``
+    in scaled parameters), the others come from the prior (velocities: a ball of radius
+    3 m/s, mean speed 2.25 m/s). With ``near`` 0 all come from the prior."""
+    problem = as_problem(make_problem(Scene.from_xml(BALL)))
+    first = problem.layout.encode().to(problem.dtype)
+    vel = [i for i, n in enumerate(problem.layout.names()) if n.startswith("linear_velocity")]
+    ranked, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), sigma=0.1)
+    near = (ranked - first).norm(dim=-1) < 0.8  # 8 sigma; 5 parameters: ~2.2 sigma typical
+    assert 101 <= int(near.sum()) <= 103  # the guess itself, the near half, maybe a prior draw
+    assert float(ranked[~near][:, vel].norm(dim=-1).mean()) > 1.8
+    prior, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), near=0.0, sigma=0.1)
+    assert int(((prior - first).norm(dim=-1) < 0.8).sum()) <= 3
 
 
 @pytest.mark.parametrize("bad", [-1, True, 2.5])
