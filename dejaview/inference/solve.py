@@ -249,8 +249,9 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         lr: learning rate (default per optimiser).
         multistart: K initial guesses run as one batch (the scene's guess plus K-1 random,
             or the K best screened guesses).
-        screen: rank the scene's guess and ``screen`` random guesses by their loss
-            (``screen_guesses``, no gradients) and start from the best ``multistart``;
+        screen: rank the scene's guess and ``screen`` random guesses (half from the prior,
+            half around the scene's guess; ``screen_guesses``) by their loss
+            (no gradients) and start from the best ``multistart``;
             epsilon-greedy restarts then take the next-best screened guesses before
             fresh random draws. 0: no screening.
         screen_rounds: rounds of screening, ``screen`` guesses each; rounds after the first
