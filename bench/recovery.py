@@ -293,7 +293,8 @@ def pose_errors(result) -> dict:
 def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLERANCE,
                multistart: int = MULTISTART, optimizer: str | None = None,
                max_evaluations: int = MAX_EVALUATIONS, screen: int = SCREEN,
-               screen_rounds: int = SCREEN_ROUNDS, compile: bool = COMPILE,
+               screen_rounds: int = SCREEN_ROUNDS, screen_near: float = 0.0,
+               compile: bool = COMPILE,
                epsilon: float | None = EPSILON, patience: int | None = PATIENCE,
                callback=None) -> dict:
     """Draw, simulate and solve one case; the row of the table (``callback``: solve's)."""
@@ -310,6 +311,7 @@ def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLE
     t0 = time.perf_counter()
     result = solve(scene, iterations=iterations, tolerance=tolerance, multistart=multistart,
                    optimizer=optimizer, callback=progress, screen=screen, screen_rounds=screen_rounds,
+                   screen_near=screen_near,
                    compile=compile,
                    epsilon=epsilon, patience=patience,
                    should_stop=lambda: spent[0] >= max_evaluations)
@@ -329,7 +331,8 @@ def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLE
         "evaluations": history[-1].evaluations if history else 0, "seconds": seconds,
         "record_time_s": errors["record_time_s"], "duration_s": scene.simulation.duration,
         "optimizer": result.settings["optimizer"], "gradient": result.settings["gradient"],
-        "multistart": multistart, "screen": screen, "screen_rounds": screen_rounds, "compile": compile,
+        "multistart": multistart, "screen": screen, "screen_rounds": screen_rounds,
+        "screen_near": screen_near, "compile": compile,
         "epsilon": result.settings["epsilon"], "patience": result.settings["patience"],
         "out_of_budget": result.optimization.stopped, "truth_draws": draws,
         "truth": json.dumps({k: truth[k] for k in ("position", "orientation", "linear", "angular")}),
@@ -435,6 +438,8 @@ def main(argv=None) -> int:
                         help="random guesses ranked by loss before optimising (solve's screen)")
     parser.add_argument("--screen-rounds", type=int, default=SCREEN_ROUNDS,
                         help="rounds of screening, later ones around the best (solve's screen_rounds)")
+    parser.add_argument("--screen-near", type=float, default=0.0,
+                        help="fraction of the screened guesses drawn around the scene's guess")
     parser.add_argument("--epsilon", type=float, default=EPSILON, help="restart probability (solve's)")
     parser.add_argument("--patience", type=int, default=PATIENCE, help="stalled iterations before a restart")
     parser.add_argument("--compile", action=argparse.BooleanOptionalAction, default=COMPILE,
@@ -450,7 +455,7 @@ def main(argv=None) -> int:
     rows = run(cases=cases, csv_path=args.csv, iterations=args.iterations, tolerance=args.tolerance,
                multistart=args.multistart, optimizer=args.optimizer,
                max_evaluations=args.max_evaluations, screen=args.screen,
-               screen_rounds=args.screen_rounds, compile=args.compile,
+               screen_rounds=args.screen_rounds, screen_near=args.screen_near, compile=args.compile,
                epsilon=args.epsilon, patience=args.patience,
                callback=show if args.verbose else None)
     return 0 if rows and all(r["success"] for r in rows) else 1

@@ -42,11 +42,11 @@ def test_solve_starts_from_the_best_screened_guess():
     scene's own guess here; result settings say how many guesses were screened."""
     scene = Scene.from_xml(BALL)
     plain = solve(scene, iterations=1, optimizer="adam")
-    screened = solve(scene, iterations=1, optimizer="adam", screen=31)
+    screened = solve(scene, iterations=1, optimizer="adam", screen=15)
     problem = as_problem(make_problem(scene))
-    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 31,
+    _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
                                torch.Generator().manual_seed(scene.inference.seed))
-    assert screened.settings["screened"] == 32 and plain.settings["screened"] == 0
+    assert screened.settings["screened"] == 16 and plain.settings["screened"] == 0
     assert screened.iterations[0].loss == pytest.approx(float(losses[0]), rel=1e-9)
     assert screened.iterations[0].loss < plain.iterations[0].loss
 
@@ -54,15 +54,17 @@ def test_solve_starts_from_the_best_screened_guess():
 def test_half_the_first_round_is_drawn_around_the_scenes_guess():
     """With ``near`` 0.5 half the draws lie around the scene's guess (normal, ``sigma``
     in scaled parameters), the others come from the prior (velocities: a ball of radius
-    3 m/s, mean speed 2.25 m/s). With ``near`` 0 all come from the prior."""
+    3 m/s, mean speed 2.25 m/s). With ``near`` 0 (the default) all come from the prior;
+    ``solve(screen_near=...)`` passes the fraction on."""
     problem = as_problem(make_problem(Scene.from_xml(BALL)))
     first = problem.layout.encode().to(problem.dtype)
     vel = [i for i, n in enumerate(problem.layout.names()) if n.startswith("linear_velocity")]
-    ranked, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), sigma=0.1)
+    ranked, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), near=0.5,
+                               sigma=0.1)
     near = (ranked - first).norm(dim=-1) < 0.8  # 8 sigma; 5 parameters: ~2.2 sigma typical
     assert 101 <= int(near.sum()) <= 103  # the guess itself, the near half, maybe a prior draw
     assert float(ranked[~near][:, vel].norm(dim=-1).mean()) > 1.8
-    prior, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), near=0.0, sigma=0.1)
+    prior, _ = screen_guesses(problem, first, 200, torch.Generator().manual_seed(0), sigma=0.1)
     assert int(((prior - first).norm(dim=-1) < 0.8).sum()) <= 3
 
 
@@ -70,6 +72,12 @@ def test_half_the_first_round_is_drawn_around_the_scenes_guess():
 def test_bad_screen_counts_are_one_line_errors(bad):
     with pytest.raises(InferenceError, match="screen must be a non-negative integer"):
         solve(Scene.from_xml(BALL), iterations=1, screen=bad)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5])
+def test_screen_near_outside_zero_to_one_is_a_one_line_error(bad):
+    with pytest.raises(InferenceError, match=r"screen_near must be a fraction in \[0, 1\]"):
+        solve(Scene.from_xml(BALL), iterations=1, screen=4, screen_near=bad)
 
 
 def test_restarts_take_the_next_best_screened_guesses_in_order():
