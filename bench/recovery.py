@@ -83,6 +83,8 @@ SCREEN = 64
 """Random guesses ranked by loss before optimising (``solve(screen=...)``)."""
 SCREEN_ROUNDS = 1
 """Rounds of screening (``solve(screen_rounds=...)``: later rounds draw around the best)."""
+SCREEN_NEAR = 0.0
+"""Fraction of the screened guesses drawn around the scene's guess (``solve(screen_near=...)``)."""
 EPSILON, PATIENCE = 0.5, 8
 """Restarts (``solve(epsilon=, patience=)``): more eager than the scenes' own 0.2 / 20, which
 suit an interactive solve; restarts take the next-best screened guesses first."""
@@ -293,7 +295,7 @@ def pose_errors(result) -> dict:
 def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLERANCE,
                multistart: int = MULTISTART, optimizer: str | None = None,
                max_evaluations: int = MAX_EVALUATIONS, screen: int = SCREEN,
-               screen_rounds: int = SCREEN_ROUNDS, screen_near: float = 0.0,
+               screen_rounds: int = SCREEN_ROUNDS, screen_near: float = SCREEN_NEAR,
                compile: bool = COMPILE,
                epsilon: float | None = EPSILON, patience: int | None = PATIENCE,
                callback=None) -> dict:
@@ -438,7 +440,7 @@ def main(argv=None) -> int:
                         help="random guesses ranked by loss before optimising (solve's screen)")
     parser.add_argument("--screen-rounds", type=int, default=SCREEN_ROUNDS,
                         help="rounds of screening, later ones around the best (solve's screen_rounds)")
-    parser.add_argument("--screen-near", type=float, default=0.0,
+    parser.add_argument("--screen-near", type=float, default=SCREEN_NEAR,
                         help="fraction of the screened guesses drawn around the scene's guess")
     parser.add_argument("--epsilon", type=float, default=EPSILON, help="restart probability (solve's)")
     parser.add_argument("--patience", type=int, default=PATIENCE, help="stalled iterations before a restart")

@@ -240,18 +240,17 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         if epsilon > 0:
             eps_t = epsilon * (1.0 - it / iterations)
             stale = since_improved >= patience
-            fresh = torch.rand(k, generator=gen) < eps_t
-            restart = stale
-            if restart.any():
+            fresh = stale & (torch.rand(k, generator=gen) < eps_t)
+            if stale.any():
                 lo, hi = (math.log(v) for v in HOP_SCALE)
                 sigma = torch.exp(lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=x.dtype))
                 hop = keep_x + sigma * torch.randn(k, p, generator=gen, dtype=x.dtype)
                 with torch.no_grad():
                     x.copy_(torch.where((stale & ~fresh)[:, None], hop, x))
-                    if (stale & fresh).any():
-                        x[stale & fresh] = sample(int((stale & fresh).sum()), gen).to(x.dtype)
-                since_improved = torch.where(restart, torch.zeros_like(since_improved), since_improved)
-                cand_best = torch.where(restart, torch.full_like(cand_best, math.inf), cand_best)
+                    if fresh.any():
+                        x[fresh] = sample(int(fresh.sum()), gen).to(x.dtype)
+                since_improved = torch.where(stale, torch.zeros_like(since_improved), since_improved)
+                cand_best = torch.where(stale, torch.full_like(cand_best, math.inf), cand_best)
                 opt = make_optimizer(optimizer, [x], p, lr)
                 restarted = True
         last = closure.last
