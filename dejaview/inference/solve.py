@@ -51,11 +51,11 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
     of the given orientation with probability (1/6)^3 = 0.5 %, and 64 draws hold
     a third of a guess that starts upright; the solver would then only try pasts
     that start tumbling. The guesses are simulated in batches of ``batch``
-    without autograd:
-    on the mug scene one batched rollout costs ~0.3 s per candidate against
-    ~4.5 s for one loss + gradient at B = 1 (eager), so screening a few hundred draws
-    costs a handful of gradient evaluations and moves the start into the
-    right basin where the scene's guess tells a different story.
+    without autograd: on the mug scene one batched rollout costs ~0.3 s per
+    candidate against ~4.5 s for one loss + gradient at B = 1 (eager), so
+    screening a few hundred draws costs a handful of gradient evaluations and
+    moves the start into the right basin where the scene's guess tells a
+    different story.
 
     ``rounds > 1`` refines the ranking by the cross-entropy method: each further
     round draws ``count`` guesses from a normal distribution (diagonal, in the
