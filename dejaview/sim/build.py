@@ -21,13 +21,16 @@ import torch
 
 from dejaview.errors import GeometryError, SceneError
 from dejaview.sim.state import State
-from dejaview.sim.world import BodySpec, StaticShape, World
+from dejaview.sim.world import (DEFAULT_MAX_PAIR_CONTACTS, DEFAULT_MAX_STATIC_CONTACTS, BodySpec,
+                                StaticShape, World)
 
 SIM_EXTRAS = {
     "substeps": int,
     "contact-frequency": float,
     "unload-velocity": float,
     "sdf-spacing": float,
+    "max-static-contacts": int,
+    "max-pair-contacts": int,
 }
 
 
@@ -154,6 +157,8 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                         friction=sim.friction, restitution=sim.restitution,
                         contact_frequency=extras.get("contact-frequency"),
                         unload_velocity=extras.get("unload-velocity", 0.01),
+                        max_static_contacts=extras.get("max-static-contacts", DEFAULT_MAX_STATIC_CONTACTS),
+                        max_pair_contacts=extras.get("max-pair-contacts", DEFAULT_MAX_PAIR_CONTACTS),
                         dtype=dtype, device=device)
     return world
 

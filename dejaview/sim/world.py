@@ -150,6 +150,10 @@ class BodySpec:
     restitution: float | None = None
 
 
+DEFAULT_MAX_STATIC_CONTACTS = 64
+DEFAULT_MAX_PAIR_CONTACTS = 64
+
+
 @dataclass(frozen=True)
 class ContactSettings:
     """Numbers of the contact model (see ``dejaview.sim.contacts``).
@@ -157,10 +161,15 @@ class ContactSettings:
     Attributes:
         frequency: body-level contact natural frequency omega_0 (rad/s).
         unload_velocity: speed over which a contact blends from loading to unloading stiffness (m/s).
+        max_static_contacts: per body and static shape, the deepest this many spheres
+            are computed as contacts (``dejaview.sim.contacts``).
+        max_pair_contacts: per body pair, the deepest this many sphere pairs.
     """
 
     frequency: float
     unload_velocity: float = 0.01
+    max_static_contacts: int = DEFAULT_MAX_STATIC_CONTACTS
+    max_pair_contacts: int = DEFAULT_MAX_PAIR_CONTACTS
 
 
 def _discrete_restitution(unload: float, omega_h: float) -> float:
@@ -259,6 +268,8 @@ class World:
               dt: float = 0.002, substeps: int = 2, steps: int | None = None,
               duration: float | None = None, friction: float = 0.5, restitution: float = 0.2,
               contact_frequency: float | None = None, unload_velocity: float = 0.01,
+              max_static_contacts: int = DEFAULT_MAX_STATIC_CONTACTS,
+              max_pair_contacts: int = DEFAULT_MAX_PAIR_CONTACTS,
               dtype: torch.dtype = torch.float64, device=None) -> "World":
         """Assemble a world from body and static descriptions.
 
@@ -270,11 +281,15 @@ class World:
             friction, restitution: defaults for bodies and shapes without their own.
             contact_frequency: omega_0 in rad/s (default ``DEFAULT_OMEGA_H / (dt / substeps)``).
             unload_velocity: speed over which contacts blend loading/unloading stiffness (m/s).
+            max_static_contacts, max_pair_contacts: contact capacity (see ``ContactSettings``).
         """
         if not bodies:
             raise SimulationError("a world needs at least one movable body")
         if not (dt > 0 and math.isfinite(dt)) or substeps < 1:
             raise SimulationError(f"invalid time step dt={dt} substeps={substeps}")
+        if min(max_static_contacts, max_pair_contacts) < 1:
+            raise SimulationError(f"contact capacities must be >= 1, got {max_static_contacts} "
+                                  f"(static) and {max_pair_contacts} (pair)")
         n = len(bodies)
         s_max = max(len(b.radii) for b in bodies)
         centers = np.zeros((n, s_max, 3))
@@ -331,7 +346,9 @@ class World:
             gravity=f(gravity), dt=float(dt), substeps=int(substeps),
             steps=int(steps),
             contact=ContactSettings(frequency=omega,
-                                    unload_velocity=float(unload_velocity)))
+                                    unload_velocity=float(unload_velocity),
+                                    max_static_contacts=int(max_static_contacts),
+                                    max_pair_contacts=int(max_pair_contacts)))
         return world.to(device=device, dtype=dtype)
 
     @staticmethod
