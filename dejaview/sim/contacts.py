@@ -85,6 +85,7 @@ from __future__ import annotations
 
 import torch
 
+from dejaview.sim.rotation import small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
 
@@ -185,7 +186,7 @@ def _inverse_mass(arm: torch.Tensor, t: torch.Tensor, inv_inertia_w: torch.Tenso
     u = torch.linalg.cross(arm, t, dim=-1)
     shape = u.shape
     flat = u.reshape(shape[0], shape[1], -1, 3)
-    along = (flat * (flat @ inv_inertia_w.transpose(-1, -2))).sum(-1).reshape(shape[:-1])
+    along = (flat * small_matmul(flat, inv_inertia_w.transpose(-1, -2))).sum(-1).reshape(shape[:-1])
     rest = (1.0 - (t * t).sum(-1)) * (arm * arm).sum(-1)
     extra = rest.dim() - 2
     return along + rest * inv_inertia_min.reshape(-1, *([1] * extra))

@@ -31,7 +31,7 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from dejaview.sim import contacts
-from dejaview.sim.rotation import integrate_quat, quat_to_matrix
+from dejaview.sim.rotation import integrate_quat, quat_to_matrix, small_matmul
 from dejaview.sim.state import State
 from dejaview.sim.world import World
 
@@ -57,8 +57,9 @@ def wrench(world: World, state: State, h: float, broadphase: bool | None = None)
         world-frame inverse inertia (B, N, 3, 3).
     """
     rot = quat_to_matrix(state.orientation)  # (B, N, 3, 3)
-    spheres = state.position.unsqueeze(-2) + world.centers @ rot.transpose(-1, -2)
-    inv_w = rot @ world.inv_inertia @ rot.transpose(-1, -2)
+    rot_t = rot.transpose(-1, -2)
+    spheres = state.position.unsqueeze(-2) + small_matmul(world.centers, rot_t)
+    inv_w = small_matmul(small_matmul(rot, world.inv_inertia), rot_t)
     force, torque = contacts.static_contact_wrench(world, state, spheres, h, inv_w)
     if world.pairs.shape[0] > 0:
         if broadphase is None:
@@ -79,10 +80,10 @@ def substep(world: World, state: State, h: float, broadphase: bool | None = None
     force, torque, rot, inv_w = wrench(world, state, h, broadphase)
     v = state.linear_velocity + (h / world.mass)[:, None] * force
     w = state.angular_velocity
-    inertia_w = rot @ world.inertia @ rot.transpose(-1, -2)  # (B, N, 3, 3)
-    lw = (inertia_w @ w.unsqueeze(-1)).squeeze(-1)
+    inertia_w = small_matmul(small_matmul(rot, world.inertia), rot.transpose(-1, -2))  # (B, N, 3, 3)
+    lw = small_matmul(inertia_w, w.unsqueeze(-1)).squeeze(-1)
     gyro = torch.linalg.cross(w, lw, dim=-1)
-    w = w + h * (inv_w @ (torque - gyro).unsqueeze(-1)).squeeze(-1)
+    w = w + h * small_matmul(inv_w, (torque - gyro).unsqueeze(-1)).squeeze(-1)
     x = state.position + h * v
     q = integrate_quat(state.orientation, w, h)
     return State(x, q, v, w)

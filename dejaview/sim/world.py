@@ -17,7 +17,7 @@ import torch
 
 from dejaview.errors import SimulationError
 from dejaview.sim import sdf as _sdf
-from dejaview.sim.rotation import quat_rotate
+from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
 STATIC_KINDS = ("plane", "box", "sphere", "cylinder", "grid")
@@ -112,7 +112,7 @@ class StaticShape:
         Returns:
             distance (...), unit-ish normal (..., 3) in the world frame.
         """
-        local = (points - self.translation) @ self.rotation  # R^T (p - t)
+        local = small_matmul(points - self.translation, self.rotation)  # R^T (p - t)
         if self.kind == "plane":
             d, n = _sdf.sdf_plane(local)
         elif self.kind == "box":
@@ -123,7 +123,7 @@ class StaticShape:
             d, n = _sdf.sdf_cylinder(local, self.radius, self.half_height)
         else:
             d, n = _sdf.sdf_grid(local, self.grid, self.grid_origin, self.grid_spacing)
-        return d, n @ self.rotation.T
+        return d, small_matmul(n, self.rotation.T)
 
 
 @dataclass(frozen=True)
