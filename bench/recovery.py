@@ -30,20 +30,20 @@ reported but not required. The start-position error (solution vs. true start)
 is reported too, never required: different starts can end alike.
 
 Scene variants (built in code with ``dataclasses.replace``; the files are not
-touched) keep the suite to about 75 minutes of solving on one CPU core
-(measured: 25 min for the 9 mug, ball and shelf cases, 49 min for the 3
-``box_among_boxes`` cases, run side by side):
+touched) keep the suite to about 90 minutes of solving on one CPU core
+(measured: 43 min for the 9 mug, ball and shelf cases, 45 min for the 3
+``box_among_boxes`` cases, run side by side, with 1000 evaluations per case):
 
 - every duration is shortened to what the story needs (``DURATIONS``);
 - in ``box_among_boxes`` the four boxes use a coarse packing
   (``tests/fixtures/inference/box_coarse.spheres``: a regular 4 x 3 x 2 grid of
   24 equal spheres touching the faces) instead of the bundled 128 spheres. The
-  simulator's body-pair contact is dense (every sphere of one body against
-  every sphere of the other, 128 x 128 per pair), and its broadphase (bounding
-  spheres of radius 0.126 m) runs it for the resting box0 and box1, 0.20 m
-  apart, at every substep: a 0.6 s rollout of a thrown box among them took
-  35-40 s with the bundled packing (one loss + gradient ~100 s), 5-6 s with
-  the coarse one.
+  simulator's body-pair contact tests every sphere of one body against every
+  sphere of the other (128 x 128 per pair; forces for the deepest 64 only),
+  and its broadphase (bounding spheres of radius 0.126 m) runs it for the
+  resting box0 and box1, 0.20 m apart, at every substep: with dense pair
+  forces a 0.6 s rollout of a thrown box among them took 35-40 s with the
+  bundled packing (one loss + gradient ~100 s), 5-6 s with the coarse one.
 
 Budget: at most ``ITERATIONS`` iterations and ``MAX_EVALUATIONS`` loss +
 gradient evaluations per case (L-BFGS's line search may take several per
