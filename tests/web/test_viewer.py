@@ -141,7 +141,10 @@ def test_upload_a_scene_with_its_mesh_and_packing(page, web_server, web_root):
     page.set_input_files("#upload", [str(web_root / "scenes" / "toss.xml"),
                                      str(web_root / "meshes" / "cube.obj"),
                                      str(web_root / "packings" / "cube.spheres")])
-    page.wait_for_function("(s => s.origin === '' && s.meshesLoaded === 4)(window.dejaview.state())")
+    # the packing arrives after its object's mesh (a second fetch): wait for the scene's
+    # "loaded" notice, sent once every object is complete, not for the meshes alone
+    page.wait_for_function("(s => s.origin === '' && s.meshesLoaded === 4 && "
+                           "s.notifications.some(n => n.text === 'loaded web-toss'))(window.dejaview.state())")
     s = state(page)
     assert s["scene"] == "web-toss" and s["packings"] == {"cube": {"spheres": 8, "visible": False}}
     page.check("#show-spheres")
