@@ -98,11 +98,15 @@ def open_viewer(page, server) -> None:
 
 def load_scene(page, path: str) -> dict:
     """Pick ``path`` in the scene list and press Load (the UI, not a hook); the state once loaded."""
+    loaded = "window.dejaview.state().notifications.filter(n => n.text.startsWith('loaded ')).length"
+    before = page.evaluate(loaded)
     page.select_option("#scene-list", path)
     page.click("#load-scene")
+    # the "loaded" notice comes once every object is complete (meshes, then packings, the
+    # target ghost and the start area), not when the last mesh is in
     page.wait_for_function(
-        f"(s => s.origin === {path!r} && s.objects.length && s.meshesLoaded === s.objects.length)"
-        "(window.dejaview.state())")
+        f"(s => s.origin === {path!r} && s.objects.length && s.meshesLoaded === s.objects.length"
+        f" && {loaded} > {before})(window.dejaview.state())")
     return state(page)
 
 
