@@ -284,7 +284,8 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     if s * s > cap:  # the ``cap`` deepest sphere pairs of each body pair
         pad, pbd = pa.detach(), pb.detach()
         dist0 = torch.linalg.vector_norm(pbd.unsqueeze(-3) - pad.unsqueeze(-2), dim=-1)  # (B, P, S, S)
-        depth0 = torch.relu(ra.unsqueeze(-1) + rb.unsqueeze(-2) - dist0) * (ma.unsqueeze(-1) * mb.unsqueeze(-2))
+        depth0 = (torch.relu(ra.unsqueeze(-1) + rb.unsqueeze(-2) - dist0)
+                  * (ma.unsqueeze(-1) * mb.unsqueeze(-2)))
         idx = deepest(depth0.reshape(b, p, s * s), cap)  # (B, P, C)
         i, j = idx // s, idx % s
         pa, pb = take(pa, i), take(pb, j)
@@ -292,8 +293,8 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     else:  # every sphere of a against every sphere of b, flattened to C = S * S
         pa = pa.unsqueeze(-2).expand(b, p, s, s, 3).reshape(b, p, s * s, 3)
         pb = pb.unsqueeze(-3).expand(b, p, s, s, 3).reshape(b, p, s * s, 3)
-        ra, ma = ra.unsqueeze(-1).expand(b, p, s, s).reshape(b, p, -1), ma.unsqueeze(-1).expand(b, p, s, s).reshape(b, p, -1)
-        rb, mb = rb.unsqueeze(-2).expand(b, p, s, s).reshape(b, p, -1), mb.unsqueeze(-2).expand(b, p, s, s).reshape(b, p, -1)
+        ra, ma = (t.unsqueeze(-1).expand(b, p, s, s).reshape(b, p, -1) for t in (ra, ma))
+        rb, mb = (t.unsqueeze(-2).expand(b, p, s, s).reshape(b, p, -1) for t in (rb, mb))
     diff = pb - pa  # (B, P, C, 3) from a's sphere to b's
     dist = torch.sqrt((diff * diff).sum(-1) + 1e-24)
     n = diff / dist.unsqueeze(-1)
