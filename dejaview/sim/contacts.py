@@ -77,8 +77,10 @@ the dense computation, values and gradients (``tests/sim/test_contact_capacity.p
 beyond it the shallowest contacts, which carry the least force, are dropped.
 Measured: a box packed with 128 spheres resting on a face touches the floor
 with 43-65 spheres and meets another such box with up to 191 sphere pairs;
-a mug of 150 spheres touches a table or floor with up to 30. All functions are free of data-dependent Python
-branches, so they run under ``torch.func`` transforms and ``torch.compile``.
+a mug of 150 spheres touches a table or floor with up to 30.
+
+All functions are free of data-dependent Python branches, so they run under
+``torch.func`` transforms and ``torch.compile``.
 """
 
 from __future__ import annotations
@@ -91,7 +93,7 @@ SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less
 
 
 def deepest(depth: torch.Tensor, capacity: int) -> torch.Tensor:
-    """Indices (..., capacity) of the deepest candidates along the last dim of ``depth`` (...,  M).
+    """Indices (..., capacity) of the deepest candidates along the last dim of ``depth`` (..., M).
 
     A selection only: computed on detached values, so it carries no gradient;
     the forces of the selected contacts are recomputed from the differentiable
