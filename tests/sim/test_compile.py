@@ -82,3 +82,26 @@ def test_compiled_gradient_rollout_matches_eager_through_body_pair_contacts():
     comp_pos, _, comp_grad = states_and_grad(True)
     assert torch.allclose(comp_pos, eager_pos, rtol=1e-10, atol=1e-12)
     assert torch.allclose(comp_grad, eager_grad, rtol=1e-8, atol=1e-12)
+
+
+def test_small_matmul_under_compile_is_the_matrix_product():
+    """``small_matmul`` switches to a broadcast sum under torch.compile: same products, batched
+    and with a 2-D right operand, and the same gradients (a tiny graph: seconds to compile)."""
+    from dejaview.sim.rotation import small_matmul
+
+    a = torch.randn(2, 3, 5, 3, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(2, 3, 3, 4, dtype=torch.float64)
+    c = torch.randn(3, 3, dtype=torch.float64)
+    traced = []
+
+    def products(a, b, c):
+        traced.append(torch.compiler.is_compiling())  # runs while dynamo traces
+        return small_matmul(a, b), small_matmul(a, c)
+
+    ab, ac = torch.compile(products, fullgraph=True)(a, b, c)
+    assert traced and all(traced)  # the compiled branch was the one traced
+    assert torch.allclose(ab, a @ b, rtol=1e-14, atol=1e-14)
+    assert torch.allclose(ac, a @ c, rtol=1e-14, atol=1e-14)
+    (g,) = torch.autograd.grad((ab.sum() + ac.square().sum()), a)
+    (g_ref,) = torch.autograd.grad(((a @ b).sum() + (a @ c).square().sum()), a)
+    assert torch.allclose(g, g_ref, rtol=1e-12, atol=1e-12)
