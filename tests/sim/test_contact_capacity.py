@@ -14,7 +14,7 @@ from dejaview.errors import SceneError, SimulationError
 from dejaview.sim import BodySpec, StaticShape
 from dejaview.sim.contacts import pair_contact_wrench
 from dejaview.sim.integrate import rollout, wrench
-from dejaview.sim.rotation import quat_to_matrix
+from dejaview.sim.state import State
 from dejaview.sim.world import DEFAULT_MAX_PAIR_CONTACTS, DEFAULT_MAX_STATIC_CONTACTS
 from tests.sim.conftest import box_body, make_world
 
@@ -38,9 +38,7 @@ def _throw(world, v0=None):
 
 def _max_touching(world, traj):
     """Most touching spheres of one body on the floor, and of the body pair, over a trajectory."""
-    st = traj.states
-    pos, q = st.position[:, 0], st.orientation[:, 0]  # (T, N, ...)
-    sph = pos.unsqueeze(-2) + world.centers @ quat_to_matrix(q).transpose(-1, -2)
+    sph = world.sphere_positions(State(*(t[:, 0] for t in traj.states.tensors())))  # records as batch
     d, _ = world.statics[0].distance(sph)
     static = int((world.radii - d > 0).sum(-1).max())
     dist = torch.linalg.vector_norm(sph[:, 1].unsqueeze(-3) - sph[:, 0].unsqueeze(-2), dim=-1)
