@@ -41,6 +41,22 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
                    sigma: float = SCREEN_SIGMA) -> tuple[torch.Tensor, torch.Tensor]:
     """Rank initial guesses by their loss, without gradients (a cheap global step).
 
+    The guesses and losses of ``screen_rounds_ranked`` (same arguments), without the round
+    each guess came from.
+    """
+    x, loss, _ = screen_rounds_ranked(problem, first, count, generator, should_stop=should_stop,
+                                      batch=batch, rounds=rounds, elite=elite, near=near,
+                                      sigma=sigma)
+    return x, loss
+
+
+def screen_rounds_ranked(problem, first: torch.Tensor, count: int, generator: torch.Generator,
+                         should_stop=None, batch: int = SCREEN_BATCH, rounds: int = 1,
+                         elite: int | None = None, near: float = SCREEN_NEAR,
+                         sigma: float = SCREEN_SIGMA
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rank initial guesses by their loss, without gradients, and say which round drew each.
+
     The guesses are ``first`` plus ``count`` random draws: a fraction ``1 - near``
     from the whole prior (``problem.layout.sample``: start area, any orientation,
     velocities in the layout's bounds) and a fraction ``near`` around the scene's
@@ -74,11 +90,12 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
         near: fraction of the first round's draws around ``first[0]`` (0: all from the prior).
         sigma: their standard deviation (scaled parameters).
     Returns:
-        guesses (M, P) sorted by loss (best first; non-finite losses last) and their losses (M,).
+        guesses (M, P) sorted by loss (best first; non-finite losses last), their losses (M,)
+        and the round that drew each (M,) (0: the first round, with ``first``).
     """
     _check_count(rounds, "screen rounds", 1)
     elite = max(4, count // 8) if elite is None else int(elite)
-    guesses, losses = [], []
+    guesses, losses, drawn_in = [], [], []
     stopped = False
     for r in range(rounds):
         if r == 0:
@@ -101,12 +118,29 @@ def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Ge
                     break
                 value = problem.loss(chunk).detach().to(first.dtype)
                 guesses.append(chunk)
+                drawn_in.append(torch.full((chunk.shape[0],), r, dtype=torch.long))
                 losses.append(torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf)))
         if stopped:
             break
-    x, loss = torch.cat(guesses), torch.cat(losses)
+    x, loss, drawn = torch.cat(guesses), torch.cat(losses), torch.cat(drawn_in)
     order = torch.argsort(loss, stable=True)
-    return x[order], loss[order]
+    return x[order], loss[order], drawn[order]
+
+
+def restart_pool(ranked: torch.Tensor, drawn: torch.Tensor) -> list[torch.Tensor]:
+    """The order in which restarts take screened guesses that were not used as starts.
+
+    Restarts explore, so the first round's guesses (drawn over the whole prior) come first,
+    best first; the refinement rounds' guesses follow. Those crowd around the best guess,
+    i.e. around the start, where the optimiser's own hops (``optimize``) already search.
+
+    Args:
+        ranked: (M, P) guesses sorted by loss (``screen_rounds_ranked``).
+        drawn: (M,) the round that drew each.
+    Returns:
+        M guesses (P,), in the order restarts take them.
+    """
+    return list(ranked[drawn == 0]) + list(ranked[drawn > 0])
 
 
 def default_gradient(num_params: int) -> str:
@@ -258,7 +292,9 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
             epsilon-greedy restarts then take the next-best screened guesses before
             fresh random draws. 0: no screening.
         screen_rounds: rounds of screening, ``screen`` guesses each; rounds after the first
-            draw around the best so far (cross-entropy method, ``screen_guesses``).
+            draw around the best so far (cross-entropy method, ``screen_guesses``). The run
+            starts from the best guess of any round; restarts take the first round's guesses
+            before the refinements (those crowd around the start, where the hops search).
         screen_near: fraction of the first round drawn around the scene's guess instead of
             from the whole prior (``screen_guesses``' ``near``; default ``SCREEN_NEAR``).
         epsilon, patience: override ``<exploration>``.
@@ -318,11 +354,11 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     if x0 is None:
         x0 = problem.layout.encode().to(problem.dtype)
         if screen > 0:
-            ranked, _ = screen_guesses(problem, x0, max(screen, multistart - 1), gen,
-                                       should_stop=should_stop, rounds=screen_rounds,
-                                       near=screen_near)
+            ranked, _, drawn = screen_rounds_ranked(problem, x0, max(screen, multistart - 1), gen,
+                                                    should_stop=should_stop, rounds=screen_rounds,
+                                                    near=screen_near)
             screened = ranked.shape[0]
-            x0, pool = ranked[:multistart], list(ranked[multistart:])
+            x0, pool = ranked[:multistart], restart_pool(ranked[multistart:], drawn[multistart:])
 
             def sample(n, generator):
                 """Restarts: the next-best screened guesses, then fresh draws."""

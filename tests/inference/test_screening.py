@@ -121,3 +121,24 @@ def test_refinement_rounds_draw_around_the_best_guesses():
 def test_bad_screen_rounds_are_one_line_errors():
     with pytest.raises(InferenceError, match="screen rounds must be a positive integer"):
         solve(Scene.from_xml(BALL), iterations=1, screen=3, screen_rounds=0)
+
+
+def test_restarts_take_the_first_rounds_guesses_before_the_refinements():
+    """The pool keeps the loss order within each part: first round (spread over the prior)
+    first, then the refinement rounds, which crowd around the start."""
+    from dejaview.inference.solve import restart_pool, screen_rounds_ranked
+
+    problem = as_problem(make_problem(Scene.from_xml(BALL)))
+    first = problem.layout.encode().to(problem.dtype)
+    ranked, losses, drawn = screen_rounds_ranked(problem, first, 12, torch.Generator().manual_seed(3),
+                                                 rounds=3, elite=4)
+    assert ranked.shape[0] == drawn.shape[0] == 37
+    assert int((drawn == 0).sum()) == 13 and int((drawn == 2).sum()) == 12
+    assert torch.all(losses[1:] >= losses[:-1])
+    two, loss_two = screen_guesses(problem, first, 12, torch.Generator().manual_seed(3), rounds=3, elite=4)
+    assert torch.equal(two, ranked) and torch.equal(loss_two, losses)
+    pool = torch.stack(restart_pool(ranked[1:], drawn[1:]))
+    n0 = int((drawn[1:] == 0).sum())
+    assert torch.equal(pool[:n0], ranked[1:][drawn[1:] == 0])
+    assert torch.equal(pool[n0:], ranked[1:][drawn[1:] > 0])
+    assert not torch.equal(pool, ranked[1:])  # the refinements rank high: the order changed
