@@ -227,6 +227,17 @@ def variant(name: str):
     return scene
 
 
+def with_start(scene, start: dict):
+    """The scene with its source starting at ``start`` (position, orientation (w x y z), linear,
+    angular: sequences of floats, as a truth dict holds them)."""
+    src = scene.object(scene.inference.source)
+    obj = replace(src, pose=replace(src.pose, position=tuple(start["position"]),
+                                    orientation=tuple(start["orientation"])),
+                  velocity=replace(src.velocity, linear=tuple(start["linear"]),
+                                   angular=tuple(start["angular"])))
+    return scene.with_object(obj)
+
+
 def make_case(case: Case):
     """(scene with the drawn truth's final pose as target, truth dict, draws needed).
 
@@ -248,11 +259,7 @@ def make_case(case: Case):
         truth = DRAWS[case.scene](rng, scene)
         q = src_obj.pose.orientation if truth["orientation"] is None else truth["orientation"]
         truth["orientation"] = [float(v) for v in q]
-        true_obj = replace(src_obj, pose=replace(src_obj.pose, position=tuple(truth["position"]),
-                                                 orientation=tuple(truth["orientation"])),
-                           velocity=replace(src_obj.velocity, linear=tuple(truth["linear"]),
-                                            angular=tuple(truth["angular"])))
-        true_scene = scene.with_object(true_obj)
+        true_scene = with_start(scene, truth)
         world = world or World.from_scene(true_scene)
         with torch.no_grad():
             traj = rollout(world, initial_state(world, true_scene), record_every=1)

@@ -62,3 +62,19 @@ def test_recovery_suite_succeeds_in_at_least_90_percent_of_cases(tmp_path):
     rate = sum(r["success"] for r in rows) / len(rows)
     assert rate >= 0.9, [(r["case"], r["position_error_m"], r["angle_error_deg"]) for r in rows]
     assert (tmp_path / "recovery.csv").read_text().count("\n") == len(rows) + 1
+
+
+def test_sensitivity_of_a_smooth_case_is_small_and_the_truth_has_zero_loss():
+    """``bench/sensitivity.py`` on box_along_shelf-1 (a box sliding to the shelf's panel): a start
+    moved by 1 um moves the end by well under 0.1 mm, and the loss at the truth is ~0 (the probe
+    rebuilds the parameters around the point it is given)."""
+    spec = importlib.util.spec_from_file_location("bench_sensitivity", ROOT / "bench" / "sensitivity.py")
+    sensitivity = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sensitivity)
+    scene, truth, _ = bench().make_case(bench().Case("box_along_shelf", 1))
+    (row,) = sensitivity.end_sensitivity(scene, truth, distances=(1e-6,), trials=2)
+    assert 0.0 < row["moved_mm_max"] < 0.1
+    assert row["turned_deg_max"] < 0.01
+    around = sensitivity.loss_around(scene, truth, sigmas=(0.5,), trials=2)
+    assert around["loss"] < 1e-9
+    assert around["sigmas"][0]["min"] > 1e-3  # half a scaled unit away is visibly off
