@@ -47,7 +47,8 @@ DEFAULT_CASES = ("box_among_boxes-0", "box_among_boxes-1", "box_among_boxes-2")
 
 
 def _recovery():
-    sys.path.insert(0, str(ROOT))
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
     from bench import recovery
 
     return recovery
@@ -134,8 +135,8 @@ def run(cases=DEFAULT_CASES, around=None, trials: int = TRIALS, print_fn=print) 
     torch.set_num_threads(1)
     recovery = _recovery()
     results = []
-    for name in cases:
-        case = next(c for c in recovery.ALL_CASES if c.name == name)
+    for case in recovery._resolve(cases):  # KeyError naming the known cases for a bad name
+        name = case.name
         scene, truth, _ = recovery.make_case(case)
         ends = end_sensitivity(scene, truth, trials=trials)
         point = solution_of(around, name) if around else truth
