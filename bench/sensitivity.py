@@ -71,6 +71,7 @@ def end_sensitivity(scene, truth: dict, distances=DISTANCES, trials: int = TRIAL
     """Rows (distance_m, end_moved_mm min/max, end_turned_deg min/max) for moved starts."""
     import torch
 
+    from dejaview.inference.params import layout_from_scene
     from dejaview.sim import World
     from dejaview.sim.rotation import geodesic_angle
 
@@ -79,8 +80,9 @@ def end_sensitivity(scene, truth: dict, distances=DISTANCES, trials: int = TRIAL
     world = World.from_scene(base)
     source = world.body_index(scene.inference.source)
     ref_p, ref_q = end_pose(world, base, source)
-    area = scene.inference.start_area
-    free = torch.tensor([float(hi > lo) for lo, hi in zip(area.min, area.max)], dtype=torch.float64)
+    layout = layout_from_scene(scene)  # the solver's free position axes (start area with width)
+    free = torch.zeros(3, dtype=torch.float64)
+    free[list(layout.position_axes)] = 1.0
     gen = torch.Generator().manual_seed(seed)
     rows = []
     for d in distances:
