@@ -35,15 +35,25 @@ L-BFGS/BFGS batch whose line search failed twice in a row (spent its whole
 budget without improving): on ``box_among_boxes`` such a point cost 12
 evaluations per iteration for 8 iterations before.
 
-Multi-start: ``x0`` may hold K guesses (K, P); they run as one batch. Their
-losses are summed into one objective (they are independent, so the gradient
-of the sum is each candidate's own); L-BFGS then shares its line search
-across them.
+Multi-start: ``x0`` may hold K guesses (K, P); they run as one batch, and
+each candidate follows the path it would follow alone (with restarts off).
+GD and Adam update elementwise, so one optimiser on the summed losses does
+that. L-BFGS/BFGS get one ``torch.optim.LBFGS`` per candidate (its own
+curvature history, line search and reset), each stepping in a thread of its
+own whose closure only hands its trial point over (``_step_each``): the loop
+evaluates the trial points of all candidates as one batch once every
+candidate is waiting for a value or has finished its step, and a candidate
+that finished early is evaluated at its current point (the batch keeps its
+shape, so a compiled rollout is not recompiled). One batched call counts as
+one evaluation. (A shared L-BFGS on the summed losses would give every
+candidate one step length and reset all histories when one candidate
+restarts.)
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -159,7 +169,10 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
     gen = torch.Generator().manual_seed(int(seed))
     x = torch.nn.Parameter(x0.detach().clone())
     k, p = x.shape
-    opt = make_optimizer(optimizer, [x], p, lr)
+    # one L-BFGS per candidate of a batch (see the module docstring); one optimiser otherwise
+    each = optimizer in ("lbfgs", "bfgs") and k > 1
+    xs = [torch.nn.Parameter(x.detach()[i:i + 1].clone()) for i in range(k)] if each else [x]
+    opts = [make_optimizer(optimizer, [xi], p, lr) for xi in xs]
     best_x = x.detach()[0].clone()
     best_loss = math.inf
     best_index = 0
@@ -182,44 +195,61 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         cache.update(x=xv.clone(), value=value)
         return value
 
-    def closure():
+    def record(xv):
+        """Evaluate the batch xv (K, P) and book it: -> (safe losses (K,), gradients (K, P))."""
         nonlocal best_loss, best_x, best_index, evaluations
-        losses, grad = evaluate(x.detach())
+        losses, grad = evaluate(xv)
         evaluations += 1
         finite = torch.isfinite(losses) & torch.isfinite(grad).all(-1)
         # a NaN candidate must not poison the optimiser: zero its gradient, count it as +inf
-        grad = torch.where(finite[:, None], grad, torch.zeros_like(grad))
+        grad = torch.where(finite[:, None], grad, torch.zeros_like(grad)).to(x.dtype)
         safe = torch.where(finite, losses, torch.full_like(losses, 1e6))
         i = int(torch.argmin(safe))
         if finite[i] and safe[i].item() < best_loss:
             best_loss = safe[i].item()
-            best_x = x.detach()[i].clone()
+            best_x = xv[i].clone()
             best_index = i
         improved = safe < cand_best
         cand_best.copy_(torch.where(improved, safe, cand_best))
         kept = finite & (safe < keep_loss)
         keep_loss.copy_(torch.where(kept, safe, keep_loss))
-        keep_x.copy_(torch.where(kept[:, None], x.detach(), keep_x))
-        x.grad = grad.to(x.dtype)
-        closure.last = safe
+        keep_x.copy_(torch.where(kept[:, None], xv, keep_x))
+        record.last = safe
+        return safe, grad
+
+    record.last = None
+
+    def closure():
+        safe, grad = record(x.detach())
+        x.grad = grad
         return safe.sum()
 
-    closure.last = None
+    def points() -> torch.Tensor:
+        return torch.cat([xi.detach() for xi in xs]) if each else x.detach()
+
     stopped = False
-    failed_before = False
+    failed_before = torch.zeros(k, dtype=torch.bool)
     for it in range(int(iterations)):
         if should_stop is not None and should_stop():
             stopped = True
             break
         t0 = time.perf_counter()
         before = cand_best.clone()
-        x_before = x.detach().clone()
+        x_before = points().clone()
         evals_before = evaluations
-        opt.step(closure)
-        if optimizer in ("lbfgs", "bfgs") and torch.equal(x.detach(), x_before):
+        if each:
+            calls = _step_each(opts, xs, record)
+            with torch.no_grad():
+                x.copy_(points())
+        else:
+            opts[0].step(closure)
+            calls = torch.full((k,), evaluations - evals_before)
+        if optimizer in ("lbfgs", "bfgs"):
             # a failed line search leaves x where it was and would fail the same way again:
             # drop the curvature history so the next step starts from steepest descent
-            opt = make_optimizer(optimizer, [x], p, lr)
+            for i in range(len(opts)):
+                if torch.equal(xs[i].detach(), x_before[i:i + 1] if each else x_before):
+                    opts[i] = make_optimizer(optimizer, [xs[i]], p, lr)
         with torch.no_grad():
             # keep parameters finite (a diverging GD step): restart those from a fresh draw
             bad = ~torch.isfinite(x).all(-1)
@@ -228,13 +258,14 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         improved = cand_best < before * (1.0 - STALL_RATIO)
         since_improved = torch.where(improved, torch.zeros_like(since_improved), since_improved + 1)
         # a line search that spent its whole budget without improving anything failed (torch's
-        # strong Wolfe search may still nudge x by a hair, so "x did not move" misses most)
-        failed = (optimizer in ("lbfgs", "bfgs") and evaluations - evals_before >= LINE_SEARCH_EVALS
-                  and not bool(improved.any()))
-        if failed and failed_before:
-            # two in a row: a kink of the loss (a contact that starts or ends) where more line
-            # searches only burn evaluations; the candidates are stalled now
-            since_improved = since_improved.clamp(min=patience)
+        # strong Wolfe search may still nudge x by a hair, so "x did not move" misses most);
+        # a shared one fails for all candidates, one of a candidate's own for that candidate
+        failed = ((calls >= LINE_SEARCH_EVALS) & ~(improved if each else improved.any())
+                  if optimizer in ("lbfgs", "bfgs") else torch.zeros(k, dtype=torch.bool))
+        # two in a row: a kink of the loss (a contact that starts or ends) where more line
+        # searches only burn evaluations; the candidate is stalled now
+        since_improved = torch.where(failed & failed_before, since_improved.clamp(min=patience),
+                                     since_improved)
         failed_before = failed
         restarted = False
         if epsilon > 0:
@@ -251,9 +282,16 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
                         x[fresh] = sample(int(fresh.sum()), gen).to(x.dtype)
                 since_improved = torch.where(stale, torch.zeros_like(since_improved), since_improved)
                 cand_best = torch.where(stale, torch.full_like(cand_best, math.inf), cand_best)
-                opt = make_optimizer(optimizer, [x], p, lr)
+                # a restarted candidate starts a fresh optimiser (the shared one: all of them)
+                for i in range(len(opts)):
+                    if not each or stale[i]:
+                        opts[i] = make_optimizer(optimizer, [xs[i]], p, lr)
                 restarted = True
-        last = closure.last
+        if each:
+            with torch.no_grad():
+                for i in range(k):
+                    xs[i].copy_(x[i:i + 1])
+        last = record.last
         current = float(last.min()) if last is not None else math.nan
         prog = Progress(iteration=it, loss=shown(current), best_loss=shown(best_loss),
                         duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - start,
@@ -267,3 +305,87 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
                               best_index=best_index, stopped=stopped, candidate_x=keep_x,
                               candidate_loss=torch.tensor([shown(float(v)) for v in keep_loss],
                                                           dtype=keep_loss.dtype))
+
+
+def _step_each(opts: list, xs: list[torch.Tensor],
+               evaluate: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """One ``step`` of every optimiser in ``opts``, their evaluations batched.
+
+    ``opts[i]`` optimises ``xs[i]`` (1, P) alone. Each steps in a thread of its own whose
+    closure publishes that it wants a value and waits; once every optimiser is waiting or
+    has finished its step, this (calling) thread evaluates all K points at once, the ones
+    of finished optimisers included, and hands each waiting closure its row.
+
+    Args:
+        opts: K optimisers (``torch.optim.LBFGS``), one per candidate.
+        xs: K parameters (1, P), each the only parameter of its optimiser.
+        evaluate: (K, P) points -> (losses (K,), gradients (K, P)).
+    Returns:
+        (K,) long: how many times each optimiser's closure was called.
+    """
+    k = len(opts)
+    cond = threading.Condition()
+    waiting: set[int] = set()
+    finished: set[int] = set()
+    answers: dict[int, tuple[torch.Tensor, torch.Tensor] | None] = {}
+    errors: list[BaseException] = []
+    calls = torch.zeros(k, dtype=torch.long)
+
+    def run(i: int) -> None:
+        def closure():
+            with cond:
+                calls[i] += 1
+                waiting.add(i)
+                cond.notify_all()
+                while i not in answers:
+                    cond.wait()
+                answer = answers.pop(i)
+            if answer is None:
+                raise _Aborted()
+            loss, grad = answer
+            xs[i].grad = grad
+            return loss
+
+        try:
+            opts[i].step(closure)
+        except _Aborted:
+            pass
+        except BaseException as exc:  # re-raised in the calling thread
+            errors.append(exc)
+        finally:
+            with cond:
+                finished.add(i)
+                cond.notify_all()
+
+    threads = [threading.Thread(target=run, args=(i,), name=f"dejaview-lbfgs-{i}", daemon=True)
+               for i in range(k)]
+    for t in threads:
+        t.start()
+    try:
+        with cond:
+            while True:
+                while len(waiting) + len(finished) < k:
+                    cond.wait()
+                if not waiting or errors:
+                    break
+                with torch.enable_grad():
+                    losses, grads = evaluate(torch.cat([xi.detach() for xi in xs]))
+                for i in waiting:
+                    answers[i] = (losses[i], grads[i:i + 1])
+                waiting.clear()
+                cond.notify_all()
+    finally:
+        with cond:  # release every closure still waiting (an error here or in a thread)
+            for i in range(k):
+                if i not in finished:
+                    answers[i] = None
+            cond.notify_all()
+        for t in threads:
+            t.join()
+    if errors:
+        raise errors[0]
+    return calls
+
+
+class _Aborted(Exception):
+    """Raised in an optimiser's closure to end its step when the batch evaluation failed."""

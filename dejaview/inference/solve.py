@@ -286,7 +286,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         iterations, optimizer, gradient, seed: override the scene's settings.
         lr: learning rate (default per optimiser).
         multistart: K initial guesses run as one batch (the scene's guess plus K-1 random,
-            or the K best screened guesses).
+            or the K best screened guesses), each with an optimiser of its own (see
+            ``dejaview.inference.optimize``).
         screen: rank the scene's guess and ``screen`` random guesses by their loss
             (``screen_guesses``, no gradients) and start from the best ``multistart``;
             epsilon-greedy restarts then take the next-best screened guesses before
