@@ -54,7 +54,8 @@ def test_a_drawn_truth_is_reproducible_inside_the_start_area_and_keeps_the_story
 
 @pytest.mark.slow
 def test_recovery_suite_succeeds_in_at_least_90_percent_of_cases(tmp_path):
-    """The suite as ``python bench/recovery.py`` runs it (about 75 minutes on one core)."""
+    """The suite as ``python bench/recovery.py`` runs it (about an hour on one core, more with
+    a cold compile cache)."""
     recovery = bench()
     rows = recovery.run(print_fn=print, csv_path=tmp_path / "recovery.csv")
     assert len(rows) >= 12
