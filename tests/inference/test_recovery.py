@@ -9,22 +9,15 @@ for tens of minutes, hence ``slow``; the cheap tests below check the case
 generation only.
 """
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from dejaview.cli.bench import bench_module
 
 
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_recovery", ROOT / "bench" / "recovery.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
+    return bench_module("recovery")
 
 
 def test_the_suite_has_at_least_twelve_cases_over_every_bundled_scene():
@@ -69,10 +62,9 @@ def test_sensitivity_of_a_smooth_case_is_small_and_the_truth_has_zero_loss():
     """``bench/sensitivity.py`` on box_along_shelf-1 (a box sliding to the shelf's panel): a start
     moved by 1 um moves the end by well under 0.1 mm, and the loss at the truth is ~0 (the probe
     rebuilds the parameters around the point it is given)."""
-    spec = importlib.util.spec_from_file_location("bench_sensitivity", ROOT / "bench" / "sensitivity.py")
-    sensitivity = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sensitivity)
-    scene, truth, _ = bench().make_case(bench().Case("box_along_shelf", 1))
+    sensitivity = bench_module("sensitivity")
+    recovery = bench()
+    scene, truth, _ = recovery.make_case(recovery.Case("box_along_shelf", 1))
     (row,) = sensitivity.end_sensitivity(scene, truth, distances=(1e-6,), trials=2)
     assert 0.0 < row["moved_mm_max"] < 0.1
     assert row["turned_deg_max"] < 0.01
