@@ -1,0 +1,241 @@
+"""Native (C++) rollouts of the sphere-packing simulator, with exact state Jacobians.
+
+The same model as ``dejaview.sim.contacts`` and ``dejaview.sim.integrate``,
+written once in C++ (``rollout.cpp``) as templates over the number type:
+plain doubles for values and forward-mode dual numbers for derivatives. Each
+substep's Jacobian comes from three small dual passes per body (static
+contacts with 13 tangents, a touching body pair with 26, the integration with
+19), whatever the number of spheres, and the rollout carries their product
+``Phi_t = d state_t / d state_0`` (13N x 13N) to every recorded step.
+``native_rollout`` wraps it in a ``torch.autograd.Function``:
+
+- reverse mode: ``grad state_0 = sum_t Phi_t^T grad state_t`` (one contraction);
+- forward mode (``torch.func.jvp``/``jacfwd``, vmap included): ``Phi_t v``.
+
+So both modes give the same gradient, and memory is O(steps * (13N)^2) with
+no autograd graph of the rollout (no checkpointing needed). Without gradients
+no Jacobian is computed.
+
+Contact selection is made on values, as ``dejaview.sim.contacts``' ``topk``
+on detached depths. Spheres that do not touch carry exactly zero force and
+zero derivative, so they are skipped; a body whose centre of mass is farther
+from a static shape than ``L * bound`` (its bounding radius times the shape's
+Lipschitz bound: 1 for analytic shapes, from the samples for grids) skips the
+shape altogether. Results equal the torch simulator's up to the order of
+floating-point sums (``tests/sim/test_native.py``).
+
+Limits: float64 on the CPU; the body pair broad phase is per candidate. The
+extension is compiled on first use with ``torch.utils.cpp_extension`` (g++,
+about a minute) and cached in torch's extension directory
+(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``).
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import torch
+
+from dejaview.errors import SimulationError
+from dejaview.sim.state import State
+
+SOURCE = Path(__file__).with_name("rollout.cpp")
+KINDS = {"plane": 0, "box": 1, "sphere": 2, "cylinder": 3, "grid": 4}
+SHAPE_FIELDS = 32
+
+_LOCK = threading.Lock()
+_EXTENSION = None
+
+
+def extension():
+    """The compiled C++ module (built on first call, then loaded from torch's cache)."""
+    global _EXTENSION
+    with _LOCK:
+        if _EXTENSION is None:
+            from torch.utils.cpp_extension import load
+
+            try:
+                _EXTENSION = load(name="dejaview_native", sources=[str(SOURCE)],
+                                  extra_cflags=["-O3", "-march=native", "-fno-math-errno"],
+                                  verbose=False)
+            except Exception as exc:  # no compiler, a broken build
+                lines = str(exc).strip().splitlines() or ["unknown error"]
+                first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
+                raise SimulationError(f"the native simulator could not be built from {SOURCE}: "
+                                      f"{first.strip()[:300]}") from exc
+    return _EXTENSION
+
+
+def available() -> bool:
+    """True when the extension builds (or is built) on this machine."""
+    try:
+        extension()
+    except SimulationError:
+        return False
+    return True
+
+
+def _grid_lipschitz(values: torch.Tensor, spacing: float) -> float:
+    """Lipschitz bound of ``dejaview.sim.sdf.sdf_grid`` over all space.
+
+    Inside a cell the trilinear interpolant's derivative along an axis is a
+    blend of the differences along the cell's four edges of that axis, so its
+    gradient norm is at most ``sqrt(sum_axes max_edges diff^2) / spacing``;
+    ``L_g`` is the largest over the cells. Outside the grid the field is the
+    value at the clamped point plus the distance to the grid box: clamp and
+    remainder split every coordinate change between them, which bounds the
+    whole field by ``sqrt(2) max(L_g, 1)``.
+    """
+    if min(values.shape) < 2:
+        return float("inf")
+    edge = []
+    for axis in range(3):
+        d = values.diff(dim=axis).abs()
+        for a in (a for a in range(3) if a != axis):  # max over the cell's 4 edges along ``axis``
+            d = torch.maximum(d.narrow(a, 0, d.shape[a] - 1), d.narrow(a, 1, d.shape[a] - 1))
+        edge.append(d)  # (nx - 1, ny - 1, nz - 1): one number per cell
+    sq = edge[0] ** 2 + edge[1] ** 2 + edge[2] ** 2
+    lg = float(sq.max().sqrt()) / spacing
+    return 2.0 ** 0.5 * max(lg, 1.0)
+
+
+_PACKED: dict = {}
+
+
+def pack_world(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
+    """The World as the flat arrays ``rollout.cpp`` reads (cached per World for the process)."""
+    key = id(world)
+    hit = _PACKED.get(key)
+    if hit is not None and hit[0] is world:
+        return hit[1]
+    # plain tensors even when first called under torch.func transforms (which would wrap them
+    # at their level, and the cached copies would die with the transform)
+    with torch._C._DisableFuncTorch(), torch.no_grad():
+        packed = _pack(world)
+    _PACKED[key] = (world, packed)
+    return packed
+
+
+def _pack(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
+    if world.dtype != torch.float64 or world.device.type != "cpu":
+        raise SimulationError("the native simulator runs in float64 on the CPU; this world is "
+                              f"{world.dtype} on {world.device}")
+    f64 = dict(dtype=torch.float64)
+    shapes = torch.zeros(max(len(world.statics), 1), SHAPE_FIELDS, **f64)[:len(world.statics)]
+    grids, offset = [], 0
+    for k, s in enumerate(world.statics):
+        row = shapes[k]
+        row[0] = KINDS[s.kind]
+        row[1:10] = s.rotation.reshape(9)
+        row[10:13] = s.translation
+        row[13:16] = s.half
+        row[16] = s.radius
+        row[17] = s.half_height
+        row[18:21] = s.grid_origin
+        row[21] = s.grid_spacing
+        row[22] = 1.0
+        if s.kind == "grid":
+            row[22] = _grid_lipschitz(s.grid, s.grid_spacing)
+            row[23:26] = torch.tensor(s.grid.shape, **f64)
+            row[26] = offset
+            grids.append(s.grid.reshape(-1))
+            offset += s.grid.numel()
+    grid = torch.cat(grids) if grids else torch.zeros(1, **f64)
+    k = len(world.statics)
+    counts = world.mask.sum(-1).round().to(torch.int64)
+    tensors = [world.mass, world.inertia, world.inv_inertia, world.centers, world.radii, world.bound,
+               world.inv_inertia_min, counts, world.mu_static.reshape(world.num_bodies, k),
+               world.unload_static.reshape(world.num_bodies, k), world.pairs.reshape(-1, 2),
+               world.mu_pair, world.unload_pair, world.mass_pair, shapes, grid]
+    tensors = [t.contiguous() for t in tensors]
+    h = world.dt / world.substeps
+    floats = [float(g) for g in world.gravity] + [h, float(world.contact.frequency),
+                                                  float(world.contact.unload_velocity)]
+    ints = [world.substeps, world.contact.max_static_contacts, world.contact.max_pair_contacts]
+    return tensors, floats, ints
+
+
+class _Rollout(torch.autograd.Function):
+    """init (B, N, 13) -> recorded states (B, R, N, 13), Jacobians (B, R, 13N, 13N)."""
+
+    @staticmethod
+    def forward(init, steps, record_every, with_jac, packed):
+        tensors, floats, ints = packed
+        return tuple(extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
+                                         tensors, floats, ints))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        _, phi = output
+        ctx.mark_non_differentiable(phi)
+        ctx.with_jac = inputs[3]
+        ctx.save_for_backward(phi)
+        ctx.save_for_forward(phi)
+
+    @staticmethod
+    def backward(ctx, grad_states, _grad_phi):
+        if not ctx.with_jac:
+            raise SimulationError("native rollout: a gradient was asked of a rollout run without "
+                                  "Jacobians")
+        (phi,) = ctx.saved_tensors
+        b, r, n, _ = grad_states.shape
+        g = torch.einsum("brij,bri->bj", phi, grad_states.reshape(b, r, 13 * n))
+        return g.reshape(b, n, 13), None, None, None, None
+
+    @staticmethod
+    def jvp(ctx, tangent, *_):
+        if not ctx.with_jac:
+            raise SimulationError("native rollout: a tangent was pushed through a rollout run "
+                                  "without Jacobians")
+        (phi,) = ctx.saved_tensors
+        b, r, dim, _ = phi.shape
+        out = torch.einsum("brij,bj->bri", phi, tangent.reshape(b, dim))
+        return out.reshape(b, r, dim // 13, 13), None
+
+    @staticmethod
+    def vmap(info, in_dims, init, steps, record_every, with_jac, packed):
+        dim = in_dims[0]
+        if dim is None:
+            return _Rollout.apply(init, steps, record_every, with_jac, packed), (None, None)
+        x = init.movedim(dim, 0)
+        v, b = x.shape[:2]
+        states, phi = _Rollout.apply(x.reshape(v * b, *x.shape[2:]), steps, record_every, with_jac,
+                                     packed)
+        return (states.reshape(v, b, *states.shape[1:]), phi.reshape(v, b, *phi.shape[1:])), (0, 0)
+
+
+def _needs_jacobian(init: torch.Tensor) -> bool:
+    import torch._C._functorch as ft
+
+    if ft.peek_interpreter_stack() is not None:  # torch.func transforms (jvp, vmap, grad)
+        return True
+    if torch.is_grad_enabled() and init.requires_grad:
+        return True
+    return torch.autograd.forward_ad.unpack_dual(init).tangent is not None
+
+
+def native_rollout(world, state: State, steps: int, record_every: int = 1):
+    """``dejaview.sim.integrate.rollout`` on the native simulator.
+
+    Args:
+        world: the World (float64, CPU).
+        state: initial State (B, N, ...).
+        steps: number of steps (>= 1).
+        record_every: record interval; the initial and final states are always recorded.
+    Returns:
+        Trajectory with T = 1 + ceil(steps / record_every) records, differentiable with
+        respect to ``state`` in reverse and forward mode.
+    """
+    from dejaview.sim.integrate import Trajectory
+
+    packed = pack_world(world)
+    if state.position.dtype != torch.float64 or state.position.device.type != "cpu":
+        raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
+                              f"{state.position.dtype} on {state.position.device}")
+    init = torch.cat(state.tensors(), -1)  # (B, N, 13)
+    states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
+    seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
+    recorded = [0] + [i for i in range(1, steps + 1) if i % record_every == 0 or i == steps]
+    return Trajectory(State(seq[..., :3], seq[..., 3:7], seq[..., 7:10], seq[..., 10:]),
+                      torch.tensor(recorded), world.dt)

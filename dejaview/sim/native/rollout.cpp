@@ -1,0 +1,921 @@
+// Native rollout of the sphere-packing simulator (dejaview.sim.native).
+//
+// The same model as dejaview/sim/contacts.py and dejaview/sim/integrate.py, written once as
+// templates over the number type T: plain floats for values, and forward-mode dual numbers
+// Dual<S, W> (a value and W tangents) for exact Jacobians. A substep's Jacobian is assembled from
+// three small dual passes per body, whatever the number of spheres:
+//
+//   static contacts  W_s(s_a)          Dual<13>: d W_s / d s_a            (6 x 13)
+//   body pair (a, b) W_p(s_a, s_b)     Dual<26>: d W_p / d (s_a, s_b)     (12 x 26)
+//   integration      s_a' = I(s_a, W_a) Dual<19>: d s_a' / d (s_a, W_a)   (13 x 19)
+//
+// with s = (x, q, v, w) (13 numbers) and W = (F, tau). The rollout carries the product of the
+// substep Jacobians, Phi = d s_t / d s_0 (13N x 13N), and returns it at every recorded step: a
+// vector-Jacobian product (reverse mode) is then sum_t Phi_t^T g_t and a Jacobian-vector product
+// (forward mode) Phi_t v, both one small contraction in torch.
+//
+// Contact selection (which spheres touch) is made on values, as the torch code's topk on detached
+// depths; spheres that do not touch carry exactly zero force and zero derivative there, so they are
+// skipped. A body whose centre is farther from a static shape than L * bound (L the shape's
+// Lipschitz bound, bound the body's bounding radius) cannot touch it and skips the shape.
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+namespace dv {
+
+// ------------------------------------------------------------------ dual numbers
+#ifndef DV_PAD
+#define DV_PAD 4
+#endif
+// W tangents, stored padded to a multiple of DV_PAD (zeros) so every loop is whole vectors
+template <typename S, int W>
+struct Dual {
+  static constexpr int P = (W + DV_PAD - 1) / DV_PAD * DV_PAD;
+  S d[P];
+  S v;
+  Dual() = default;
+  Dual(S x) : v(x) {  // NOLINT: a constant
+    for (int i = 0; i < P; ++i) d[i] = S(0);
+  }
+};
+
+template <typename S> inline S val(S x) { return x; }
+template <typename S, int W> inline S val(const Dual<S, W>& x) { return x.v; }
+
+#define DV_D template <typename S, int W> inline Dual<S, W>
+DV_D operator+(const Dual<S, W>& a, const Dual<S, W>& b) {
+  Dual<S, W> r; r.v = a.v + b.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = a.d[i] + b.d[i];
+  return r;
+}
+DV_D operator-(const Dual<S, W>& a, const Dual<S, W>& b) {
+  Dual<S, W> r; r.v = a.v - b.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = a.d[i] - b.d[i];
+  return r;
+}
+DV_D operator-(const Dual<S, W>& a) {
+  Dual<S, W> r; r.v = -a.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = -a.d[i];
+  return r;
+}
+DV_D operator*(const Dual<S, W>& a, const Dual<S, W>& b) {
+  Dual<S, W> r; r.v = a.v * b.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = a.d[i] * b.v + a.v * b.d[i];
+  return r;
+}
+DV_D operator/(const Dual<S, W>& a, const Dual<S, W>& b) {
+  Dual<S, W> r; r.v = a.v / b.v;
+  const S inv = S(1) / b.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = (a.d[i] - r.v * b.d[i]) * inv;
+  return r;
+}
+DV_D operator+(const Dual<S, W>& a, S b) { Dual<S, W> r = a; r.v += b; return r; }
+DV_D operator+(S b, const Dual<S, W>& a) { Dual<S, W> r = a; r.v += b; return r; }
+DV_D operator-(const Dual<S, W>& a, S b) { Dual<S, W> r = a; r.v -= b; return r; }
+DV_D operator-(S b, const Dual<S, W>& a) {
+  Dual<S, W> r; r.v = b - a.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = -a.d[i];
+  return r;
+}
+DV_D operator*(const Dual<S, W>& a, S b) {
+  Dual<S, W> r; r.v = a.v * b;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = a.d[i] * b;
+  return r;
+}
+DV_D operator*(S b, const Dual<S, W>& a) { return a * b; }
+DV_D operator/(const Dual<S, W>& a, S b) {
+  Dual<S, W> r; r.v = a.v / b;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = a.d[i] / b;
+  return r;
+}
+DV_D operator/(S a, const Dual<S, W>& b) {
+  Dual<S, W> r; r.v = a / b.v;
+  const S k = -r.v / b.v;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = k * b.d[i];
+  return r;
+}
+DV_D chain(const Dual<S, W>& a, S value, S slope) {
+  Dual<S, W> r; r.v = value;
+  for (int i = 0; i < Dual<S, W>::P; ++i) r.d[i] = slope * a.d[i];
+  return r;
+}
+DV_D sqrt(const Dual<S, W>& a) { const S s = std::sqrt(a.v); return chain(a, s, S(0.5) / s); }
+DV_D sin(const Dual<S, W>& a) { return chain(a, std::sin(a.v), std::cos(a.v)); }
+DV_D cos(const Dual<S, W>& a) { return chain(a, std::cos(a.v), -std::sin(a.v)); }
+DV_D sigmoid(const Dual<S, W>& a) {
+  const S s = S(1) / (S(1) + std::exp(-a.v));
+  return chain(a, s, s * (S(1) - s));
+}
+DV_D pow(const Dual<S, W>& a, S p) {
+  return chain(a, std::pow(a.v, p), p * std::pow(a.v, p - S(1)));
+}
+DV_D abs(const Dual<S, W>& a) {
+  return chain(a, std::abs(a.v), a.v > 0 ? S(1) : (a.v < 0 ? S(-1) : S(0)));
+}
+#undef DV_D
+template <typename S> inline S sigmoid(S a) { return S(1) / (S(1) + std::exp(-a)); }
+using std::abs;
+using std::cos;
+using std::pow;
+using std::sin;
+using std::sqrt;
+
+// torch's gradient conventions at kinks: relu passes nothing at 0, clamp(min) passes at equality
+template <typename T> inline T relu(const T& a) { return val(a) > 0 ? a : T(0); }
+template <typename T> inline T clamp_min0(const T& a) { return val(a) >= 0 ? a : T(0); }
+template <typename T> inline T clamp_max0(const T& a) { return val(a) <= 0 ? a : T(0); }
+template <typename T> inline const T& vmax(const T& a, const T& b) { return val(b) > val(a) ? b : a; }
+template <typename T> inline const T& vmin(const T& a, const T& b) { return val(b) < val(a) ? b : a; }
+
+// ------------------------------------------------------------------ small vector algebra
+template <typename T> inline T dot3(const T* a, const T* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+template <typename T> inline void cross3(const T* a, const T* b, T* r) {
+  T r0 = a[1] * b[2] - a[2] * b[1];
+  T r1 = a[2] * b[0] - a[0] * b[2];
+  T r2 = a[0] * b[1] - a[1] * b[0];
+  r[0] = r0; r[1] = r1; r[2] = r2;
+}
+// r = M v, M row-major 3 x 3
+template <typename T, typename M> inline void matvec(const M* m, const T* v, T* r) {
+  for (int i = 0; i < 3; ++i) r[i] = m[3 * i] * v[0] + m[3 * i + 1] * v[1] + m[3 * i + 2] * v[2];
+}
+// r = M^T v
+template <typename T, typename M> inline void matvec_t(const M* m, const T* v, T* r) {
+  for (int i = 0; i < 3; ++i) r[i] = m[i] * v[0] + m[3 + i] * v[1] + m[6 + i] * v[2];
+}
+// rotation matrix of a unit quaternion (w x y z), as dejaview.sim.rotation.quat_to_matrix
+template <typename T> inline void quat_to_matrix(const T* q, T* r) {
+  const T &w = q[0], &x = q[1], &y = q[2], &z = q[3];
+  r[0] = 1.0 - 2.0 * (y * y) - 2.0 * (z * z);
+  r[1] = 2.0 * (x * y) - 2.0 * (z * w);
+  r[2] = 2.0 * (x * z) + 2.0 * (y * w);
+  r[3] = 2.0 * (x * y) + 2.0 * (z * w);
+  r[4] = 1.0 - 2.0 * (x * x) - 2.0 * (z * z);
+  r[5] = 2.0 * (y * z) - 2.0 * (x * w);
+  r[6] = 2.0 * (x * z) - 2.0 * (y * w);
+  r[7] = 2.0 * (y * z) + 2.0 * (x * w);
+  r[8] = 1.0 - 2.0 * (x * x) - 2.0 * (y * y);
+}
+// R A R^T with A a constant (body-frame) symmetric matrix
+template <typename T, typename S> inline void rotate_tensor(const T* r, const S* a, T* out) {
+  T ra[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) ra[3 * i + j] = r[3 * i] * a[j] + r[3 * i + 1] * a[3 + j] + r[3 * i + 2] * a[6 + j];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      out[3 * i + j] = ra[3 * i] * r[3 * j] + ra[3 * i + 1] * r[3 * j + 1] + ra[3 * i + 2] * r[3 * j + 2];
+}
+
+// ------------------------------------------------------------------ world
+template <typename S>
+struct Shape {
+  int kind;  // 0 plane, 1 box, 2 sphere, 3 cylinder, 4 grid
+  S rot[9], trans[3], half[3], radius, half_height, origin[3], spacing, lipschitz;
+  const S* grid;
+  int64_t nx, ny, nz;
+};
+
+template <typename S>
+struct World {
+  int n, s_max, k, p;
+  std::vector<int> count;  // real spheres per body
+  std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body
+  const S *mass, *inertia, *inv_inertia, *centers, *radii, *bound, *inv_i_min;
+  std::vector<Shape<S>> shapes;
+  const S *mu_static, *unload_static;  // (N, K)
+  const int64_t* pairs;                 // (P, 2)
+  const S *mu_pair, *unload_pair, *mass_pair;
+  S gravity[3];
+  S h, omega, unload_velocity;
+  int substeps, cap_static, cap_pair;
+};
+
+// signed distance and outward normal of a world point, as StaticShape.distance (values, or a
+// dual number of any width through distance() below)
+template <typename T, typename S>
+void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
+  T rel[3] = {pw[0] - sh.trans[0], pw[1] - sh.trans[1], pw[2] - sh.trans[2]};
+  T p[3];
+  for (int j = 0; j < 3; ++j) p[j] = rel[0] * sh.rot[j] + rel[1] * sh.rot[3 + j] + rel[2] * sh.rot[6 + j];
+  T n[3];
+  const S tiny2 = S(1e-24);
+  if (sh.kind == 0) {  // plane z <= 0
+    dist = p[2];
+    n[0] = T(0); n[1] = T(0); n[2] = T(1);
+  } else if (sh.kind == 1) {  // box
+    T q[3], out[3];
+    S sign[3];
+    for (int c = 0; c < 3; ++c) {
+      sign[c] = val(p[c]) < 0 ? S(-1) : S(1);
+      q[c] = abs(p[c]) - sh.half[c];
+      out[c] = clamp_min0(q[c]);
+    }
+    T len = sqrt(dot3(out, out) + tiny2);
+    int axis = 0;
+    for (int c = 1; c < 3; ++c)
+      if (val(q[c]) > val(q[axis])) axis = c;
+    if (val(q[axis]) > 0) {
+      for (int c = 0; c < 3; ++c) n[c] = out[c] / len * sign[c];
+      dist = len;
+    } else {
+      for (int c = 0; c < 3; ++c) n[c] = T(c == axis ? sign[c] : S(0));
+      dist = clamp_max0(q[axis]);
+    }
+  } else if (sh.kind == 2) {  // sphere
+    T len = sqrt(dot3(p, p) + tiny2);
+    for (int c = 0; c < 3; ++c) n[c] = p[c] / len;
+    dist = len - sh.radius;
+  } else if (sh.kind == 3) {  // cylinder along z
+    T rlen = sqrt(p[0] * p[0] + p[1] * p[1] + tiny2);
+    T radial[3] = {p[0] / rlen, p[1] / rlen, T(0)};
+    T dr = rlen - sh.radius;
+    T dz = abs(p[2]) - sh.half_height;
+    S zs = val(p[2]) < 0 ? S(-1) : S(1);
+    bool is_out = val(dr) > 0 || val(dz) > 0;
+    if (is_out) {
+      T c0 = clamp_min0(dr), c1 = clamp_min0(dz);
+      T clen = sqrt(c0 * c0 + c1 * c1 + tiny2);
+      T d0 = c0 / clen, d1 = c1 / clen;
+      n[0] = radial[0] * d0; n[1] = radial[1] * d0; n[2] = d1 * zs;
+      dist = clen;
+    } else {
+      dist = clamp_max0(vmax(dr, dz));
+      if (val(dr) > val(dz)) {
+        n[0] = radial[0]; n[1] = radial[1]; n[2] = T(0);
+      } else {
+        n[0] = T(0); n[1] = T(0); n[2] = T(zs);
+      }
+    }
+  } else {  // grid, trilinear
+    const S size[3] = {S(sh.nx - 1), S(sh.ny - 1), S(sh.nz - 1)};
+    T u_in[3], excess[3];
+    int64_t i0[3];
+    for (int c = 0; c < 3; ++c) {
+      T u = (p[c] - sh.origin[c]) / sh.spacing;
+      u_in[c] = vmin(vmax(u, T(0)), T(size[c]));
+      excess[c] = (u - u_in[c]) * sh.spacing;
+      S f0 = std::min(std::floor(val(u_in[c])), size[c] - 1);
+      i0[c] = static_cast<int64_t>(std::max(f0, S(0)));
+    }
+    T f[3] = {u_in[0] - S(i0[0]), u_in[1] - S(i0[1]), u_in[2] - S(i0[2])};
+    T g[3] = {T(0), T(0), T(0)};
+    T d = T(0);
+    const int64_t sy = sh.nz, sx = sh.ny * sh.nz;
+    for (int a = 0; a < 2; ++a) {
+      T wx = a ? f[0] : 1.0 - f[0];
+      for (int b = 0; b < 2; ++b) {
+        T wy = b ? f[1] : 1.0 - f[1];
+        for (int c = 0; c < 2; ++c) {
+          T wz = c ? f[2] : 1.0 - f[2];
+          const S v = sh.grid[(i0[0] + a) * sx + (i0[1] + b) * sy + (i0[2] + c)];
+          d = d + v * wx * wy * wz;
+          g[0] = g[0] + v * S(2 * a - 1) * wy * wz;
+          g[1] = g[1] + v * wx * S(2 * b - 1) * wz;
+          g[2] = g[2] + v * wx * wy * S(2 * c - 1);
+        }
+      }
+    }
+    T elen = sqrt(dot3(excess, excess) + tiny2);
+    if (val(elen) > S(1e-9)) {
+      for (int c = 0; c < 3; ++c) n[c] = excess[c] / elen;
+    } else {
+      for (int c = 0; c < 3; ++c) n[c] = g[c] / sh.spacing;
+    }
+    dist = d + elen;
+  }
+  for (int i = 0; i < 3; ++i) normal[i] = n[0] * sh.rot[3 * i] + n[1] * sh.rot[3 * i + 1] + n[2] * sh.rot[3 * i + 2];
+}
+
+template <typename S>
+inline void distance(const Shape<S>& sh, const S* pw, S& dist, S* normal) {
+  distance_direct<S, S>(sh, pw, dist, normal);
+}
+
+// dual numbers: the field is a function of the 3 world coordinates only, so it runs on 3-wide
+// duals and the 4 results are chained to the W tangents of the point (chain rule)
+template <typename S, int W>
+void distance(const Shape<S>& sh, const Dual<S, W>* pw, Dual<S, W>& dist, Dual<S, W>* normal) {
+  using D3 = Dual<S, 3>;
+  D3 p3[3], d3, n3[3];
+  for (int c = 0; c < 3; ++c) {
+    p3[c] = D3(pw[c].v);
+    p3[c].d[c] = S(1);
+  }
+  distance_direct<D3, S>(sh, p3, d3, n3);
+  auto chain3 = [&](const D3& x, Dual<S, W>& out) {
+    out.v = x.v;
+    for (int i = 0; i < Dual<S, W>::P; ++i)
+      out.d[i] = x.d[0] * pw[0].d[i] + x.d[1] * pw[1].d[i] + x.d[2] * pw[2].d[i];
+  };
+  chain3(d3, dist);
+  for (int c = 0; c < 3; ++c) chain3(n3[c], normal[c]);
+}
+
+// ------------------------------------------------------------------ contact model pieces
+constexpr double SLIP_EPS = 1e-3;
+constexpr double SMOOTH_MIN_POWER = 8.0;
+
+// friction force (contacts.friction_force)
+template <typename T, typename S>
+void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
+  T speed = sqrt(dot3(vt, vt) + S(1e-30));
+  T b = stick * speed;
+  T scale = vmax(coulomb, b) + S(1e-30);
+  T den = pow(pow(coulomb / scale, S(SMOOTH_MIN_POWER)) + pow(b / scale, S(SMOOTH_MIN_POWER)) + S(1e-30),
+              S(1.0 / SMOOTH_MIN_POWER)) * scale;
+  T k = coulomb * stick / den;
+  for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
+}
+
+// rotational inverse-mass term (contacts._inverse_mass) of one arm
+template <typename T, typename S>
+T inverse_mass(const T* arm, const T* t, const T* inv_w, S inv_i_min) {
+  T u[3], iu[3];
+  cross3(arm, t, u);
+  matvec(inv_w, u, iu);
+  T along = dot3(u, iu);
+  T rest = (1.0 - dot3(t, t)) * dot3(arm, arm);
+  return along + rest * inv_i_min;
+}
+
+template <typename T>
+void slip_direction(const T* vt, T* t) {
+  T den = sqrt(dot3(vt, vt) + SLIP_EPS * SLIP_EPS);
+  for (int c = 0; c < 3; ++c) t[c] = vt[c] / den;
+}
+
+// state of body a as T numbers, seeded as tangents offset..offset+12 when T is a dual
+template <typename S> struct Seeder {
+  template <int W> static void run(const S* s, Dual<S, W>* out, int offset) {
+    for (int i = 0; i < 13; ++i) {
+      out[i] = Dual<S, W>(s[i]);
+      out[i].d[offset + i] = S(1);
+    }
+  }
+  static void run(const S* s, S* out, int) {
+    for (int i = 0; i < 13; ++i) out[i] = s[i];
+  }
+};
+
+struct Pick {
+  int shape, sphere;
+  double depth;
+};
+
+// which spheres of body a touch the static shapes: per shape its cap deepest.
+//
+// clear (K x s_max) holds a lower bound on every sphere's clearance d - r to every shape, valid at
+// the previous call; move bounds how far any sphere centre of the body moved since. A shape's
+// distance field is L-Lipschitz, so the bound drops by at most L * move: a sphere whose bound stays
+// above CLEAR_MARGIN cannot touch and is not looked at (the result is exactly that of a full scan).
+constexpr double CLEAR_MARGIN = 1e-9;
+
+template <typename S>
+void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vector<Pick>& picks, S* clear,
+                   S move) {
+  picks.clear();
+  const int cnt = w.count[a];
+  const S* x = s;
+  std::vector<Pick> cand;
+  for (int k = 0; k < w.k; ++k) {
+    const Shape<S>& sh = w.shapes[k];
+    S* cl = clear + static_cast<int64_t>(k) * w.s_max;
+    S dc, nc[3];
+    distance<S>(sh, x, dc, nc);
+    const S far = dc - sh.lipschitz * w.bound[a];
+    if (far >= 0) {  // no sphere can reach the shape: d_i - r_i >= d_c - L (|c_i| + r_i) >= far
+      for (int i = 0; i < cnt; ++i) cl[i] = far;
+      continue;
+    }
+    const S drop = sh.lipschitz * move;
+    cand.clear();
+    for (int i = 0; i < cnt; ++i) {
+      cl[i] -= drop;
+      if (cl[i] > S(CLEAR_MARGIN)) continue;
+      const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
+      S p[3];
+      for (int j = 0; j < 3; ++j) p[j] = x[j] + (c[0] * rot[3 * j] + c[1] * rot[3 * j + 1] + c[2] * rot[3 * j + 2]);
+      S d, n[3];
+      distance<S>(sh, p, d, n);
+      const S r = w.radii[a * w.s_max + i];
+      cl[i] = d - r;
+      const S depth = r - d;
+      if (depth > 0) cand.push_back({k, i, static_cast<double>(depth)});
+    }
+    if (static_cast<int>(cand.size()) > w.cap_static && w.s_max > w.cap_static) {
+      std::nth_element(cand.begin(), cand.begin() + w.cap_static, cand.end(),
+                       [](const Pick& u, const Pick& v) { return u.depth > v.depth; });
+      cand.resize(w.cap_static);
+    }
+    picks.insert(picks.end(), cand.begin(), cand.end());
+  }
+}
+
+// force and torque on body a from its picked static contacts; st = its 13 state numbers as T
+template <typename T, typename S>
+void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick>& picks, T* out) {
+  for (int i = 0; i < 6; ++i) out[i] = T(0);
+  const int m = static_cast<int>(picks.size());
+  if (m == 0) return;
+  const T* x = st;
+  const T* q = st + 3;
+  const T* v = st + 7;
+  const T* om = st + 10;
+  T rot[9], inv_w[9];
+  quat_to_matrix(q, rot);
+  rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
+  std::vector<T> depth(m), nrm(3 * m), arm(3 * m);
+  T total = T(0);
+  for (int j = 0; j < m; ++j) {
+    const Pick& pk = picks[j];
+    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + pk.sphere) * 3;
+    const S r = w.radii[a * w.s_max + pk.sphere];
+    T p[3];
+    for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
+    T d;
+    distance(w.shapes[pk.shape], p, d, &nrm[3 * j]);
+    depth[j] = relu(r - d);
+    for (int i = 0; i < 3; ++i) arm[3 * j + i] = (p[i] - x[i]) - nrm[3 * j + i] * r;
+    total = total + depth[j];
+  }
+  const S tiny = std::numeric_limits<S>::min();
+  const S mass = w.mass[a];
+  const S stiff = mass * w.omega * w.omega;
+  const S inv_m = S(1) / mass;
+  for (int j = 0; j < m; ++j) {
+    const int k = picks[j].shape;
+    const T* n = &nrm[3 * j];
+    const T* r = &arm[3 * j];
+    T wr[3], vel[3], vt[3], t[3], ft[3];
+    cross3(om, r, wr);
+    for (int i = 0; i < 3; ++i) vel[i] = v[i] + wr[i];
+    T vn = dot3(vel, n);
+    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
+    T weight = depth[j] / (total + tiny);
+    const S unload = w.unload_static[a * w.k + k];
+    T loading = sigmoid(-vn / w.unload_velocity);
+    T fn = weight * stiff * depth[j] * (unload + (1.0 - unload) * loading);
+    slip_direction(vt, t);
+    T inv_mass = inv_m + inverse_mass(r, t, inv_w, w.inv_i_min[a]);
+    T stick = weight / (inv_mass * w.h);
+    friction<T, S>(vt, w.mu_static[a * w.k + k] * fn, stick, ft);
+    T f[3], tq[3];
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] + ft[i];
+    cross3(r, f, tq);
+    for (int i = 0; i < 3; ++i) {
+      out[i] = out[i] + f[i];
+      out[3 + i] = out[3 + i] + tq[i];
+    }
+  }
+}
+
+struct PairPick {
+  int i, j;
+  double depth;
+};
+
+template <typename S>
+void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
+                 std::vector<PairPick>& picks) {
+  picks.clear();
+  S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
+  if (!(std::sqrt(dot3(dx, dx)) < w.bound[a] + w.bound[b])) return;
+  const int na = w.count[a], nb = w.count[b];
+  std::vector<S> pb(3 * nb);
+  for (int j = 0; j < nb; ++j) {
+    const S* c = w.centers + (static_cast<int64_t>(b) * w.s_max + j) * 3;
+    for (int i = 0; i < 3; ++i) pb[3 * j + i] = sb[i] + (c[0] * rb[3 * i] + c[1] * rb[3 * i + 1] + c[2] * rb[3 * i + 2]);
+  }
+  for (int i = 0; i < na; ++i) {
+    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
+    S pa[3];
+    for (int k = 0; k < 3; ++k) pa[k] = sa[k] + (c[0] * ra[3 * k] + c[1] * ra[3 * k + 1] + c[2] * ra[3 * k + 2]);
+    const S r_i = w.radii[a * w.s_max + i];
+    for (int j = 0; j < nb; ++j) {
+      S df[3] = {pb[3 * j] - pa[0], pb[3 * j + 1] - pa[1], pb[3 * j + 2] - pa[2]};
+      const S depth = r_i + w.radii[b * w.s_max + j] - std::sqrt(dot3(df, df));
+      if (depth > 0) picks.push_back({i, j, static_cast<double>(depth)});
+    }
+  }
+  if (static_cast<int>(picks.size()) > w.cap_pair &&
+      static_cast<int64_t>(w.s_max) * w.s_max > w.cap_pair) {
+    std::nth_element(picks.begin(), picks.begin() + w.cap_pair, picks.end(),
+                     [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
+    picks.resize(w.cap_pair);
+  }
+}
+
+// wrench on a (out[0..5]) and on b (out[6..11]) from pair index pi's picked sphere pairs
+template <typename T, typename S>
+void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const std::vector<PairPick>& picks,
+                 T* out) {
+  for (int i = 0; i < 12; ++i) out[i] = T(0);
+  const int m = static_cast<int>(picks.size());
+  if (m == 0) return;
+  const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+  T rot_a[9], rot_b[9], iw_a[9], iw_b[9];
+  quat_to_matrix(st_a + 3, rot_a);
+  quat_to_matrix(st_b + 3, rot_b);
+  rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
+  rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
+  std::vector<T> depth(m), nrm(3 * m), arm_a(3 * m), arm_b(3 * m);
+  T total = T(0);
+  for (int k = 0; k < m; ++k) {
+    const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
+    const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
+    const S r_a = w.radii[a * w.s_max + picks[k].i], r_b = w.radii[b * w.s_max + picks[k].j];
+    T pa[3], pb[3], diff[3];
+    for (int i = 0; i < 3; ++i) {
+      pa[i] = st_a[i] + (ca[0] * rot_a[3 * i] + ca[1] * rot_a[3 * i + 1] + ca[2] * rot_a[3 * i + 2]);
+      pb[i] = st_b[i] + (cb[0] * rot_b[3 * i] + cb[1] * rot_b[3 * i + 1] + cb[2] * rot_b[3 * i + 2]);
+      diff[i] = pb[i] - pa[i];
+    }
+    T dist = sqrt(dot3(diff, diff) + S(1e-24));
+    for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;
+    depth[k] = relu((r_a + r_b) - dist);
+    for (int i = 0; i < 3; ++i) {
+      T point = pa[i] + nrm[3 * k + i] * r_a;
+      arm_a[3 * k + i] = point - st_a[i];
+      arm_b[3 * k + i] = point - st_b[i];
+    }
+    total = total + depth[k];
+  }
+  const S tiny = std::numeric_limits<S>::min();
+  const S stiff = w.mass_pair[pi] * w.omega * w.omega;
+  const S unload = w.unload_pair[pi];
+  const S inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
+  for (int k = 0; k < m; ++k) {
+    const T* n = &nrm[3 * k];
+    const T* ra = &arm_a[3 * k];
+    const T* rb = &arm_b[3 * k];
+    T wa[3], wb[3], vrel[3], vt[3], t[3], ft[3];
+    cross3(st_a + 10, ra, wa);
+    cross3(st_b + 10, rb, wb);
+    for (int i = 0; i < 3; ++i) vrel[i] = (st_b[7 + i] + wb[i]) - (st_a[7 + i] + wa[i]);
+    T vn = dot3(vrel, n);
+    for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn * n[i];
+    T weight = depth[k] / (total + tiny);
+    T loading = sigmoid(-vn / w.unload_velocity);
+    T fn = weight * stiff * depth[k] * (unload + (1.0 - unload) * loading);
+    slip_direction(vt, t);
+    T inv_mass = inv_m + inverse_mass(ra, t, iw_a, w.inv_i_min[a]) + inverse_mass(rb, t, iw_b, w.inv_i_min[b]);
+    T stick = weight / (inv_mass * w.h);
+    friction<T, S>(vt, w.mu_pair[pi] * fn, stick, ft);
+    T f[3], neg[3], ta[3], tb[3];
+    for (int i = 0; i < 3; ++i) {
+      f[i] = fn * n[i] + ft[i];
+      neg[i] = -f[i];
+    }
+    cross3(ra, neg, ta);
+    cross3(rb, f, tb);
+    for (int i = 0; i < 3; ++i) {
+      out[i] = out[i] - f[i];
+      out[3 + i] = out[3 + i] + ta[i];
+      out[6 + i] = out[6 + i] + f[i];
+      out[9 + i] = out[9 + i] + tb[i];
+    }
+  }
+}
+
+// one semi-implicit Euler substep of one body from its state st (13) and wrench wr (6, gravity included)
+template <typename T, typename S>
+void integrate(const World<S>& w, int a, const T* st, const T* wr, T* out) {
+  const T* q = st + 3;
+  T rot[9];
+  quat_to_matrix(q, rot);
+  const S hm = w.h / w.mass[a];
+  T v[3], om[3], lw[3], gyro[3], rhs[3], acc[3], body[3], tmp[3];
+  for (int i = 0; i < 3; ++i) v[i] = st[7 + i] + hm * wr[i];
+  // I_w w and I_w^-1 (tau - gyro) as R (I (R^T u)): matrix-vector products only
+  matvec_t(rot, st + 10, body);
+  matvec(w.inertia + 9 * a, body, tmp);
+  matvec(rot, tmp, lw);
+  cross3(st + 10, lw, gyro);
+  for (int i = 0; i < 3; ++i) rhs[i] = wr[3 + i] - gyro[i];
+  matvec_t(rot, rhs, body);
+  matvec(w.inv_inertia + 9 * a, body, tmp);
+  matvec(rot, tmp, acc);
+  for (int i = 0; i < 3; ++i) om[i] = st[10 + i] + w.h * acc[i];
+  for (int i = 0; i < 3; ++i) out[i] = st[i] + w.h * v[i];
+  // rotvec_to_quat(om h) * q, renormalised
+  T r[3] = {om[0] * w.h, om[1] * w.h, om[2] * w.h};
+  const S eps = sizeof(S) == 8 ? S(1e-4) : S(1e-2);
+  T sq = dot3(r, r);
+  T sinc, co;
+  if (val(sq) < eps * eps) {
+    sinc = 0.5 - sq / S(48);
+    co = 1.0 - sq / S(8);
+  } else {
+    T norm = sqrt(sq);
+    T half = 0.5 * norm;
+    sinc = sin(half) / norm;
+    co = cos(half);
+  }
+  T e[4] = {co, sinc * r[0], sinc * r[1], sinc * r[2]};
+  T qn[4];
+  qn[0] = e[0] * q[0] - e[1] * q[1] - e[2] * q[2] - e[3] * q[3];
+  qn[1] = e[0] * q[1] + e[1] * q[0] + e[2] * q[3] - e[3] * q[2];
+  qn[2] = e[0] * q[2] - e[1] * q[3] + e[2] * q[0] + e[3] * q[1];
+  qn[3] = e[0] * q[3] + e[1] * q[2] - e[2] * q[1] + e[3] * q[0];
+  T len = sqrt(qn[0] * qn[0] + qn[1] * qn[1] + qn[2] * qn[2] + qn[3] * qn[3]);
+  for (int i = 0; i < 4; ++i) out[3 + i] = qn[i] / len;
+  for (int i = 0; i < 3; ++i) {
+    out[7 + i] = v[i];
+    out[10 + i] = om[i];
+  }
+}
+
+// ------------------------------------------------------------------ one candidate
+template <typename S>
+struct Scratch {
+  std::vector<std::vector<Pick>> picks;          // per body
+  std::vector<std::vector<PairPick>> pair_picks;  // per pair
+  std::vector<S> rot;                             // (N, 9)
+  std::vector<S> wrench;                          // (N, 6)
+  std::vector<S> next;                            // (N, 13)
+  std::vector<S> jac, dws;                        // substep Jacobian (13N)^2, dW/ds (6N x 13N)
+  std::vector<S> clear;                           // (N, K, s_max) clearance bounds (select_static)
+  std::vector<S> last;                            // (N, 12) position and rotation at the last selection
+};
+
+template <typename S>
+void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or null */) {
+  const int n = w.n;
+  const int dim = 13 * n;
+  for (int a = 0; a < n; ++a) {
+    S* rot = &sc.rot[9 * a];
+    S* last = &sc.last[12 * a];
+    quat_to_matrix(state + 13 * a + 3, rot);
+    S dx = 0, dr = 0;
+    for (int i = 0; i < 3; ++i) dx += (state[13 * a + i] - last[i]) * (state[13 * a + i] - last[i]);
+    for (int i = 0; i < 9; ++i) dr += (rot[i] - last[3 + i]) * (rot[i] - last[3 + i]);
+    // |p_i' - p_i| <= |x' - x| + |R' - R|_F |c_i|
+    const S move = std::sqrt(dx) + std::sqrt(dr) * w.reach[a];
+    for (int i = 0; i < 3; ++i) last[i] = state[13 * a + i];
+    for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
+    select_static(w, a, state + 13 * a, rot, sc.picks[a],
+                  &sc.clear[static_cast<int64_t>(a) * w.k * w.s_max], move);
+  }
+  for (int pi = 0; pi < w.p; ++pi) {
+    const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+    select_pair(w, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b], sc.pair_picks[pi]);
+  }
+  if (jac == nullptr) {
+    for (int a = 0; a < n; ++a) static_wrench<S, S>(w, a, state + 13 * a, sc.picks[a], &sc.wrench[6 * a]);
+    for (int pi = 0; pi < w.p; ++pi) {
+      if (sc.pair_picks[pi].empty()) continue;
+      const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+      S o[12];
+      pair_wrench<S, S>(w, pi, state + 13 * a, state + 13 * b, sc.pair_picks[pi], o);
+      for (int i = 0; i < 6; ++i) {
+        sc.wrench[6 * a + i] += o[i];
+        sc.wrench[6 * b + i] += o[6 + i];
+      }
+    }
+    for (int a = 0; a < n; ++a) {
+      for (int i = 0; i < 3; ++i) sc.wrench[6 * a + i] += w.mass[a] * w.gravity[i];
+      integrate<S, S>(w, a, state + 13 * a, &sc.wrench[6 * a], &sc.next[13 * a]);
+    }
+    std::copy(sc.next.begin(), sc.next.end(), state);
+    return;
+  }
+  // Jacobian: dW/ds per body (6 x 13N), then integration
+  std::fill(sc.dws.begin(), sc.dws.end(), S(0));  // (N, 6, 13N)
+  for (int a = 0; a < n; ++a) {
+    using D = Dual<S, 13>;
+    D st[13], o[6];
+    Seeder<S>::run(state + 13 * a, st, 0);
+    static_wrench<D, S>(w, a, st, sc.picks[a], o);
+    for (int i = 0; i < 6; ++i) {
+      sc.wrench[6 * a + i] = o[i].v;
+      for (int j = 0; j < 13; ++j) sc.dws[(static_cast<int64_t>(6 * a + i)) * dim + 13 * a + j] = o[i].d[j];
+    }
+  }
+  for (int pi = 0; pi < w.p; ++pi) {
+    if (sc.pair_picks[pi].empty()) continue;
+    using D = Dual<S, 26>;
+    const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+    D sa[13], sb[13], o[12];
+    Seeder<S>::run(state + 13 * a, sa, 0);
+    Seeder<S>::run(state + 13 * b, sb, 13);
+    pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
+    for (int half = 0; half < 2; ++half) {
+      const int body = half ? b : a;
+      for (int i = 0; i < 6; ++i) {
+        const D& f = o[6 * half + i];
+        sc.wrench[6 * body + i] += f.v;
+        S* row = &sc.dws[static_cast<int64_t>(6 * body + i) * dim];
+        for (int j = 0; j < 13; ++j) {
+          row[13 * a + j] += f.d[j];
+          row[13 * b + j] += f.d[13 + j];
+        }
+      }
+    }
+  }
+  std::fill(sc.jac.begin(), sc.jac.end(), S(0));
+  for (int a = 0; a < n; ++a) {
+    using D = Dual<S, 19>;
+    D st[13], wr[6], o[13];
+    Seeder<S>::run(state + 13 * a, st, 0);
+    for (int i = 0; i < 6; ++i) {
+      S value = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
+      wr[i] = D(value);
+      wr[i].d[13 + i] = S(1);
+    }
+    integrate<D, S>(w, a, st, wr, o);
+    for (int i = 0; i < 13; ++i) {
+      sc.next[13 * a + i] = o[i].v;
+      S* row = jac + static_cast<int64_t>(13 * a + i) * dim;
+      for (int j = 0; j < 13; ++j) row[13 * a + j] += o[i].d[j];
+      for (int k = 0; k < 6; ++k) {
+        const S g = o[i].d[13 + k];
+        if (g == S(0)) continue;
+        const S* dw = &sc.dws[static_cast<int64_t>(6 * a + k) * dim];
+        for (int j = 0; j < dim; ++j) row[j] += g * dw[j];
+      }
+    }
+  }
+  std::copy(sc.next.begin(), sc.next.end(), state);
+}
+
+// out = J phi, all dim x dim row-major; fixed sizes for 1 to 4 bodies so the loops unroll
+template <typename S, int D>
+void phi_update_fixed(const S* __restrict J, const S* __restrict phi, S* __restrict out) {
+  for (int i = 0; i < D; ++i) {
+    S acc[D] = {};
+    for (int l = 0; l < D; ++l) {
+      const S jil = J[i * D + l];
+      for (int j = 0; j < D; ++j) acc[j] += jil * phi[l * D + j];
+    }
+    for (int j = 0; j < D; ++j) out[i * D + j] = acc[j];
+  }
+}
+
+template <typename S>
+void phi_update(int dim, const S* J, const S* phi, S* out) {
+  switch (dim) {
+    case 13: return phi_update_fixed<S, 13>(J, phi, out);
+    case 26: return phi_update_fixed<S, 26>(J, phi, out);
+    case 39: return phi_update_fixed<S, 39>(J, phi, out);
+    case 52: return phi_update_fixed<S, 52>(J, phi, out);
+    default: break;
+  }
+  for (int i = 0; i < dim; ++i) {
+    S* o = out + static_cast<size_t>(i) * dim;
+    std::fill(o, o + dim, S(0));
+    for (int l = 0; l < dim; ++l) {
+      const S jil = J[static_cast<size_t>(i) * dim + l];
+      const S* prow = phi + static_cast<size_t>(l) * dim;
+      for (int j = 0; j < dim; ++j) o[j] += jil * prow[j];
+    }
+  }
+}
+
+template <typename S>
+void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
+                   S* rec_states, S* rec_phi) {
+  const int n = w.n;
+  const int dim = 13 * n;
+  Scratch<S> sc;
+  sc.picks.resize(n);
+  sc.pair_picks.resize(w.p);
+  sc.rot.resize(9 * n);
+  sc.wrench.resize(6 * n);
+  sc.next.resize(dim);
+  sc.clear.assign(static_cast<size_t>(n) * w.k * w.s_max, -std::numeric_limits<S>::infinity());
+  sc.last.assign(static_cast<size_t>(12) * n, std::numeric_limits<S>::infinity());
+  std::vector<S> state(init, init + dim);
+  std::vector<S> phi, tmp;
+  if (with_jac) {
+    phi.assign(static_cast<size_t>(dim) * dim, S(0));
+    for (int i = 0; i < dim; ++i) phi[static_cast<size_t>(i) * dim + i] = S(1);
+    tmp.resize(static_cast<size_t>(dim) * dim);
+    sc.jac.resize(static_cast<size_t>(dim) * dim);
+    sc.dws.resize(static_cast<size_t>(6 * n) * dim);
+  }
+  int64_t r = 0;
+  for (int64_t step = 1; step <= steps; ++step) {
+    for (int k = 0; k < w.substeps; ++k) {
+      if (!with_jac) {
+        substep<S>(w, state.data(), sc, nullptr);
+        continue;
+      }
+      substep(w, state.data(), sc, sc.jac.data());
+      phi_update<S>(dim, sc.jac.data(), phi.data(), tmp.data());  // phi <- J phi
+      phi.swap(tmp);
+    }
+    if (step % record_every == 0 || step == steps) {
+      std::copy(state.begin(), state.end(), rec_states + r * dim);
+      if (with_jac) std::copy(phi.begin(), phi.end(), rec_phi + r * static_cast<int64_t>(dim) * dim);
+      ++r;
+    }
+  }
+}
+
+template <typename S>
+World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<double>& f, const std::vector<int64_t>& iv) {
+  // t: mass, inertia, inv_inertia, centers, radii, bound, inv_i_min, counts(int64), mu_static, unload_static,
+  //    pairs(int64), mu_pair, unload_pair, mass_pair, shape_params (K, 32), grid values (flat)
+  // f: gravity(3), h, omega, unload_velocity; iv: substeps, cap_static, cap_pair, grid offsets/dims in shape_params
+  World<S> w;
+  w.n = static_cast<int>(t[0].size(0));
+  w.s_max = static_cast<int>(t[3].size(1));
+  w.k = static_cast<int>(t[8].size(1));
+  w.p = static_cast<int>(t[10].size(0));
+  w.mass = t[0].data_ptr<S>();
+  w.inertia = t[1].data_ptr<S>();
+  w.inv_inertia = t[2].data_ptr<S>();
+  w.centers = t[3].data_ptr<S>();
+  w.radii = t[4].data_ptr<S>();
+  w.bound = t[5].data_ptr<S>();
+  w.inv_i_min = t[6].data_ptr<S>();
+  const int64_t* counts = t[7].data_ptr<int64_t>();
+  for (int i = 0; i < w.n; ++i) {
+    w.count.push_back(static_cast<int>(counts[i]));
+    S reach = 0;
+    for (int j = 0; j < w.count[i]; ++j) {
+      const S* c = w.centers + (static_cast<int64_t>(i) * w.s_max + j) * 3;
+      reach = std::max(reach, std::sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2]));
+    }
+    w.reach.push_back(reach);
+  }
+  w.mu_static = t[8].data_ptr<S>();
+  w.unload_static = t[9].data_ptr<S>();
+  w.pairs = t[10].data_ptr<int64_t>();
+  w.mu_pair = t[11].data_ptr<S>();
+  w.unload_pair = t[12].data_ptr<S>();
+  w.mass_pair = t[13].data_ptr<S>();
+  const S* sp = t[14].data_ptr<S>();  // (K, 32)
+  const S* grid = t[15].data_ptr<S>();
+  for (int k = 0; k < w.k; ++k) {
+    const S* r = sp + 32 * k;
+    Shape<S> sh;
+    sh.kind = static_cast<int>(r[0]);
+    for (int i = 0; i < 9; ++i) sh.rot[i] = r[1 + i];
+    for (int i = 0; i < 3; ++i) {
+      sh.trans[i] = r[10 + i];
+      sh.half[i] = r[13 + i];
+      sh.origin[i] = r[18 + i];
+    }
+    sh.radius = r[16];
+    sh.half_height = r[17];
+    sh.spacing = r[21];
+    sh.lipschitz = r[22];
+    sh.nx = static_cast<int64_t>(r[23]);
+    sh.ny = static_cast<int64_t>(r[24]);
+    sh.nz = static_cast<int64_t>(r[25]);
+    sh.grid = grid + static_cast<int64_t>(r[26]);
+    w.shapes.push_back(sh);
+  }
+  for (int i = 0; i < 3; ++i) w.gravity[i] = static_cast<S>(f[i]);
+  w.h = static_cast<S>(f[3]);
+  w.omega = static_cast<S>(f[4]);
+  w.unload_velocity = static_cast<S>(f[5]);
+  w.substeps = static_cast<int>(iv[0]);
+  w.cap_static = static_cast<int>(iv[1]);
+  w.cap_pair = static_cast<int>(iv[2]);
+  return w;
+}
+
+}  // namespace dv
+
+// init: (B, N, 13) -> states (B, R, N, 13) and, with_jac, phi (B, R, 13N, 13N) = d state / d init
+std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, bool with_jac,
+                                   std::vector<torch::Tensor> world, std::vector<double> floats,
+                                   std::vector<int64_t> ints) {
+  TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
+  TORCH_CHECK(init.dim() == 3 && init.size(2) == 13, "init must be (B, N, 13)");
+  TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
+  init = init.contiguous();
+  for (auto& t : world) t = t.contiguous();
+  const int64_t b = init.size(0), n = init.size(1);
+  const int64_t dim = 13 * n;
+  const int64_t records = (steps + record_every - 1) / record_every;
+  auto states = torch::empty({b, records, n, 13}, init.options());
+  auto phi = with_jac ? torch::empty({b, records, dim, dim}, init.options()) : torch::empty({0}, init.options());
+  TORCH_CHECK(init.scalar_type() == torch::kFloat64, "the native simulator runs in float64");
+  {
+    using S = double;
+    const dv::World<S> w = dv::make_world<S>(world, floats, ints);
+    TORCH_CHECK(w.n == n, "state and world disagree on the number of bodies");
+    const S* in = init.data_ptr<S>();
+    S* out = states.data_ptr<S>();
+    S* ph = with_jac ? phi.data_ptr<S>() : nullptr;
+    at::parallel_for(0, b, 1, [&](int64_t begin, int64_t end) {
+      for (int64_t i = begin; i < end; ++i)
+        dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
+                             with_jac ? ph + i * records * dim * dim : nullptr);
+    });
+  }
+  return {states, phi};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians (dejaview.sim.native)");
+}
