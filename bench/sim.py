@@ -11,26 +11,31 @@ of 2 substeps). Its ``<inference>`` frees all 12 parameters of the mug's
 initial state (the start area has depth in x, y and z) and targets the
 simulated final pose.
 
-Printed, and returned as rows by ``run(print_fn=print, quick=False)``:
+Printed, and returned as rows by ``run(print_fn=print, quick=False)``, for
+both simulation engines (``engine`` key of each row): ``torch`` (eager
+PyTorch, ``dejaview.sim.integrate``) and ``native`` (the same model in C++,
+``dejaview.sim.native``; rows only where the extension builds):
 
 * rollout without gradient: steps per second at B = 1 and B = 64, the time
   per candidate at B = 64 and the batch speed-up (64 times the B = 1 time
-  over the B = 64 time);
-* one loss + gradient of all 12 parameters, forward and reverse mode, eager,
-  at B = 1 and per candidate at B = 64 (reverse mode at B = 64 is one
-  batched backward); compiled (``InferenceProblem.compile``, where the
-  checkout offers it) only with ``compile=True`` / ``--compile``, each
-  configuration in a fresh process with a time limit, since the first
-  compile takes minutes;
-* peak memory of one reverse-mode loss + gradient without and with
-  checkpointing (``checkpoint_every``), each in a fresh subprocess; on Linux
-  the peak-RSS mark (VmHWM) is reset after set-up, so the figure is what the
-  gradient itself adds.
+  over the B = 64 time); native rows also their speed-up over eager;
+* one loss + gradient of all 12 parameters, forward and reverse mode, at
+  B = 1 and per candidate at B = 64 (reverse mode at B = 64 is one batched
+  backward): eager, native (always over the whole rollout), and compiled
+  (``InferenceProblem.compile``, where the checkout offers it) only with
+  ``compile=True`` / ``--compile``, each configuration in a fresh process
+  with a time limit, since the first compile takes minutes;
+* checks: eager forward vs reverse gradient, and native forward and reverse
+  vs eager reverse (over the window, B = 1);
+* peak memory of one reverse-mode loss + gradient, eager without and with
+  checkpointing (``checkpoint_every``) and native, each in a fresh
+  subprocess; on Linux the peak-RSS mark (VmHWM) is reset after set-up, so
+  the figure is what the gradient itself adds.
 
 Targets: one loss + gradient at B = 1 in <= 100 ms, and <= 10 ms per
 candidate at B = 64 (the faster gradient mode of each).
 
-Forward mode, and anything at B = 64 with a gradient, would take minutes over
+Eager forward mode, and anything eager at B = 64 with a gradient, would take minutes over
 the whole rollout, so they are timed over the first ``WINDOW`` steps and
 scaled to the full 750 (every step costs the same: one body, no
 data-dependent work); reverse mode at B = 1 is timed over the whole rollout
@@ -60,10 +65,11 @@ MODES = ("forward", "reverse")
 # configurations, steps None meaning the full rollout and "window" the window; each runs
 # in a fresh process (quick: all in one).
 FULL = dict(batch=64, window=100, full_steps=None, repeats=2,
-            memory=((1, None, None), (1, None, 25), (1, None, 150),
-                    (64, "window", None), (64, "window", 25)))
+            memory=((1, None, None, "torch"), (1, None, 25, "torch"), (1, None, 150, "torch"),
+                    (64, "window", None, "torch"), (64, "window", 25, "torch"),
+                    (1, None, None, "native"), (64, None, None, "native")))
 QUICK = dict(batch=4, window=3, full_steps=6, repeats=1,
-             memory=((1, None, None), (1, None, 2)))
+             memory=((1, None, None, "torch"), (1, None, 2, "torch"), (1, None, None, "native")))
 
 
 # ------------------------------------------------------------------ scene
@@ -165,7 +171,8 @@ def memory_probe(config: dict) -> dict:
     """Peak memory of one reverse-mode loss + gradient (run in a fresh process).
 
     Args:
-        config: batch, steps (None: the scene's), checkpoint_every (None: off), threads.
+        config: batch, steps (None: the scene's), checkpoint_every (None: off), threads,
+            engine (``torch`` | ``native``; default torch).
     Returns:
         peak_growth_mib (peak RSS during the gradient minus RSS before it), baseline_mib,
         seconds, method (``VmHWM reset`` or ``ru_maxrss``, the latter a lower bound when
@@ -179,7 +186,7 @@ def memory_probe(config: dict) -> dict:
     from dejaview.scene import Scene
 
     torch.set_num_threads(int(config.get("threads", 1)))
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE))
+    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine=config.get("engine", "torch"))
     steps = config.get("steps") or problem.steps
     problem = replace(problem, steps=steps, checkpoint_every=config.get("checkpoint_every"))
     _, x = _candidates(problem, int(config["batch"]))
@@ -219,7 +226,7 @@ def compile_probe(config: dict) -> dict:
     from dejaview.scene import Scene
 
     torch.set_num_threads(int(config.get("threads", 1)))
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE))
+    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
     problem = replace(problem, steps=int(config["steps"]), compile=True)
     _, x = _candidates(problem, int(config["batch"]))
     started = time.perf_counter()
@@ -282,8 +289,11 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     cfg = QUICK if quick else FULL
     say = print_fn or (lambda *_: None)
     rows: list[dict] = []
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE))
+    from dejaview.sim import native
+
+    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
     world = problem.world
+    native_ok = native.available()
     full = cfg["full_steps"] or problem.steps
     problem = replace(problem, steps=full)
     window = min(cfg["window"], full)
@@ -297,7 +307,8 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     say(f"parameters: {p} ({', '.join(problem.layout.names())})")
     if not 11 <= p <= 12:
         say(f"  warning: expected 11-12 free parameters, the layout gives {p}")
-    say(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), float64; {_load()}")
+    say(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), float64; native engine: "
+        f"{str(native.threads()) + ' thread(s)' if native_ok else 'not built'}; {_load()}")
 
     # ---- rollout without gradient
     def simulate(x, steps):
@@ -312,13 +323,28 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     say(f"{'rollout, no gradient':<34} {'B':>3} {'steps/s':>9} {'s/rollout':>10} "
         f"{'s/candidate':>12} {'speed-up':>9}")
     for b, t in ((1, t1), (batch, tb)):
-        row = {"section": "rollout", "name": "eager", "batch": b, "mode": "none",
+        row = {"section": "rollout", "name": "eager", "engine": "torch", "batch": b, "mode": "none",
                "value": full / t, "unit": "steps/s", "steps": full, "seconds": t,
                "per_candidate_s": t / b, "speedup_vs_b1": t1 * b / t}
         rows.append(row)
         say(f"{'  eager':<34} {b:>3} {row['value']:>9.1f} {t:>10.3f} {t / b:>12.4f} "
             f"{row['speedup_vs_b1']:>8.1f}x")
     say(f"  at B = {batch}: {batch * full / tb:.0f} candidate-steps/s")
+    if native_ok:
+        def simulate_native(x, steps):
+            with torch.no_grad():
+                rollout(world, problem.initial_state(x), steps=steps, record_every=steps, engine="native")
+
+        simulate_native(x1, 2)
+        n1 = _best_time(lambda: simulate_native(x1, full), max(3, repeats))
+        nb = _best_time(lambda: simulate_native(xb, full), max(2, repeats))
+        for b, t in ((1, n1), (batch, nb)):
+            row = {"section": "rollout", "name": "native", "engine": "native", "batch": b, "mode": "none",
+                   "value": full / t, "unit": "steps/s", "steps": full, "seconds": t,
+                   "per_candidate_s": t / b, "speedup_vs_b1": n1 * b / t, "speedup_vs_eager": (t1 if b == 1 else tb) / t}
+            rows.append(row)
+            say(f"{'  native':<34} {b:>3} {row['value']:>9.1f} {t:>10.4f} {t / b:>12.5f} "
+                f"{row['speedup_vs_b1']:>8.1f}x  ({row['speedup_vs_eager']:.0f}x eager)")
 
     # ---- loss + gradient
     short = replace(problem, steps=window)
@@ -348,8 +374,8 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     for mode in MODES:
         for b in (1, batch):
             seconds, t, steps, scaled = measured[(mode, b)]
-            row = {"section": "loss+grad", "name": f"{mode}, eager", "batch": b, "mode": mode,
-                   "value": seconds, "unit": "s", "seconds": seconds, "per_candidate_s": seconds / b,
+            row = {"section": "loss+grad", "name": f"{mode}, eager", "engine": "torch", "batch": b,
+                   "mode": mode, "value": seconds, "unit": "s", "seconds": seconds, "per_candidate_s": seconds / b,
                    "measured_steps": steps, "measured_s": t, "scaled": scaled}
             rows.append(row)
             how = f"{steps} steps, x{full / steps:.1f}" if scaled else f"all {steps} steps"
@@ -358,8 +384,8 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
         for mode in MODES:
             for b in (1, batch):
                 config = {"mode": mode, "batch": b, "steps": window, "threads": torch.get_num_threads()}
-                row = {"section": "loss+grad", "name": f"{mode}, compiled", "batch": b, "mode": mode,
-                       "value": None, "unit": "s"}
+                row = {"section": "loss+grad", "name": f"{mode}, compiled", "engine": "torch", "batch": b,
+                       "mode": mode, "value": None, "unit": "s"}
                 try:
                     out = _in_subprocess("--compile-probe", [config], timeout=compile_timeout)[0]
                 except subprocess.TimeoutExpired:
@@ -382,9 +408,28 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
                 "offered (InferenceProblem.compile), not timed: the first compile takes minutes "
                 "(run with --compile)")
         for mode in MODES:
-            rows.append({"section": "loss+grad", "name": f"{mode}, compiled", "batch": None, "mode": mode,
-                         "value": None, "unit": "s", "note": note})
+            rows.append({"section": "loss+grad", "name": f"{mode}, compiled", "engine": "torch", "batch": None,
+                         "mode": mode, "value": None, "unit": "s", "note": note})
             say(f"{'  ' + mode + ', compiled':<34} {'-':>3} {note}")
+    native_results = {}
+    if native_ok:
+        nfull = replace(problem, engine="native")
+        for mode in MODES:
+            nfull.value_and_grad(x1, mode)  # warm-up
+            for b, x in ((1, x1), (batch, xb)):
+                holder = {}
+
+                def grad(x=x, mode=mode, holder=holder):
+                    holder["out"] = nfull.value_and_grad(x, mode)
+
+                t = _best_time(grad, max(3, repeats) if b == 1 else max(2, repeats))
+                row = {"section": "loss+grad", "name": f"{mode}, native", "engine": "native", "batch": b,
+                       "mode": mode, "value": t, "unit": "s", "seconds": t, "per_candidate_s": t / b,
+                       "measured_steps": full, "measured_s": t, "scaled": False}
+                rows.append(row)
+                say(f"{'  ' + mode + ', native':<34} {b:>3} {t:>9.3f} {t / b:>12.4f}  all {full} steps")
+        for mode in MODES:
+            native_results[mode] = replace(nfull, steps=window).value_and_grad(x1, mode)
     if window < full:
         say(f"  scaling check: reverse B = 1 over all {full} steps took {t_full:.3f} s; "
             f"{window} steps x{full / window:.1f} gave {scaled_estimate:.3f} s "
@@ -396,27 +441,39 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
                  "loss_difference": float((lf - lr).abs().max())})
     say(f"  forward vs reverse gradient (B = 1, {window} steps): max |difference| / max |gradient| "
         f"= {diff:.1e}")
+    if native_results:
+        for mode in MODES:
+            ln, gn = native_results[mode]
+            ndiff = float((gn - gr).abs().max() / gr.abs().max().clamp_min(1e-300))
+            rows.append({"section": "check", "name": f"native {mode} vs eager reverse gradient", "batch": 1,
+                         "mode": mode, "value": ndiff, "unit": "max |difference| / max |gradient|",
+                         "steps": window, "loss_difference": float((ln - lr).abs().max())})
+            say(f"  native {mode} vs eager reverse gradient (B = 1, {window} steps): {ndiff:.1e}")
 
     # ---- memory
     say("")
     say(f"{'reverse mode, peak memory':<34} {'B':>3} {'steps':>6} {'checkpoint':>11} {'peak growth':>12} "
         f"{'seconds':>8}")
     configs = [{"batch": min(b, batch), "steps": full if steps is None else window,
-                "checkpoint_every": every, "threads": torch.get_num_threads()}
-               for b, steps, every in cfg["memory"]]
+                "checkpoint_every": every, "threads": torch.get_num_threads(), "engine": engine}
+               for b, steps, every, engine in cfg["memory"] if engine == "torch" or native_ok]
     if quick:  # one process for all: saves start-up time, the figures matter less
         outs = _in_subprocess("--memory-probe", configs)
     else:
         outs = [_in_subprocess("--memory-probe", [c])[0] for c in configs]
     for config, out in zip(configs, outs):
         b, steps, every = config["batch"], config["steps"], config["checkpoint_every"]
-        row = {"section": "memory", "name": "reverse, eager", "batch": b, "mode": "reverse",
+        engine = config["engine"]
+        row = {"section": "memory", "name": f"reverse, {'eager' if engine == 'torch' else engine}",
+               "engine": engine, "batch": b, "mode": "reverse",
                "value": out["peak_growth_mib"], "unit": "MiB", "steps": steps,
                "checkpoint_every": every or 0, "seconds": out["seconds"], "method": out["method"]}
         rows.append(row)
-        say(f"{'  one loss + gradient':<34} {b:>3} {steps:>6} {('every ' + str(every)) if every else 'off':>11} "
+        say(f"{'  one loss + gradient, ' + row['name'].split(', ')[1]:<34} {b:>3} {steps:>6} "
+            f"{('every ' + str(every)) if every else 'off':>11} "
             f"{row['value']:>8.0f} MiB {out['seconds']:>8.2f}")
-    widest = [r for r in rows if r["section"] == "memory" and r["batch"] == batch and not r["checkpoint_every"]]
+    widest = [r for r in rows if r["section"] == "memory" and r["batch"] == batch and not r["checkpoint_every"]
+              and r["engine"] == "torch"]
     if widest and widest[0]["steps"] < full:
         say(f"  (B = {batch} over all {full} steps without checkpointing: about "
             f"{widest[0]['value'] * full / widest[0]['steps'] / 1024:.1f} GiB by the same scaling)")

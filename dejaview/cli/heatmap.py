@@ -38,8 +38,8 @@ def _cells(ctx, param, value):
               help="processes optimising chunks at once (default: the CPU count, at most 2)")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
-def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_plot, backend, iterations,
-            optimizer, gradient, seed, quiet):
+def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_plot, backend, engine,
+            iterations, optimizer, gradient, seed, quiet):
     """Which cells of SCENE's start area could its source have started from? Writes
     heatmap.ppm, heatmap.png, heatmap.json, result.json and trajectory.csv (best solution) to DIR."""
     from tqdm import tqdm
@@ -63,7 +63,8 @@ def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_p
 
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
-                             batch_size=batch_size, workers=workers, callback=progress, backend=backend)
+                             batch_size=batch_size, workers=workers, callback=progress, backend=backend,
+                             engine=engine)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)

@@ -7,13 +7,16 @@ import sys
 import click
 
 BACKENDS = ("spheres", "warp")  # dejaview.backends.BACKENDS (not imported: --help stays cheap)
+ENGINES = ("auto", "native", "torch")  # dejaview.sim.native.ENGINES
 
 
 def common_options(f):
-    """--backend --iterations --optimizer --gradient --seed --quiet."""
+    """--backend --engine --iterations --optimizer --gradient --seed --quiet."""
     opts = [
         click.option("--backend", type=click.Choice(BACKENDS), default="spheres", show_default=True,
                      help="physics backend (warp: pip install 'dejaview[warp]')"),
+        click.option("--engine", type=click.Choice(ENGINES), default="auto", show_default=True,
+                     help="spheres backend: native C++ simulator (auto: where float64 allows) or torch"),
         click.option("--iterations", type=int, default=None, help="optimiser iterations (overrides the scene)"),
         click.option("--optimizer", type=click.Choice(["gd", "adam", "lbfgs", "bfgs"]), default=None,
                      help="optimiser (overrides the scene)"),

@@ -17,8 +17,8 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--record-every", type=int, default=1, show_default=True, help="record every k-th step")
 @click.option("--float32", is_flag=True, help="simulate in float32 instead of float64")
 @common_options
-def command(scene, out_dir, steps, record_every, float32, backend, iterations, optimizer, gradient,
-            seed, quiet):
+def command(scene, out_dir, steps, record_every, float32, backend, engine, iterations, optimizer,
+            gradient, seed, quiet):
     """Simulate SCENE from the objects' given poses and velocities; write DIR/trajectory.csv."""
     import torch
     from tqdm import tqdm
@@ -39,11 +39,14 @@ def command(scene, out_dir, steps, record_every, float32, backend, iterations, o
 
     def progress(done, total):
         bar.total = total
-        bar.update(1)
+        bar.update(done - bar.n)
 
+    if float32 and engine == "native":
+        raise click.BadParameter("the native engine runs in float64; drop --float32 or use --engine torch",
+                                 param_hint="--engine")
     run = simulate(sc, steps=steps, record_every=record_every,
                    dtype=torch.float32 if float32 else torch.float64,
-                   callback=None if bar.disable else progress)
+                   callback=None if bar.disable else progress, engine=engine)
     bar.close()
     path = run.write(out_dir)["trajectory"]
     if not quiet:

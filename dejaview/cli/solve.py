@@ -22,11 +22,12 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
 @click.option("--compile", "use_compile", is_flag=True,
-              help="torch.compile the rollouts: ~8x faster per iteration after a compile of minutes")
+              help="torch.compile the torch engine's rollouts (the native engine needs no compile)")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_compile, tolerance, backend, iterations, optimizer, gradient, seed, quiet):
+def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_compile, tolerance, backend,
+            engine, iterations, optimizer, gradient, seed, quiet):
     """Infer the initial state of SCENE's source object; write result.json, iterations.csv
     and trajectory.csv (the best solution re-simulated) to DIR."""
     from tqdm import tqdm
@@ -48,7 +49,8 @@ def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_com
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, screen=screen, screen_rounds=screen_rounds,
                    callback=progress, tolerance=tolerance,
-                   compile=use_compile, backend=backend)
+                   compile=use_compile, backend=backend,
+                   engine=None if engine == "auto" and backend != "spheres" else engine)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:

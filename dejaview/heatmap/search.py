@@ -189,7 +189,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     workers: int = 1,
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
-                    callback=None, should_stop=None, problem=None, backend: str = "spheres") -> HeatmapResult:
+                    callback=None, should_stop=None, problem=None, backend: str = "spheres",
+                    engine: str = "auto") -> HeatmapResult:
     """Start-position heatmap of a scene's source (module docstring).
 
     Args:
@@ -215,6 +216,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         problem: reuse a problem of this scene (``dejaview.backends``; a bare InferenceProblem is
             wrapped).
         backend: ``spheres`` | ``warp`` (``dejaview.backends.make_problem``); ignored with ``problem``.
+        engine: the spheres backend's simulation engine (``InferenceProblem.engine``); ignored
+            with ``problem``.
     Returns:
         HeatmapResult.
     Raises:
@@ -253,7 +256,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         raise InferenceError(f"robustness radii must be positive and ascending, got {radii!r}")
     if inf.start_area is None:
         raise InferenceError("a heatmap needs <start-area> in <inference>: the cells cover its x-y extent")
-    problem = as_problem(problem) if problem is not None else make_problem(scene, backend)
+    problem = (as_problem(problem) if problem is not None
+               else make_problem(scene, backend, **_engine_option(backend, engine)))
     layout = problem.layout
     if not layout.free["position"] or 0 not in layout.position_axes or 1 not in layout.position_axes:
         raise InferenceError("a heatmap needs the start position free with x and y extent in <start-area> "
@@ -302,7 +306,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
 
     opts = dict(optimizer=optimizer, iterations=iterations, gradient=gradient, lr=lr, seed=seed)
     if workers > 1 and len(chunks) > 1:
-        results = _chunks_in_processes(scene, problem.backend, guesses, opts, workers, progress, should_stop,
+        results = _chunks_in_processes(scene, problem.backend, getattr(problem, "engine", engine),
+                                       guesses, opts, workers, progress, should_stop,
                                        state, chunks)
     else:
         results = []
@@ -410,12 +415,25 @@ def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, sho
 _WORKER: dict = {}
 
 
-def _worker_init(scene, backend: str) -> None:
-    """Process-pool initialiser: one torch thread, the scene's problem built once per process."""
+def _engine_option(backend: str, engine: str) -> dict:
+    """``make_problem`` options for ``engine`` (the spheres backend's; the default elsewhere)."""
+    if backend == "spheres":
+        return {"engine": engine}
+    if engine != "auto":
+        raise InferenceError(f"engine is an option of the spheres backend, not of {backend}")
+    return {}
+
+
+def _worker_init(scene, backend: str, engine: str) -> None:
+    """Process-pool initialiser: one thread (torch's and the native simulator's), the scene's
+    problem built once per process."""
+    import os
+
     torch.set_num_threads(1)
+    os.environ["DEJAVIEW_NATIVE_THREADS"] = "1"
     from dejaview.backends import make_problem
 
-    _WORKER["problem"] = make_problem(scene, backend)
+    _WORKER["problem"] = make_problem(scene, backend, **_engine_option(backend, engine))
 
 
 def _worker_chunk(ci: int, lo: torch.Tensor, hi: torch.Tensor, x0: torch.Tensor, opts: dict, queue, stop):
@@ -424,7 +442,8 @@ def _worker_chunk(ci: int, lo: torch.Tensor, hi: torch.Tensor, x0: torch.Tensor,
     return optimise_chunk(chunk, x0, ci, opts, lambda p: queue.put((ci, p)), stop.is_set)
 
 
-def _chunks_in_processes(scene, backend, guesses, opts, workers, progress, should_stop, state, chunks):
+def _chunks_in_processes(scene, backend, engine, guesses, opts, workers, progress, should_stop, state,
+                         chunks):
     """Optimise the chunks in a pool of ``workers`` processes (spawned; each builds the problem from the
     scene once); progress comes back through a queue and is reported from this thread."""
     import multiprocessing
@@ -435,7 +454,7 @@ def _chunks_in_processes(scene, backend, guesses, opts, workers, progress, shoul
     with ctx.Manager() as manager:
         q, stop = manager.Queue(), manager.Event()
         with ProcessPoolExecutor(max_workers=min(workers, len(guesses)), mp_context=ctx,
-                                 initializer=_worker_init, initargs=(scene, backend)) as pool:
+                                 initializer=_worker_init, initargs=(scene, backend, engine)) as pool:
             futures = [pool.submit(_worker_chunk, ci, layout.lo, layout.hi, x0, opts, q, stop)
                        for ci, (_, layout, x0) in enumerate(guesses)]
             pending = set(range(len(futures)))

@@ -272,12 +272,24 @@ def plot_losses(history: list[Progress], path) -> Path:
     return Path(path)
 
 
+def _check_engine(engine: str, compile: bool) -> str:
+    from dejaview.sim.native import ENGINES
+
+    if engine not in ENGINES:
+        raise InferenceError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    if compile and engine == "native":
+        raise InferenceError("compile applies to the torch engine; the native engine is compiled C++ "
+                             "already: drop --compile or choose --engine torch")
+    return engine
+
+
 def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           gradient: str | None = None, seed: int | None = None, lr: float | None = None,
           multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
-          compile: bool = False, backend: str | None = None, screen: int = 0,
+          compile: bool = False, backend: str | None = None, engine: str | None = None,
+          screen: int = 0,
           screen_rounds: int = 1, screen_near: float = SCREEN_NEAR) -> SolveResult:
     """Infer the initial state of the scene's source object.
 
@@ -307,6 +319,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         tolerance: stop once the best loss is at or below this.
         compile: compiled rollouts (see ``InferenceProblem.compile``; spheres only).
         backend: ``spheres`` (default) | ``warp`` (``dejaview.backends``); ignored with ``problem``.
+        engine: simulation engine of the spheres backend, ``auto`` | ``native`` | ``torch``
+            (``InferenceProblem.engine``; None keeps the problem's, by default ``auto``).
     Returns:
         SolveResult.
     Raises:
@@ -338,8 +352,11 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     problem = as_problem(problem)
     if problem.backend == "spheres":
         problem.compile = compile
-    elif compile:
-        raise InferenceError(f"compile is an option of the spheres backend, not of {problem.backend}")
+        if engine is not None:
+            problem.engine = _check_engine(engine, compile)
+    elif compile or engine is not None:
+        raise InferenceError(f"{'compile' if compile else 'engine'} is an option of the spheres backend, "
+                             f"not of {problem.backend}")
     gradient = gradient or inf.gradient or default_gradient(problem.num_params)
     if gradient not in ("forward", "reverse"):
         raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")

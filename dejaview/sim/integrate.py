@@ -164,7 +164,7 @@ def compiled_chunk(world: World, steps: int):
 def rollout(world: World, state: State, steps: int | None = None, record_every: int = 1,
             checkpoint_every: int | None = None, step_fn=None,
             broadphase: bool | None = None, compile: bool = False,
-            compile_chunk: int = 5) -> Trajectory:
+            compile_chunk: int = 5, engine: str = "torch") -> Trajectory:
     """Simulate ``steps`` steps from ``state`` and record every ``record_every``-th state.
 
     Args:
@@ -180,12 +180,25 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
         broadphase: see ``wrench``.
         compile: run chunks of ``compile_chunk`` steps through ``compiled_chunk``
             (the remainder runs eagerly); not combined with checkpointing.
+        engine: ``torch`` (this module, the reference), ``native`` (``dejaview.sim.native``:
+            the same model in C++, differentiable in both modes; float64 on the CPU) or
+            ``auto`` (native where it applies). Native rollouts keep no autograd graph,
+            so ``checkpoint_every``, ``compile`` and ``broadphase`` do not apply to them.
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records.
     """
     steps = world.steps if steps is None else int(steps)
     if steps < 0:
         raise ValueError("steps must be >= 0")
+    if record_every < 1:
+        raise ValueError("record_every must be >= 1")
+    if steps > 0 and engine != "torch":
+        from dejaview.sim import native
+
+        if native.use_native(engine, world):
+            if step_fn is not None:
+                raise ValueError("step_fn replaces the torch engine's step; it needs engine='torch'")
+            return native.native_rollout(world, state, steps, record_every)
     fn = step if step_fn is None else step_fn
     records = [state]
     record_steps = [0]

@@ -19,6 +19,32 @@ from dejaview.sim.integrate import Trajectory
 from dejaview.sim.world import World
 
 
+NATIVE_CHUNK = 50
+"""Steps per native call between progress callbacks (rounded up to a multiple of record_every)."""
+
+
+def _native_chunks(world: World, state, n: int, record_every: int, callback, should_stop) -> Trajectory:
+    """A native rollout of ``n`` steps in chunks, with the hooks called between chunks."""
+    from dejaview.sim.native import native_rollout
+    from dejaview.sim.state import State
+
+    chunk = record_every * max(1, -(-NATIVE_CHUNK // record_every))
+    records, steps, done = [state], [0], 0
+    with torch.no_grad():
+        while done < n:
+            if should_stop is not None and should_stop():
+                raise SimulationStopped(f"stopped after {done} of {n} steps")
+            k = min(chunk, n - done)
+            part = native_rollout(world, state, k, record_every)
+            records.extend(State(*(t[i] for t in part.states.tensors())) for i in range(1, len(part)))
+            steps.extend(done + int(s) for s in part.steps[1:])
+            state = part.final
+            done += k
+            if callback is not None:
+                callback(done, n)
+    return Trajectory(State.stack(records), torch.tensor(steps), world.dt)
+
+
 class SimulationStopped(Exception):
     """``should_stop`` ended a simulation before its last step (cancellation)."""
 
@@ -55,7 +81,7 @@ class SimulationRun:
 
 def simulate(scene, *, steps: int | None = None, record_every: int = 1,
              dtype: torch.dtype = torch.float64, callback=None, should_stop=None,
-             world: World | None = None) -> SimulationRun:
+             world: World | None = None, engine: str = "auto") -> SimulationRun:
     """Simulate a scene forward without gradients.
 
     Args:
@@ -66,6 +92,9 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
         callback: called as ``callback(step, steps)`` after every step (progress bars).
         should_stop: polled before every step; True raises ``SimulationStopped``.
         world: reuse an already built World of this scene.
+        engine: ``auto`` | ``native`` | ``torch`` (``dejaview.sim.native.ENGINES``; auto: the
+            native C++ simulator in float64, torch otherwise). Native runs call ``callback``
+            and ``should_stop`` between chunks of ``NATIVE_CHUNK`` steps.
     Returns:
         SimulationRun.
     Raises:
@@ -98,6 +127,13 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
         return out
 
     hooked = callback is not None or should_stop is not None
+    from dejaview.sim import native
+
+    if native.use_native(engine, world):
+        start = time.perf_counter()
+        traj = _native_chunks(world, state, n, record_every, callback, should_stop)
+        return SimulationRun(world=world, trajectory=traj, steps=n,
+                             elapsed_s=time.perf_counter() - start)
     start = time.perf_counter()
     with torch.no_grad():
         traj = rollout(world, state, steps=n, record_every=record_every,

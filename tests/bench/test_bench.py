@@ -33,23 +33,29 @@ def test_sim_quick_returns_every_section(sim_rows):
         if row["value"] is None:
             assert row["note"], row
     rollout = [r for r in sim_rows if r["section"] == "rollout"]
-    assert [r["batch"] for r in rollout] == [1, 4]
+    assert [(r["engine"], r["batch"]) for r in rollout] == [("torch", 1), ("torch", 4), ("native", 1),
+                                                            ("native", 4)]
     assert all(r["value"] > 0 and r["per_candidate_s"] > 0 for r in rollout)
-    eager = [r for r in sim_rows if r["section"] == "loss+grad" and r["value"] is not None]
-    assert {(r["mode"], r["batch"]) for r in eager} == {("forward", 1), ("forward", 4), ("reverse", 1),
-                                                         ("reverse", 4)}
+    for engine in ("torch", "native"):
+        timed = [r for r in sim_rows if r["section"] == "loss+grad" and r["value"] is not None
+                 and r["engine"] == engine]
+        assert {(r["mode"], r["batch"]) for r in timed} == {("forward", 1), ("forward", 4), ("reverse", 1),
+                                                            ("reverse", 4)}
     compiled = [r for r in sim_rows if r["section"] == "loss+grad" and r["value"] is None]
     assert {r["mode"] for r in compiled} == {"forward", "reverse"}
     memory = [r for r in sim_rows if r["section"] == "memory"]
     assert {r["checkpoint_every"] > 0 for r in memory} == {True, False}
+    assert {r["engine"] for r in memory} == {"torch", "native"}
     assert all(r["value"] >= 0 for r in memory)
     targets = [r for r in sim_rows if r["section"] == "target"]
     assert len(targets) == 2 and all(isinstance(r["met"], bool) for r in targets)
 
 
 def test_sim_forward_and_reverse_gradients_agree(sim_rows):
-    (check,) = [r for r in sim_rows if r["section"] == "check"]
-    assert check["value"] < 1e-6
+    checks = {r["name"]: r["value"] for r in sim_rows if r["section"] == "check"}
+    assert set(checks) == {"forward vs reverse gradient", "native forward vs eager reverse gradient",
+                           "native reverse vs eager reverse gradient"}
+    assert all(value < 1e-6 for value in checks.values()), checks
 
 
 def test_sim_rows_write_a_parseable_csv(sim_rows, tmp_path):

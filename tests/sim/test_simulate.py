@@ -16,7 +16,10 @@ BALL = Path(__file__).resolve().parents[1] / "fixtures" / "server" / "ball.xml"
 
 def test_free_flight_csv_and_progress(tmp_path):
     calls = []
-    run = simulate(Scene.from_xml(BALL), callback=lambda step, total: calls.append((step, total)))
+    # the torch engine calls back after every step (the native engine between chunks of steps:
+    # tests/sim/test_native.py)
+    run = simulate(Scene.from_xml(BALL), callback=lambda step, total: calls.append((step, total)),
+                   engine="torch")
     assert run.steps == 20 and calls == [(i, 20) for i in range(1, 21)]
     traj = read_trajectory_csv(run.write(tmp_path)["trajectory"])
     assert traj["ball"]["position"][-1][0] == pytest.approx(0.1, abs=1e-12)  # 0.5 m/s for 0.2 s
@@ -26,7 +29,8 @@ def test_free_flight_csv_and_progress(tmp_path):
 def test_should_stop_ends_the_run_at_the_next_step():
     seen = []
     with pytest.raises(SimulationStopped, match="after 3 of 20 steps"):
-        simulate(Scene.from_xml(BALL), callback=lambda s, n: seen.append(s), should_stop=lambda: len(seen) >= 3)
+        simulate(Scene.from_xml(BALL), callback=lambda s, n: seen.append(s), should_stop=lambda: len(seen) >= 3,
+                 engine="torch")
     assert seen == [1, 2, 3]
 
 

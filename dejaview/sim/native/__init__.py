@@ -32,7 +32,9 @@ about a minute) and cached in torch's extension directory
 
 from __future__ import annotations
 
+import os
 import threading
+import warnings
 from pathlib import Path
 
 import torch
@@ -44,17 +46,43 @@ SOURCE = Path(__file__).with_name("rollout.cpp")
 KINDS = {"plane": 0, "box": 1, "sphere": 2, "cylinder": 3, "grid": 4}
 SHAPE_FIELDS = 32
 
+ENGINES = ("auto", "native", "torch")
+"""``auto``: native where it applies (float64 on the CPU, the extension builds), else torch."""
+
 _LOCK = threading.Lock()
 _EXTENSION = None
+_BUILD_ERROR: SimulationError | None = None
+
+
+def threads() -> int:
+    """Threads a batched native rollout spreads its candidates over.
+
+    ``DEJAVIEW_NATIVE_THREADS``, default every core (``os.cpu_count()``); independent of
+    ``torch.set_num_threads`` (the CLI keeps torch's own ops on one thread).
+    """
+    value = os.environ.get("DEJAVIEW_NATIVE_THREADS")
+    if value:
+        try:
+            return max(1, int(value))
+        except ValueError:
+            raise SimulationError(f"DEJAVIEW_NATIVE_THREADS must be an integer, got {value!r}") from None
+    return os.cpu_count() or 1
 
 
 def extension():
-    """The compiled C++ module (built on first call, then loaded from torch's cache)."""
-    global _EXTENSION
+    """The compiled C++ module (built on first call, then loaded from torch's cache).
+
+    Raises:
+        SimulationError: the build failed (no compiler, ...); remembered for the process.
+    """
+    global _EXTENSION, _BUILD_ERROR
     with _LOCK:
+        if _BUILD_ERROR is not None:
+            raise _BUILD_ERROR
         if _EXTENSION is None:
             from torch.utils.cpp_extension import load
 
+            _ninja_on_path()
             try:
                 _EXTENSION = load(name="dejaview_native", sources=[str(SOURCE)],
                                   extra_cflags=["-O3", "-march=native", "-fno-math-errno"],
@@ -62,9 +90,23 @@ def extension():
             except Exception as exc:  # no compiler, a broken build
                 lines = str(exc).strip().splitlines() or ["unknown error"]
                 first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
-                raise SimulationError(f"the native simulator could not be built from {SOURCE}: "
-                                      f"{first.strip()[:300]}") from exc
+                _BUILD_ERROR = SimulationError(f"the native simulator could not be built from "
+                                               f"{SOURCE}: {first.strip()[:300]}")
+                raise _BUILD_ERROR from exc
     return _EXTENSION
+
+
+def _ninja_on_path() -> None:
+    """torch's builder runs ``ninja`` from PATH: add the ``ninja`` package's binary folder (a
+    virtual environment's ``bin`` is not on PATH unless activated)."""
+    try:
+        import ninja
+    except ImportError:
+        return
+    folder = getattr(ninja, "BIN_DIR", None)
+    path = os.environ.get("PATH", "")
+    if folder and folder not in path.split(os.pathsep):
+        os.environ["PATH"] = os.pathsep.join(p for p in (folder, path) if p)
 
 
 def available() -> bool:
@@ -74,6 +116,37 @@ def available() -> bool:
     except SimulationError:
         return False
     return True
+
+
+_WARNED = False
+
+
+def use_native(engine: str, world) -> bool:
+    """Whether a rollout of ``world`` runs natively under ``engine`` (one of ``ENGINES``).
+
+    Raises:
+        SimulationError: unknown engine, or ``native`` asked where it cannot run.
+    """
+    global _WARNED
+    if engine == "torch":
+        return False
+    if engine not in ENGINES:
+        raise SimulationError(f"unknown simulation engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    fits = world.dtype == torch.float64 and world.device.type == "cpu"
+    if engine == "native":
+        if not fits:
+            raise SimulationError("the native engine runs in float64 on the CPU; this world is "
+                                  f"{world.dtype} on {world.device} (use engine torch)")
+        extension()
+        return True
+    if not fits:
+        return False
+    if available():
+        return True
+    if not _WARNED:
+        _WARNED = True
+        warnings.warn(f"{_BUILD_ERROR}; simulating with the torch engine", RuntimeWarning, stacklevel=2)
+    return False
 
 
 def _grid_lipschitz(values: torch.Tensor, spacing: float) -> float:
@@ -163,7 +236,7 @@ class _Rollout(torch.autograd.Function):
     def forward(init, steps, record_every, with_jac, packed):
         tensors, floats, ints = packed
         return tuple(extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
-                                         tensors, floats, ints))
+                                         tensors, floats, ints, threads()))
 
     @staticmethod
     def setup_context(ctx, inputs, output):

@@ -19,9 +19,12 @@
 // skipped. A body whose centre is farther from a static shape than L * bound (L the shape's
 // Lipschitz bound, bound the body's bounding radius) cannot touch it and skips the shape.
 #include <torch/extension.h>
-#include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
+#include <exception>
+#include <mutex>
+#include <thread>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -421,6 +424,13 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
 template <typename T, typename S>
 void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick>& picks, T* out) {
   for (int i = 0; i < 6; ++i) out[i] = T(0);
+  // a NaN anywhere in the state makes the torch model's forces NaN (0 * NaN in every candidate
+  // contact, touching or not): the same here, so a broken candidate reads as broken everywhere
+  for (int i = 0; i < 13 && w.k > 0; ++i)
+    if (std::isnan(val(st[i]))) {
+      for (int j = 0; j < 6; ++j) out[j] = T(std::numeric_limits<S>::quiet_NaN());
+      return;
+    }
   const int m = static_cast<int>(picks.size());
   if (m == 0) return;
   const T* x = st;
@@ -885,10 +895,12 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
 
 }  // namespace dv
 
+// threads: candidates are spread over this many threads (torch's intra-op pool is not used, so the
+// simulator's parallelism does not depend on torch.set_num_threads).
 // init: (B, N, 13) -> states (B, R, N, 13) and, with_jac, phi (B, R, 13N, 13N) = d state / d init
 std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, bool with_jac,
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
-                                   std::vector<int64_t> ints) {
+                                   std::vector<int64_t> ints, int64_t threads) {
   TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
   TORCH_CHECK(init.dim() == 3 && init.size(2) == 13, "init must be (B, N, 13)");
   TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
@@ -907,11 +919,30 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
     const S* in = init.data_ptr<S>();
     S* out = states.data_ptr<S>();
     S* ph = with_jac ? phi.data_ptr<S>() : nullptr;
-    at::parallel_for(0, b, 1, [&](int64_t begin, int64_t end) {
-      for (int64_t i = begin; i < end; ++i)
-        dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
-                             with_jac ? ph + i * records * dim * dim : nullptr);
-    });
+    auto work = [&](int64_t i) {
+      dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
+                           with_jac ? ph + i * records * dim * dim : nullptr);
+    };
+    const int64_t workers = std::min<int64_t>(std::max<int64_t>(threads, 1), b);
+    if (workers <= 1) {
+      for (int64_t i = 0; i < b; ++i) work(i);
+    } else {  // candidates differ in cost (contacts): hand them out one at a time
+      std::atomic<int64_t> next{0};
+      std::vector<std::thread> pool;
+      std::exception_ptr error;
+      std::mutex error_lock;
+      for (int64_t t = 0; t < workers; ++t)
+        pool.emplace_back([&] {
+          try {
+            for (int64_t i = next++; i < b; i = next++) work(i);
+          } catch (...) {
+            std::lock_guard<std::mutex> guard(error_lock);
+            error = std::current_exception();
+          }
+        });
+      for (auto& th : pool) th.join();
+      if (error) std::rethrow_exception(error);
+    }
   }
   return {states, phi};
 }

@@ -1,0 +1,260 @@
+"""The native (C++) engine against the torch simulator: same states, same gradients.
+
+``dejaview.sim.native`` is the model of ``dejaview.sim.contacts`` and
+``dejaview.sim.integrate`` written again in C++; these tests hold it to the
+torch code on every static shape kind, body pairs, contact capacities,
+record intervals, batches, and in both gradient modes.
+"""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from dejaview.errors import SimulationError
+from dejaview.sim import StaticShape, native
+from dejaview.sim.integrate import rollout
+from dejaview.sim.sdf import sdf_box, sdf_grid
+from dejaview.sim.simulate import SimulationStopped, simulate
+from dejaview.sim.state import State
+from tests.sim.conftest import ball_body, box_body, make_world
+
+ATOL = 1e-9  # states agree to round-off (the sums run in another order)
+
+
+def _box_grid() -> StaticShape:
+    """A 0.6 x 0.4 x 0.2 box as a sampled SDF (grid spacing 2 cm, 10 cm margin)."""
+    half = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
+    spacing = 0.02
+    lo = -half - 0.1
+    n = [int(round(float(2 * (h + 0.1)) / spacing)) + 1 for h in half]
+    axes = [lo[i] + spacing * torch.arange(n[i], dtype=torch.float64) for i in range(3)]
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)
+    values, _ = sdf_box(pts, half)
+    return StaticShape.make("table", "grid", position=(0.05, 0.0, 0.1), grid=values.numpy(),
+                            grid_origin=lo.numpy(), grid_spacing=spacing)
+
+
+STATICS = {
+    "plane": lambda: StaticShape.make("floor", "plane", orientation=(math.cos(0.05), math.sin(0.05), 0, 0)),
+    "box": lambda: StaticShape.make("block", "box", position=(0.02, 0.0, 0.1),
+                                    orientation=(math.cos(0.1), 0, 0, math.sin(0.1)), half=(0.3, 0.2, 0.1)),
+    "sphere": lambda: StaticShape.make("dome", "sphere", position=(0.06, 0.03, -0.3), radius=0.4),
+    "cylinder": lambda: StaticShape.make("drum", "cylinder", position=(0.0, 0.04, 0.1),
+                                         orientation=(math.cos(0.3), math.sin(0.3), 0, 0),
+                                         radius=0.25, half_height=0.1),
+    "grid": _box_grid,
+}
+
+
+def _tumbling_box(static_kind: str, batch: int = 1, **kw):
+    """A spinning box dropped onto one static shape (plus a floor underneath)."""
+    statics = [STATICS[static_kind]()]
+    if static_kind != "plane":
+        statics.append(StaticShape.make("floor", "plane", position=(0, 0, -0.3)))
+    world = make_world([box_body(per_axis=(4, 3, 2), friction=0.6, restitution=0.3)], statics, **kw)
+    q = torch.tensor([math.cos(0.3), math.sin(0.3) * 0.6, math.sin(0.3) * 0.8, 0.0], dtype=torch.float64)
+    state = world.state([[0.0, 0.0, 0.32]], orientation=[q.tolist()], linear_velocity=[[0.4, -0.2, -0.5]],
+                        angular_velocity=[[2.0, -1.0, 3.0]], batch_size=batch)
+    if batch > 1:  # different candidates
+        shift = torch.linspace(-0.05, 0.05, batch, dtype=torch.float64)
+        state = state.replace(position=state.position + torch.stack([shift, -shift, 0 * shift], -1)[:, None])
+    return world, state
+
+
+def _close(a, b, atol=ATOL):
+    for x, y in zip(a.states.tensors(), b.states.tensors()):
+        assert x.shape == y.shape
+        assert torch.allclose(x, y, rtol=0, atol=atol), float((x - y).abs().max())
+
+
+@pytest.mark.parametrize("kind", sorted(STATICS))
+def test_native_states_equal_the_torch_simulator_on_every_static_kind(kind):
+    world, state = _tumbling_box(kind, batch=2)
+    ref = rollout(world, state, steps=250)
+    out = rollout(world, state, steps=250, engine="native")
+    # the box hit the shape: it was deflected from free fall
+    free_z = state.position[0, 0, 2] + state.linear_velocity[0, 0, 2] * 0.5 - 0.5 * 9.81 * 0.5 ** 2
+    assert float(ref.final.position[0, 0, 2]) > float(free_z) + 0.1
+    _close(out, ref)
+
+
+def test_native_body_pairs_and_capacities_equal_the_torch_simulator():
+    from tests.sim.test_contact_capacity import DENSE, _boxes, _throw
+
+    for caps in ((DENSE, DENSE), (20, 40)):
+        world = _boxes(*caps)
+        ref = rollout(world, _throw(world), steps=150)
+        out = rollout(world, _throw(world), steps=150, engine="native")
+        assert float(torch.linalg.vector_norm(ref.final.position[0, 1] - ref.states.position[0, 0, 1])) > 0.01
+        _close(out, ref)
+
+
+def test_native_keeps_the_deepest_contacts_beyond_the_capacity():
+    # tilted about an oblique axis, so no two spheres are equally deep (topk ties would be arbitrary)
+    world = make_world([box_body(per_axis=(4, 3, 2))], [StaticShape.make("floor", "plane")],
+                       max_static_contacts=3)
+    q = [math.cos(0.25), math.sin(0.25) * 0.8, math.sin(0.25) * 0.6, 0.0]
+    state = world.state([[0.0, 0.0, 0.12]], orientation=[q])
+    ref = rollout(world, state, steps=200)
+    touching = (world.radii - world.statics[0].distance(world.sphere_positions(ref.final))[0] > 0).sum()
+    assert int(touching) > 3  # more touch than the capacity holds
+    _close(rollout(world, state, steps=200, engine="native"), ref)
+
+
+def test_record_every_and_batches_match():
+    world, state = _tumbling_box("grid", batch=3)
+    ref = rollout(world, state, steps=101, record_every=7)
+    out = rollout(world, state, steps=101, record_every=7, engine="native")
+    assert out.steps.tolist() == ref.steps.tolist()
+    _close(out, ref)
+    # each candidate of a batch is its own run, bit for bit
+    solo = rollout(world, state.index(1), steps=101, record_every=7, engine="native")
+    for a, b in zip(out.states.tensors(), solo.states.tensors()):
+        assert torch.equal(a[:, 1:2], b)
+
+
+def _loss(traj: State) -> torch.Tensor:
+    """A smooth scalar of the whole trajectory: every record's pose and velocity."""
+    s = traj.states
+    return ((s.position ** 2).sum() + 0.3 * (s.orientation[..., 1:] ** 2).sum()
+            + 0.01 * (s.linear_velocity ** 2).sum() + 0.001 * (s.angular_velocity ** 2).sum())
+
+
+def _grad(world, state, engine, steps):
+    tensors = [t.detach().clone().requires_grad_(True) for t in state.tensors()]
+    loss = _loss(rollout(world, State(*tensors), steps=steps, engine=engine))
+    return torch.cat([g.flatten() for g in torch.autograd.grad(loss, tensors)])
+
+
+@pytest.mark.parametrize("kind", ["grid", "box"])
+def test_native_reverse_gradient_equals_torch_autograd(kind):
+    world, state = _tumbling_box(kind)
+    ref = _grad(world, state, "torch", 120)
+    out = _grad(world, state, "native", 120)
+    assert torch.allclose(out, ref, rtol=1e-7, atol=1e-9 * float(ref.abs().max()))
+
+
+def test_native_gradients_through_body_pairs_equal_torch_autograd():
+    from tests.sim.test_contact_capacity import _boxes, _throw
+
+    world = _boxes(20, 40)
+    state = _throw(world)
+    ref = _grad(world, state, "torch", 80)
+    out = _grad(world, state, "native", 80)
+    assert torch.allclose(out, ref, rtol=1e-7, atol=1e-9 * float(ref.abs().max()))
+
+
+def test_native_forward_mode_equals_reverse_mode():
+    world, state = _tumbling_box("grid", batch=2)
+    x0 = torch.cat(state.tensors(), -1)  # (B, 1, 13)
+
+    def f(x):
+        return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
+                             steps=120, engine="native"))
+
+    jac_fwd = torch.func.jacfwd(f)(x0)
+    x = x0.clone().requires_grad_(True)
+    (jac_rev,) = torch.autograd.grad(f(x), x)
+    assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
+    # and a plain torch.func.jvp along one direction
+    v = torch.randn_like(x0, generator=torch.Generator().manual_seed(0))
+    _, tangent = torch.func.jvp(f, (x0,), (v,))
+    assert torch.allclose(tangent, (jac_rev * v).sum(), rtol=1e-10)
+
+
+def test_inference_problem_gradients_agree_across_engines():
+    from dejaview.inference import InferenceProblem
+    from dejaview.scene import Scene
+
+    scene = Scene.from_xml("examples/scenes/mug_thrown.xml")
+    torch_problem = replace(InferenceProblem.from_scene(scene, engine="torch"), steps=260)
+    native_problem = replace(torch_problem, engine="native")
+    x = torch_problem.layout.sample(2, torch.Generator().manual_seed(3))
+    lt, gt = torch_problem.value_and_grad(x, "reverse")
+    for mode in ("reverse", "forward"):
+        ln, gn = native_problem.value_and_grad(x, mode)
+        assert torch.allclose(ln, lt, rtol=1e-9)
+        assert torch.allclose(gn, gt, rtol=1e-6, atol=1e-8 * float(gt.abs().max())), mode
+
+
+def test_a_nan_candidate_leaves_the_others_alone():
+    world, state = _tumbling_box("plane", batch=3)
+    bad = state.position.clone()
+    bad[1, 0, 0] = float("nan")
+    out = rollout(world, state.replace(position=bad), steps=80, engine="native")
+    ok = rollout(world, state, steps=80, engine="native")
+    assert torch.isnan(out.final.position[1]).all()
+    for i in (0, 2):
+        assert torch.equal(out.final.position[i], ok.final.position[i])
+
+
+def test_thread_count_does_not_change_results(monkeypatch):
+    world, state = _tumbling_box("grid", batch=4)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_THREADS", "1")
+    one = rollout(world, state, steps=60, engine="native")
+    monkeypatch.setenv("DEJAVIEW_NATIVE_THREADS", "3")
+    three = rollout(world, state, steps=60, engine="native")
+    for a, b in zip(one.states.tensors(), three.states.tensors()):
+        assert torch.equal(a, b)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_THREADS", "many")
+    with pytest.raises(SimulationError, match="DEJAVIEW_NATIVE_THREADS"):
+        rollout(world, state, steps=2, engine="native")
+
+
+def test_engine_choice_and_its_errors():
+    world, state = _tumbling_box("plane")
+    assert native.use_native("auto", world) and native.use_native("native", world)
+    assert not native.use_native("torch", world)
+    w32 = world.to(dtype=torch.float32)
+    assert not native.use_native("auto", w32)  # auto falls back to torch
+    with pytest.raises(SimulationError, match="float64"):
+        rollout(w32, state.to(dtype=torch.float32), steps=2, engine="native")
+    with pytest.raises(SimulationError, match="unknown simulation engine 'fast'"):
+        rollout(world, state, steps=2, engine="fast")
+    with pytest.raises(ValueError, match="step_fn"):
+        rollout(world, state, steps=2, engine="native", step_fn=lambda w, s: s)
+    # auto on float32 runs the torch simulator
+    assert rollout(w32, state.to(dtype=torch.float32), steps=3, engine="auto").states.position.dtype == torch.float32
+
+
+def test_simulate_runs_natively_in_chunks_with_progress_and_stop():
+    from dejaview.scene import Scene
+
+    scene = Scene.from_xml("examples/scenes/ball_off_table.xml")
+    seen = []
+    run = simulate(scene, steps=130, record_every=4, callback=lambda d, n: seen.append((d, n)))
+    ref = simulate(scene, steps=130, record_every=4, engine="torch")
+    assert seen[-1] == (130, 130) and len(seen) == 3  # chunks of 52 steps (a multiple of 4)
+    assert run.trajectory.steps.tolist() == ref.trajectory.steps.tolist()
+    _close(run.trajectory, ref.trajectory)
+    calls = iter([False, False, True])
+    with pytest.raises(SimulationStopped, match="after 104 of 130"):
+        simulate(scene, steps=130, record_every=4, should_stop=lambda: next(calls))
+
+
+def test_grid_lipschitz_bound_holds():
+    """|d(p) - d(q)| <= L |p - q| for the grid field, inside and outside the grid."""
+    shape = _box_grid()
+    lip = native._grid_lipschitz(shape.grid, shape.grid_spacing)
+    assert 1.0 <= lip <= 3.0
+    g = torch.Generator().manual_seed(1)
+    p = (torch.rand(4000, 3, generator=g, dtype=torch.float64) - 0.5) * 1.4
+    q = p + (torch.rand(4000, 3, generator=g, dtype=torch.float64) - 0.5) * 0.1
+    dp, _ = sdf_grid(p, shape.grid, shape.grid_origin, shape.grid_spacing)
+    dq, _ = sdf_grid(q, shape.grid, shape.grid_origin, shape.grid_spacing)
+    ratio = (dp - dq).abs() / torch.linalg.vector_norm(p - q, dim=-1)
+    assert float(ratio.max()) <= lip + 1e-9
+    assert float(ratio.max()) > 0.9  # the test does probe steep directions
+
+
+def test_a_ball_rolls_the_same():
+    """One sphere, rolling with friction on a tilted plane: the slip/stick path of the model."""
+    world = make_world([ball_body(friction=0.4)],
+                       [StaticShape.make("ramp", "plane", orientation=(math.cos(0.15), math.sin(0.15), 0, 0))])
+    state = world.state([[0.0, 0.0, 0.0495]], linear_velocity=[[0.3, 0.0, 0.0]])
+    ref = rollout(world, state, steps=400)
+    _close(rollout(world, state, steps=400, engine="native"), ref)
+    assert np.isfinite(ref.final.position.numpy()).all()
