@@ -18,7 +18,8 @@ candidate's best loss stalls for ``PATIENCE`` iterations it restarts with
 probability ``EPSILON`` (decaying) from the next-best screened guess, or hops
 from its best point.
 It runs at most ``ITERATIONS`` iterations with an early stop at ``TOLERANCE``,
-with compiled rollouts (``COMPILE``).
+on the native simulation engine (``dejaview.sim.native``; ``--compile`` runs
+the torch engine compiled instead, as the earlier tables were measured).
 
 Success: the best solution, re-simulated, comes within ``POSITION_TOL`` (1 cm)
 and ``ANGLE_TOL`` (5 degrees) of the target pose, both measured at the
@@ -101,8 +102,10 @@ SCREEN_NEAR = 0.0
 EPSILON, PATIENCE = 0.5, 8
 """Restarts (``solve(epsilon=, patience=)``): more eager than the scenes' own 0.2 / 20, which
 suit an interactive solve; restarts take the next-best screened guesses first."""
-COMPILE = True
-"""Compiled rollouts: ~11x faster per loss + gradient on the mug after a ~100 s first compile."""
+COMPILE = False
+"""Compiled torch rollouts instead of the native engine (default off: native is faster still and
+needs no compile; on, ~11x faster than eager torch per loss + gradient on the mug after a ~100 s
+first compile)."""
 MAX_EVALUATIONS = 1000
 """Loss + gradient evaluations (batched) per case: about 140 iterations at ~7 evaluations each
 with four candidates (250 at ~4 with one), inside the issue's 300 iterations (400 evaluations

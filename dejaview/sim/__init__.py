@@ -1,8 +1,9 @@
 """Differentiable rigid-body simulation with sphere-packing contacts.
 
 ``World`` (static, built once), ``State`` (batched, immutable), ``step`` and
-``rollout``. See ``dejaview.sim.contacts`` for the contact model and
-``dejaview.sim.integrate`` for the integrator.
+``rollout``. See ``dejaview.sim.contacts`` for the contact model,
+``dejaview.sim.integrate`` for the integrator and ``dejaview.sim.native`` for
+the same model in C++ (``rollout(..., engine="native")``).
 """
 
 from dejaview.sim.integrate import Trajectory, rollout, step

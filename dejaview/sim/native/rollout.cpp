@@ -496,21 +496,36 @@ void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, cons
   picks.clear();
   S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
   if (!(std::sqrt(dot3(dx, dx)) < w.bound[a] + w.bound[b])) return;
-  const int na = w.count[a], nb = w.count[b];
-  std::vector<S> pb(3 * nb);
-  for (int j = 0; j < nb; ++j) {
-    const S* c = w.centers + (static_cast<int64_t>(b) * w.s_max + j) * 3;
-    for (int i = 0; i < 3; ++i) pb[3 * j + i] = sb[i] + (c[0] * rb[3 * i] + c[1] * rb[3 * i + 1] + c[2] * rb[3 * i + 2]);
-  }
-  for (int i = 0; i < na; ++i) {
-    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
-    S pa[3];
-    for (int k = 0; k < 3; ++k) pa[k] = sa[k] + (c[0] * ra[3 * k] + c[1] * ra[3 * k + 1] + c[2] * ra[3 * k + 2]);
-    const S r_i = w.radii[a * w.s_max + i];
-    for (int j = 0; j < nb; ++j) {
-      S df[3] = {pb[3 * j] - pa[0], pb[3 * j + 1] - pa[1], pb[3 * j + 2] - pa[2]};
-      const S depth = r_i + w.radii[b * w.s_max + j] - std::sqrt(dot3(df, df));
-      if (depth > 0) picks.push_back({i, j, static_cast<double>(depth)});
+  // mid phase: sphere i of a can touch some sphere j of b only if |p_i - x_b| < r_i + bound_b
+  // (|p_i - p_j| < r_i + r_j and |p_j - x_b| + r_j <= bound_b); likewise for b's spheres
+  auto near = [&](int body, const S* st, const S* rot, const S* other, S other_bound,
+                  std::vector<int>& ids, std::vector<S>& pts) {
+    ids.clear();
+    pts.clear();
+    for (int i = 0; i < w.count[body]; ++i) {
+      const S* c = w.centers + (static_cast<int64_t>(body) * w.s_max + i) * 3;
+      S p[3], d[3];
+      for (int k = 0; k < 3; ++k) {
+        p[k] = st[k] + (c[0] * rot[3 * k] + c[1] * rot[3 * k + 1] + c[2] * rot[3 * k + 2]);
+        d[k] = p[k] - other[k];
+      }
+      if (std::sqrt(dot3(d, d)) < w.radii[body * w.s_max + i] + other_bound) {
+        ids.push_back(i);
+        pts.insert(pts.end(), p, p + 3);
+      }
+    }
+  };
+  std::vector<int> ia, ib;
+  std::vector<S> pa, pb;
+  near(a, sa, ra, sb, w.bound[b], ia, pa);
+  if (ia.empty()) return;
+  near(b, sb, rb, sa, w.bound[a], ib, pb);
+  for (size_t u = 0; u < ia.size(); ++u) {
+    const S r_i = w.radii[a * w.s_max + ia[u]];
+    for (size_t v = 0; v < ib.size(); ++v) {
+      S df[3] = {pb[3 * v] - pa[3 * u], pb[3 * v + 1] - pa[3 * u + 1], pb[3 * v + 2] - pa[3 * u + 2]};
+      const S depth = r_i + w.radii[b * w.s_max + ib[v]] - std::sqrt(dot3(df, df));
+      if (depth > 0) picks.push_back({ia[u], ib[v], static_cast<double>(depth)});
     }
   }
   if (static_cast<int>(picks.size()) > w.cap_pair &&
@@ -652,6 +667,7 @@ struct Scratch {
   std::vector<S> jac, dws;                        // substep Jacobian (13N)^2, dW/ds (6N x 13N)
   std::vector<S> clear;                           // (N, K, s_max) clearance bounds (select_static)
   std::vector<S> last;                            // (N, 12) position and rotation at the last selection
+  std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
 };
 
 template <typename S>
@@ -697,6 +713,8 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
   }
   // Jacobian: dW/ds per body (6 x 13N), then integration
   std::fill(sc.dws.begin(), sc.dws.end(), S(0));  // (N, 6, 13N)
+  sc.blk.assign(static_cast<size_t>(n) * n, 0);
+  for (int a = 0; a < n; ++a) sc.blk[a * n + a] = 1;
   for (int a = 0; a < n; ++a) {
     using D = Dual<S, 13>;
     D st[13], o[6];
@@ -715,6 +733,7 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
     Seeder<S>::run(state + 13 * a, sa, 0);
     Seeder<S>::run(state + 13 * b, sb, 13);
     pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
+    sc.blk[a * n + b] = sc.blk[b * n + a] = 1;
     for (int half = 0; half < 2; ++half) {
       const int body = half ? b : a;
       for (int i = 0; i < 6; ++i) {
@@ -767,24 +786,26 @@ void phi_update_fixed(const S* __restrict J, const S* __restrict phi, S* __restr
   }
 }
 
+// several bodies: J is block-sparse (13 x 13 blocks; body a's rows reach body b's columns only
+// through a touching pair), so only the blocks marked in blk (N x N) are multiplied
 template <typename S>
-void phi_update(int dim, const S* J, const S* phi, S* out) {
-  switch (dim) {
-    case 13: return phi_update_fixed<S, 13>(J, phi, out);
-    case 26: return phi_update_fixed<S, 26>(J, phi, out);
-    case 39: return phi_update_fixed<S, 39>(J, phi, out);
-    case 52: return phi_update_fixed<S, 52>(J, phi, out);
-    default: break;
-  }
-  for (int i = 0; i < dim; ++i) {
-    S* o = out + static_cast<size_t>(i) * dim;
-    std::fill(o, o + dim, S(0));
-    for (int l = 0; l < dim; ++l) {
-      const S jil = J[static_cast<size_t>(i) * dim + l];
-      const S* prow = phi + static_cast<size_t>(l) * dim;
-      for (int j = 0; j < dim; ++j) o[j] += jil * prow[j];
+void phi_update(int dim, const S* J, const S* phi, S* out, const std::vector<char>& blk) {
+  if (dim == 13) return phi_update_fixed<S, 13>(J, phi, out);
+  const int n = dim / 13;
+  std::fill(out, out + static_cast<size_t>(dim) * dim, S(0));
+  for (int a = 0; a < n; ++a)
+    for (int b = 0; b < n; ++b) {
+      if (!blk[a * n + b]) continue;
+      for (int i = 0; i < 13; ++i) {
+        S* o = out + static_cast<size_t>(13 * a + i) * dim;
+        const S* jrow = J + static_cast<size_t>(13 * a + i) * dim + 13 * b;
+        for (int l = 0; l < 13; ++l) {
+          const S jil = jrow[l];
+          const S* prow = phi + static_cast<size_t>(13 * b + l) * dim;
+          for (int j = 0; j < dim; ++j) o[j] += jil * prow[j];
+        }
+      }
     }
-  }
 }
 
 template <typename S>
@@ -817,7 +838,7 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
         continue;
       }
       substep(w, state.data(), sc, sc.jac.data());
-      phi_update<S>(dim, sc.jac.data(), phi.data(), tmp.data());  // phi <- J phi
+      phi_update<S>(dim, sc.jac.data(), phi.data(), tmp.data(), sc.blk);  // phi <- J phi
       phi.swap(tmp);
     }
     if (step % record_every == 0 || step == steps) {
