@@ -4,13 +4,16 @@
     python bench/op_profile.py --compile                         # compiled rollouts (first compile excluded)
     python bench/op_profile.py --scene examples/scenes/mug_off_counter.xml --steps 400 --rows 30
 
+Profiles the torch engine (``engine="torch"``): the native engine is one C++
+call per rollout, which ``perf`` profiles better than ``torch.profiler``.
+
 Builds the scene's inference problem, runs one warm-up loss + gradient (which
 compiles, with ``--compile``), then profiles ``--repeat`` more and prints the
 ``--rows`` ops with the most self CPU time, plus the time per evaluation.
 Measured on ``mug_off_counter`` (0.8 s) with ``--compile``: 74 % of the time is
 self time inside the two compiled graphs, 10 % extern ``mm``/``bmm`` (the
-3 x 3 products), so Python overhead is not what keeps the simulator issue's
-targets out of reach.
+3 x 3 products), so Python overhead was not what kept the simulator issue's
+targets out of reach for the torch engine.
 
 Named ``op_profile``, not ``profile``: a ``profile.py`` on the path of a
 benchmark script would shadow the standard library module that ``cProfile``
@@ -43,7 +46,7 @@ def run(scene=None, steps: int | None = None, compile: bool = False, mode: str =
 
     say = print_fn or (lambda *_: None)
     sc = Scene.from_xml(scene or SCENE)
-    problem = InferenceProblem.from_scene(sc)
+    problem = InferenceProblem.from_scene(sc, engine="torch")
     if steps is not None:
         problem.steps = int(steps)
     problem.compile = compile
