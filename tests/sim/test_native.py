@@ -258,3 +258,48 @@ def test_a_ball_rolls_the_same():
     ref = rollout(world, state, steps=400)
     _close(rollout(world, state, steps=400, engine="native"), ref)
     assert np.isfinite(ref.final.position.numpy()).all()
+
+
+def test_packed_worlds_are_not_kept_alive():
+    import gc
+    import weakref
+
+    world, state = _tumbling_box("plane")
+    rollout(world, state, steps=2, engine="native")
+    assert id(world) in native._PACKED
+    ref, key = weakref.ref(world), id(world)
+    del world
+    gc.collect()
+    assert ref() is None and key not in native._PACKED
+
+
+def test_a_native_rollout_lets_other_python_threads_run():
+    """The C++ call releases the GIL: a Python thread keeps counting at a good share of its
+    own pace meanwhile (one rollout thread, so a core is left for it); holding the GIL, the
+    call would stop it for its whole length."""
+    import threading
+    import time
+
+    world, state = _tumbling_box("grid", batch=4)
+    counts, done = [0], threading.Event()
+
+    def count():
+        while not done.is_set():
+            counts[0] += 1
+
+    with torch.no_grad():
+        t = threading.Thread(target=count)
+        t.start()
+        try:
+            c0, t0 = counts[0], time.perf_counter()
+            time.sleep(0.2)
+            alone = (counts[0] - c0) / (time.perf_counter() - t0)
+            init = torch.cat(state.tensors(), -1)
+            ext, packed = native.extension(), native.pack_world(world)
+            c0, t0 = counts[0], time.perf_counter()
+            ext.rollout(init, 3000, 1000, False, *packed, 1)
+            during = (counts[0] - c0) / (time.perf_counter() - t0)
+        finally:
+            done.set()
+            t.join()
+    assert during > 0.25 * alone, (during, alone)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import threading
 import warnings
+import weakref
 from pathlib import Path
 
 import torch
@@ -177,16 +178,21 @@ _PACKED: dict = {}
 
 
 def pack_world(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
-    """The World as the flat arrays ``rollout.cpp`` reads (cached per World for the process)."""
+    """The World as the flat arrays ``rollout.cpp`` reads.
+
+    Cached while the World lives (weakly: a server builds a World per job, and a cache that
+    kept them would grow with every job).
+    """
     key = id(world)
     hit = _PACKED.get(key)
-    if hit is not None and hit[0] is world:
+    if hit is not None and hit[0]() is world:
         return hit[1]
     # plain tensors even when first called under torch.func transforms (which would wrap them
     # at their level, and the cached copies would die with the transform)
     with torch._C._DisableFuncTorch(), torch.no_grad():
         packed = _pack(world)
-    _PACKED[key] = (world, packed)
+    _PACKED[key] = (weakref.ref(world), packed)
+    weakref.finalize(world, _PACKED.pop, key, None)
     return packed
 
 

@@ -940,6 +940,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
     const S* in = init.data_ptr<S>();
     S* out = states.data_ptr<S>();
     S* ph = with_jac ? phi.data_ptr<S>() : nullptr;
+    pybind11::gil_scoped_release no_gil;  // other Python threads (a server's event loop) run meanwhile
     auto work = [&](int64_t i) {
       dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
                            with_jac ? ph + i * records * dim * dim : nullptr);
