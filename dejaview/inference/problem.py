@@ -49,10 +49,11 @@ class InferenceProblem:
             mode would need its own compile.
         engine: simulation engine of the rollouts (``dejaview.sim.native.ENGINES``):
             ``auto`` (default) runs the native C++ simulator where it applies (float64
-            on the CPU), the same model with exact forward- and reverse-mode gradients,
-            measured 35-140x faster than eager torch per loss + gradient on the
-            reference scene; ``torch`` runs ``dejaview.sim.integrate``. ``compile``
-            implies ``torch`` for the rollouts it compiles.
+            on the CPU), the same model with exact forward- and reverse-mode gradients
+            (reference scene, one reverse-mode loss + gradient at B = 1: 23 ms against
+            15.8 s eager and 1.68 s compiled torch); ``torch`` runs
+            ``dejaview.sim.integrate``. ``compile`` implies ``torch`` for the rollouts
+            it compiles.
     """
 
     world: World

@@ -16,8 +16,9 @@ of steps (``checkpoint_every``).
 
 ``rollout(..., engine="native")`` runs the same model in C++
 (``dejaview.sim.native``): states equal to round-off, exact forward- and
-reverse-mode gradients through a custom autograd Function, 35-140x faster
-than eager on the reference scene; ``engine="auto"`` picks it wherever it
+reverse-mode gradients through a custom autograd Function (reference scene:
+a rollout 860x and a reverse-mode loss + gradient 690x faster than eager,
+``bench/sim.py``); ``engine="auto"`` picks it wherever it
 applies (float64 on the CPU). ``rollout`` itself defaults to this module
 (``engine="torch"``), the reference the native code is tested against;
 ``InferenceProblem``, ``simulate`` and the CLI default to ``auto``.

@@ -16,8 +16,11 @@
 //
 // Contact selection (which spheres touch) is made on values, as the torch code's topk on detached
 // depths; spheres that do not touch carry exactly zero force and zero derivative there, so they are
-// skipped. A body whose centre is farther from a static shape than L * bound (L the shape's
-// Lipschitz bound, bound the body's bounding radius) cannot touch it and skips the shape.
+// skipped. Culling, all of it exact: a body whose centre is farther from a static shape than
+// L * bound (L the shape's Lipschitz bound, bound the body's bounding radius) skips the shape; each
+// sphere keeps a lower bound on its clearance to each shape, lowered every substep by L times how
+// far the body moved, and is looked at only when the bound reaches zero (select_static); a body
+// pair pairs only the spheres within reach of the other body's bounding sphere (select_pair).
 #include <torch/extension.h>
 
 #include <algorithm>
