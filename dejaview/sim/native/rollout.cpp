@@ -356,18 +356,27 @@ void slip_direction(const T* vt, T* t) {
   for (int c = 0; c < 3; ++c) t[c] = vt[c] / den;
 }
 
-// state of body a as T numbers, seeded as tangents offset..offset+12 when T is a dual
-template <typename S> struct Seeder {
-  template <int W> static void run(const S* s, Dual<S, W>* out, int offset) {
-    for (int i = 0; i < 13; ++i) {
-      out[i] = Dual<S, W>(s[i]);
-      out[i].d[offset + i] = S(1);
-    }
+// the 13 state numbers of a body as duals, seeded as tangents offset..offset+12
+template <typename S, int W>
+void seed_state(const S* s, Dual<S, W>* out, int offset) {
+  for (int i = 0; i < 13; ++i) {
+    out[i] = Dual<S, W>(s[i]);
+    out[i].d[offset + i] = S(1);
   }
-  static void run(const S* s, S* out, int) {
-    for (int i = 0; i < 13; ++i) out[i] = s[i];
-  }
-};
+}
+
+// world centre of a body's sphere: x + R c
+template <typename T, typename R, typename S>
+inline void sphere_center(const T* x, const R* rot, const S* c, T* p) {
+  for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
+}
+
+// hysteretic spring normal force of one contact (contacts.normal_force)
+template <typename T, typename S>
+inline T normal_force(const T& depth, const T& weight, const T& vn, S stiff, S unload, S unload_velocity) {
+  T loading = sigmoid(-vn / unload_velocity);
+  return weight * stiff * depth * (unload + (1.0 - unload) * loading);
+}
 
 struct Pick {
   int shape, sphere;
@@ -406,7 +415,7 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
       if (cl[i] > S(CLEAR_MARGIN)) continue;
       const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
       S p[3];
-      for (int j = 0; j < 3; ++j) p[j] = x[j] + (c[0] * rot[3 * j] + c[1] * rot[3 * j + 1] + c[2] * rot[3 * j + 2]);
+      sphere_center(x, rot, c, p);
       S d, n[3];
       distance<S>(sh, p, d, n);
       const S r = w.radii[a * w.s_max + i];
@@ -450,7 +459,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + pk.sphere) * 3;
     const S r = w.radii[a * w.s_max + pk.sphere];
     T p[3];
-    for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
+    sphere_center(x, rot, c, p);
     T d;
     distance(w.shapes[pk.shape], p, d, &nrm[3 * j]);
     depth[j] = relu(r - d);
@@ -471,9 +480,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     T vn = dot3(vel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
     T weight = depth[j] / (total + tiny);
-    const S unload = w.unload_static[a * w.k + k];
-    T loading = sigmoid(-vn / w.unload_velocity);
-    T fn = weight * stiff * depth[j] * (unload + (1.0 - unload) * loading);
+    T fn = normal_force(depth[j], weight, vn, stiff, w.unload_static[a * w.k + k], w.unload_velocity);
     slip_direction(vt, t);
     T inv_mass = inv_m + inverse_mass(r, t, inv_w, w.inv_i_min[a]);
     T stick = weight / (inv_mass * w.h);
@@ -508,10 +515,8 @@ void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, cons
     for (int i = 0; i < w.count[body]; ++i) {
       const S* c = w.centers + (static_cast<int64_t>(body) * w.s_max + i) * 3;
       S p[3], d[3];
-      for (int k = 0; k < 3; ++k) {
-        p[k] = st[k] + (c[0] * rot[3 * k] + c[1] * rot[3 * k + 1] + c[2] * rot[3 * k + 2]);
-        d[k] = p[k] - other[k];
-      }
+      sphere_center(st, rot, c, p);
+      for (int k = 0; k < 3; ++k) d[k] = p[k] - other[k];
       if (std::sqrt(dot3(d, d)) < w.radii[body * w.s_max + i] + other_bound) {
         ids.push_back(i);
         pts.insert(pts.end(), p, p + 3);
@@ -559,11 +564,9 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
     const S r_a = w.radii[a * w.s_max + picks[k].i], r_b = w.radii[b * w.s_max + picks[k].j];
     T pa[3], pb[3], diff[3];
-    for (int i = 0; i < 3; ++i) {
-      pa[i] = st_a[i] + (ca[0] * rot_a[3 * i] + ca[1] * rot_a[3 * i + 1] + ca[2] * rot_a[3 * i + 2]);
-      pb[i] = st_b[i] + (cb[0] * rot_b[3 * i] + cb[1] * rot_b[3 * i + 1] + cb[2] * rot_b[3 * i + 2]);
-      diff[i] = pb[i] - pa[i];
-    }
+    sphere_center(st_a, rot_a, ca, pa);
+    sphere_center(st_b, rot_b, cb, pb);
+    for (int i = 0; i < 3; ++i) diff[i] = pb[i] - pa[i];
     T dist = sqrt(dot3(diff, diff) + S(1e-24));
     for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;
     depth[k] = relu((r_a + r_b) - dist);
@@ -589,8 +592,7 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     T vn = dot3(vrel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn * n[i];
     T weight = depth[k] / (total + tiny);
-    T loading = sigmoid(-vn / w.unload_velocity);
-    T fn = weight * stiff * depth[k] * (unload + (1.0 - unload) * loading);
+    T fn = normal_force(depth[k], weight, vn, stiff, unload, w.unload_velocity);
     slip_direction(vt, t);
     T inv_mass = inv_m + inverse_mass(ra, t, iw_a, w.inv_i_min[a]) + inverse_mass(rb, t, iw_b, w.inv_i_min[b]);
     T stick = weight / (inv_mass * w.h);
@@ -721,7 +723,7 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
   for (int a = 0; a < n; ++a) {
     using D = Dual<S, 13>;
     D st[13], o[6];
-    Seeder<S>::run(state + 13 * a, st, 0);
+    seed_state(state + 13 * a, st, 0);
     static_wrench<D, S>(w, a, st, sc.picks[a], o);
     for (int i = 0; i < 6; ++i) {
       sc.wrench[6 * a + i] = o[i].v;
@@ -733,8 +735,8 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
     using D = Dual<S, 26>;
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
     D sa[13], sb[13], o[12];
-    Seeder<S>::run(state + 13 * a, sa, 0);
-    Seeder<S>::run(state + 13 * b, sb, 13);
+    seed_state(state + 13 * a, sa, 0);
+    seed_state(state + 13 * b, sb, 13);
     pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
     sc.blk[a * n + b] = sc.blk[b * n + a] = 1;
     for (int half = 0; half < 2; ++half) {
@@ -754,7 +756,7 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
   for (int a = 0; a < n; ++a) {
     using D = Dual<S, 19>;
     D st[13], wr[6], o[13];
-    Seeder<S>::run(state + 13 * a, st, 0);
+    seed_state(state + 13 * a, st, 0);
     for (int i = 0; i < 6; ++i) {
       S value = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
       wr[i] = D(value);
