@@ -303,3 +303,18 @@ def test_a_native_rollout_lets_other_python_threads_run():
             done.set()
             t.join()
     assert during > 0.25 * alone, (during, alone)
+
+
+def test_without_a_build_auto_falls_back_to_torch_with_one_warning(monkeypatch):
+    world, state = _tumbling_box("plane")
+    failure = SimulationError("the native simulator could not be built from rollout.cpp: g++: not found")
+    monkeypatch.setattr(native, "_EXTENSION", None)
+    monkeypatch.setattr(native, "_BUILD_ERROR", failure)
+    monkeypatch.setattr(native, "_WARNED", False)
+    with pytest.warns(RuntimeWarning, match="g\\+\\+: not found; simulating with the torch engine"):
+        assert not native.use_native("auto", world)
+    assert not native.use_native("auto", world)  # warned once only (a second warning would fail here)
+    with pytest.raises(SimulationError, match="could not be built"):
+        rollout(world, state, steps=2, engine="native")
+    ref = rollout(world, state, steps=5)
+    _close(rollout(world, state, steps=5, engine="auto"), ref, atol=0)
