@@ -7,6 +7,7 @@ record intervals, batches, and in both gradient modes.
 """
 
 import math
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -313,7 +314,9 @@ def test_without_a_build_auto_falls_back_to_torch_with_one_warning(monkeypatch):
     monkeypatch.setattr(native, "_WARNED", False)
     with pytest.warns(RuntimeWarning, match="g\\+\\+: not found; simulating with the torch engine"):
         assert not native.use_native("auto", world)
-    assert not native.use_native("auto", world)  # warned once only (a second warning would fail here)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once only: a second warning would raise here
+        assert not native.use_native("auto", world)
     with pytest.raises(SimulationError, match="could not be built"):
         rollout(world, state, steps=2, engine="native")
     ref = rollout(world, state, steps=5)
