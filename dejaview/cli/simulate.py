@@ -31,6 +31,9 @@ def command(scene, out_dir, steps, record_every, float32, backend, engine, itera
         raise click.BadParameter("must be >= 1", param_hint="--record-every")
     if steps is not None and steps < 1:
         raise click.BadParameter("must be >= 1", param_hint="--steps")
+    if backend != "spheres" and engine != "auto":
+        raise click.BadParameter(f"the engine is an option of the spheres backend, not of {backend}",
+                                 param_hint="--engine")
     sc = Scene.from_xml(scene)
     if backend == "warp":
         _simulate_warp(sc, out_dir, steps, record_every, quiet)

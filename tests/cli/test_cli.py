@@ -89,3 +89,11 @@ def test_bad_input_exits_nonzero_with_one_line(tmp_path, args, needle):
     assert lines, result.stderr
     assert needle in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_simulate_rejects_an_engine_for_another_backend(tmp_path):
+    """As solve and heatmap do: --engine belongs to the spheres backend."""
+    result = CliRunner().invoke(cli, ["simulate", "examples/scenes/ball_rolled.xml", "-o", str(tmp_path),
+                                      "--backend", "warp", "--engine", "native", "-q"])
+    assert result.exit_code == 2
+    assert "engine is an option of the spheres backend, not of warp" in result.output
