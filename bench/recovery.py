@@ -3,6 +3,7 @@
     python bench/recovery.py                       # every case, prints the table
     python bench/recovery.py --csv recovery.csv    # also write the rows as CSV
     python bench/recovery.py --cases ball_off_table-0,box_along_shelf-1
+    python bench/recovery.py --verbose             # also every iteration of the solver
 
 Each case takes one bundled scene (``examples/scenes``), draws a known random
 initial state of its source (seeded; inside the scene's start area; with
@@ -10,16 +11,9 @@ velocities that keep the scene's story, e.g. the ball still rolls off the
 table; the bodies of each ``<penalty>`` touch: each draw is simulated and
 redrawn until the story holds), simulates it
 with DejaView and gives the solver only the source's final pose as the
-``<target>``. The solver (``dejaview.solve`` with the scene's optimiser and
-loss) first ranks the scene's own guess (the pose a robot might assume) and
-``SCREEN`` random guesses by their loss, without gradients, and starts from
-the best ``MULTISTART`` as one batch, each with an L-BFGS of its own; when a
-candidate's best loss stalls for ``PATIENCE`` iterations it restarts with
-probability ``EPSILON`` (decaying) from the next-best screened guess, or hops
-from its best point.
-It runs at most ``ITERATIONS`` iterations with an early stop at ``TOLERANCE``,
-on the native simulation engine (``dejaview.sim.native``; ``--compile`` runs
-the torch engine compiled instead, as the earlier tables were measured).
+``<target>``. The solver is ``dejaview.solve`` with its defaults and nothing
+else: the most probable past under the scene's priors (the default search,
+``dejaview.inference.search``), on the native simulation engine.
 
 Success: the best solution, re-simulated, comes within ``POSITION_TOL`` (1 cm)
 and ``ANGLE_TOL`` (5 degrees) of the target pose, both measured at the
@@ -33,11 +27,7 @@ reported but not required. The start-position error (solution vs. true start)
 is reported too, never required: different starts can end alike.
 
 Scene variants (built in code with ``dataclasses.replace``; the files are not
-touched) keep the suite to about an hour of solving on one CPU core
-(measured with ``MULTISTART = 4``, two processes side by side, inductor's
-cache warm: 22 min for the 3 mug, 3 ball, 3 shelf cases and
-box_among_boxes-2, 34 min for box_among_boxes-0 and -1; a cold cache adds
-each scene's first compile at B = 4, ~5-15 min):
+touched) keep the suite short:
 
 - every duration is shortened to what the story needs (``DURATIONS``);
 - in ``box_among_boxes`` the four boxes use a coarse packing
@@ -50,10 +40,8 @@ each scene's first compile at B = 4, ~5-15 min):
   forces a 0.6 s rollout of a thrown box among them took 35-40 s with the
   bundled packing (one loss + gradient ~100 s), 5-6 s with the coarse one.
 
-Budget: at most ``ITERATIONS`` iterations and ``MAX_EVALUATIONS`` loss +
-gradient evaluations per case (L-BFGS's line search may take several per
-iteration), whichever comes first; a case that runs out is a failure.
-Screening evaluates losses only and is not counted; its time is in ``seconds``.
+The budget is the solver's own (its defaults); ``seconds`` is the wall time of the
+whole ``solve`` call, screening and the final re-simulation included.
 
 Rows (one per case): ``case``, ``scene``, ``success``, ``position_error_m``,
 ``angle_error_deg``, ``start_error_m``, ``loss``, ``iterations``,
@@ -76,45 +64,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "examples" / "scenes"
 
-ITERATIONS = 300
-TOLERANCE = 0.003
-"""Early stop: the solver's loss (metres; the pose loss is the position error and 0.05 m per
-radian of orientation error in quadrature) at or below this means the target is met well inside
-the criteria (3 mm, 3.4 degrees)."""
 POSITION_TOL = 0.01
 ANGLE_TOL = 5.0
-MULTISTART = 4
-"""Candidates per case, one batch (``solve(multistart=...)``), each with an optimiser of its own:
-12/12 solved, against 10/12 with one candidate (box_among_boxes-0 and -1 ended in wrong basins).
-Four candidates sharing one L-BFGS (one step length for all, every restart reset all) failed
-box_among_boxes-0 and -2 (the mug cases not run). A batched evaluation costs ~2x one
-candidate's, and an iteration as many evaluations as its longest line search."""
-SCREEN = 64
-"""Random guesses ranked by loss before optimising (``solve(screen=...)``)."""
-SCREEN_ROUNDS = 1
-"""Rounds of screening (``solve(screen_rounds=...)``: later rounds draw around the best; restarts
-take the first round's guesses first). With one candidate, 3 rounds (and 1200 evaluations)
-measured 9/12 against 10/12 with 1: the shelf cases took 3 evaluations instead of 6-21 and
-box_among_boxes-2 225 instead of 1002, but mug_off_counter-2 ended 43 mm / 75.5 degrees off
-after 1153."""
-SCREEN_NEAR = 0.0
-"""Fraction of the screened guesses drawn around the scene's guess (``solve(screen_near=...)``)."""
-EPSILON, PATIENCE = 0.5, 8
-"""Restarts (``solve(epsilon=, patience=)``): more eager than the scenes' own 0.2 / 20, which
-suit an interactive solve; restarts take the next-best screened guesses first."""
-COMPILE = False
-"""Compiled torch rollouts instead of the native engine (default off: native is faster still and
-needs no compile; on, ~11x faster than eager torch per loss + gradient on the mug after a ~100 s
-first compile)."""
-MAX_EVALUATIONS = 1000
-"""Loss + gradient evaluations (batched) per case: about 140 iterations at ~7 evaluations each
-with four candidates (250 at ~4 with one), inside the issue's 300 iterations (400 evaluations
-with one candidate solved 9/12: every failure ran out in a wrong basin)."""
 COARSE_BOX = ROOT / "tests" / "fixtures" / "inference" / "box_coarse.spheres"
 
 DURATIONS = {"ball_off_table": 0.8, "mug_off_counter": 0.8, "box_along_shelf": 0.5,
-             "box_among_boxes": 0.6}
-CASES_PER_SCENE = 3
+             "box_among_boxes": 0.6, "ball_down_ramp": None, "box_down_ramp": None}
+"""Simulated seconds per scene (None: the scene's own)."""
+CASES_PER_SCENE = 4
 MAX_DRAWS = 50
 
 
@@ -189,7 +146,14 @@ def draw_box_among_boxes(rng, scene) -> dict:
                 angular=[float(v) for v in rng.uniform(-2.0, 2.0, 3)])
 
 
-DRAWS = {"ball_off_table": draw_ball_off_table, "mug_off_counter": draw_mug_off_counter,
+def draw_on_ramp(rng, scene) -> dict:
+    """Released at rest anywhere in the start area (only the position is free)."""
+    return dict(position=_in_area(rng, scene), orientation=None, linear=[0.0, 0.0, 0.0],
+                angular=[0.0, 0.0, 0.0])
+
+
+DRAWS = {"ball_down_ramp": draw_on_ramp, "box_down_ramp": draw_on_ramp,
+         "ball_off_table": draw_ball_off_table, "mug_off_counter": draw_mug_off_counter,
          "box_along_shelf": draw_box_along_shelf, "box_among_boxes": draw_box_among_boxes}
 
 
@@ -207,6 +171,9 @@ def story_holds(name: str, world, traj, source: int) -> bool:
     if name == "box_along_shelf":
         # it reached the side panel and is still on the board
         return bool(src[-1, 0] > 0.36 and abs(float(src[-1, 2]) - 1.05) < 0.01)
+    if name in ("ball_down_ramp", "box_down_ramp"):
+        # it rolled or slid down onto the floor
+        return bool(src[-1, 2] < 0.2)
     if name == "box_among_boxes":
         # it knocked at least one of the other boxes by more than a centimetre
         moved = torch.linalg.vector_norm(origins[-1] - origins[0], dim=-1)
@@ -234,7 +201,11 @@ def variant(name: str):
     from dejaview.scene import Scene
 
     scene = Scene.from_xml(SCENES / f"{name}.xml")
-    scene = replace(scene, simulation=replace(scene.simulation, duration=DURATIONS[name]))
+    if DURATIONS[name] is not None:
+        scene = replace(scene, simulation=replace(scene.simulation, duration=DURATIONS[name]))
+    if name in ("ball_down_ramp", "box_down_ramp"):
+        # it rolled or slid down onto the floor
+        return bool(src[-1, 2] < 0.2)
     if name == "box_among_boxes":
         scene = replace(scene, objects=tuple(replace(o, spheres=str(COARSE_BOX)) if o.spheres else o
                                              for o in scene.objects))
@@ -318,31 +289,14 @@ def pose_errors(result) -> dict:
                 record_time_s=float(traj.steps[k]) * traj.dt)
 
 
-def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLERANCE,
-               multistart: int = MULTISTART, optimizer: str | None = None,
-               max_evaluations: int = MAX_EVALUATIONS, screen: int = SCREEN,
-               screen_rounds: int = SCREEN_ROUNDS, screen_near: float = SCREEN_NEAR,
-               compile: bool = COMPILE,
-               epsilon: float | None = EPSILON, patience: int | None = PATIENCE,
-               callback=None) -> dict:
-    """Draw, simulate and solve one case; the row of the table (``callback``: solve's)."""
+def solve_case(case: Case, callback=None, **solve_options) -> dict:
+    """Draw, simulate and solve one case with ``dejaview.solve``'s defaults (``solve_options``
+    override them, e.g. for a comparison; ``callback``: solve's); the row of the table."""
     from dejaview.inference import solve
 
     scene, truth, draws = make_case(case)
-    spent = [0]
-
-    def progress(p):
-        spent[0] = p.evaluations
-        if callback is not None:
-            callback(p)
-
     t0 = time.perf_counter()
-    result = solve(scene, iterations=iterations, tolerance=tolerance, multistart=multistart,
-                   optimizer=optimizer, callback=progress, screen=screen, screen_rounds=screen_rounds,
-                   screen_near=screen_near,
-                   compile=compile,
-                   epsilon=epsilon, patience=patience,
-                   should_stop=lambda: spent[0] >= max_evaluations)
+    result = solve(scene, callback=callback, **solve_options)
     seconds = time.perf_counter() - t0
     errors = pose_errors(result)
     start = np.asarray(result.initial_state["position"])
@@ -359,9 +313,6 @@ def solve_case(case: Case, iterations: int = ITERATIONS, tolerance: float = TOLE
         "evaluations": history[-1].evaluations if history else 0, "seconds": seconds,
         "record_time_s": errors["record_time_s"], "duration_s": scene.simulation.duration,
         "optimizer": result.settings["optimizer"], "gradient": result.settings["gradient"],
-        "multistart": multistart, "screen": screen, "screen_rounds": screen_rounds,
-        "screen_near": screen_near, "compile": compile,
-        "epsilon": result.settings["epsilon"], "patience": result.settings["patience"],
         "out_of_budget": result.optimization.stopped, "truth_draws": draws,
         "truth": json.dumps({k: truth[k] for k in ("position", "orientation", "linear", "angular")}),
         "solution": json.dumps(result.initial_state),
@@ -411,8 +362,7 @@ def run(print_fn=print, cases=None, csv_path=None, **solve_options) -> list[dict
         print_fn: where the table lines go (None: nowhere).
         cases: Case objects or names like ``"ball_off_table-0"`` (default: ``ALL_CASES``).
         csv_path: also write the rows there.
-        **solve_options: ``iterations``, ``tolerance``, ``multistart``, ``optimizer``,
-            ``max_evaluations``, ``callback`` (see ``solve_case``).
+        **solve_options: ``callback`` and overrides of solve's defaults (``solve_case``).
     Returns:
         one dict per case (see the module docstring).
     """
@@ -424,8 +374,8 @@ def run(print_fn=print, cases=None, csv_path=None, **solve_options) -> list[dict
     say = print_fn or (lambda *_: None)
     cases = _resolve(cases)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    say(f"recovery: {len(cases)} cases, <= {solve_options.get('iterations', ITERATIONS)} iterations and "
-        f"<= {solve_options.get('max_evaluations', MAX_EVALUATIONS)} evaluations each, tolerance {solve_options.get('tolerance', TOLERANCE)}; success = within "
+    settings = {k: v for k, v in solve_options.items() if k != "callback"}
+    say(f"recovery: {len(cases)} cases, solve's {settings or 'defaults'}; success = within "
         f"{POSITION_TOL * 100:g} cm and {ANGLE_TOL:g} deg at the best-matching record "
         f"(load average {load:.1f})")
     say(format_header())
@@ -457,35 +407,15 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows as CSV here")
     parser.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
-    parser.add_argument("--iterations", type=int, default=ITERATIONS)
-    parser.add_argument("--tolerance", type=float, default=TOLERANCE)
-    parser.add_argument("--multistart", type=int, default=MULTISTART)
-    parser.add_argument("--optimizer", default=None, help="override the scenes' optimizer")
-    parser.add_argument("--max-evaluations", type=int, default=MAX_EVALUATIONS)
-    parser.add_argument("--screen", type=int, default=SCREEN,
-                        help="random guesses ranked by loss before optimising (solve's screen)")
-    parser.add_argument("--screen-rounds", type=int, default=SCREEN_ROUNDS,
-                        help="rounds of screening, later ones around the best (solve's screen_rounds)")
-    parser.add_argument("--screen-near", type=float, default=SCREEN_NEAR,
-                        help="fraction of the screened guesses drawn around the scene's guess")
-    parser.add_argument("--epsilon", type=float, default=EPSILON, help="restart probability (solve's)")
-    parser.add_argument("--patience", type=int, default=PATIENCE, help="stalled iterations before a restart")
-    parser.add_argument("--compile", action=argparse.BooleanOptionalAction, default=COMPILE,
-                        help="compiled rollouts (solve's compile)")
     parser.add_argument("--verbose", action="store_true", help="print every iteration")
     args = parser.parse_args(argv)
     cases = args.cases.split(",") if args.cases else None
 
     def show(p):
-        print(f"    {p.iteration:3d}  loss {p.loss:.5f}  best {p.best_loss:.5f}  evals {p.evaluations:3d}"
+        print(f"    {p.iteration:3d}  loss {p.loss:.5g}  best {p.best_loss:.5g}  evals {p.evaluations:5d}"
               f"  {p.elapsed_s:6.1f} s" + ("  restart" if p.restarted else ""), flush=True)
 
-    rows = run(cases=cases, csv_path=args.csv, iterations=args.iterations, tolerance=args.tolerance,
-               multistart=args.multistart, optimizer=args.optimizer,
-               max_evaluations=args.max_evaluations, screen=args.screen,
-               screen_rounds=args.screen_rounds, screen_near=args.screen_near, compile=args.compile,
-               epsilon=args.epsilon, patience=args.patience,
-               callback=show if args.verbose else None)
+    rows = run(cases=cases, csv_path=args.csv, callback=show if args.verbose else None)
     return 0 if rows and all(r["success"] for r in rows) else 1
 
 

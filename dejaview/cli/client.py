@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import show_progress
+from dejaview.cli.options import OPTIMIZERS, show_progress
 
 
 @click.command("client")
@@ -19,7 +19,7 @@ from dejaview.cli.options import show_progress
 @click.option("--scene-path", "as_path", is_flag=True,
               help="SCENE is a path inside the server's scene root (default: a local file sent as text)")
 @click.option("--iterations", type=int, default=None, help="optimiser iterations (overrides the scene)")
-@click.option("--optimizer", type=click.Choice(["gd", "adam", "lbfgs", "bfgs"]), default=None)
+@click.option("--optimizer", type=click.Choice(OPTIMIZERS), default=None)
 @click.option("--gradient", type=click.Choice(["forward", "reverse"]), default=None)
 @click.option("--seed", type=int, default=None)
 @click.option("--steps", type=int, default=None, help="simulation steps (simulate jobs)")

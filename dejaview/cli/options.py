@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from dejaview.scene.model import OPTIMIZERS  # a leaf module: --help stays cheap
+
 BACKENDS = ("spheres", "warp")  # dejaview.backends.BACKENDS (not imported: --help stays cheap)
 ENGINES = ("auto", "native", "torch")  # dejaview.sim.native.ENGINES
 
@@ -18,8 +20,9 @@ def common_options(f):
         click.option("--engine", type=click.Choice(ENGINES), default="auto", show_default=True,
                      help="spheres backend: native C++ simulator (auto: where float64 allows) or torch"),
         click.option("--iterations", type=int, default=None, help="optimiser iterations (overrides the scene)"),
-        click.option("--optimizer", type=click.Choice(["gd", "adam", "lbfgs", "bfgs"]), default=None,
-                     help="optimiser (overrides the scene)"),
+        click.option("--optimizer", type=click.Choice(OPTIMIZERS), default=None,
+                     help="auto: the most probable past (CMA-ES + Levenberg-Marquardt); or one local "
+                          "optimiser with restarts (overrides the scene)"),
         click.option("--gradient", type=click.Choice(["forward", "reverse"]), default=None,
                      help="gradient mode (overrides the scene)"),
         click.option("--seed", type=int, default=None, help="random seed (overrides the scene)"),

@@ -13,23 +13,24 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.argument("scene", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               required=True, help="output folder (created)")
-@click.option("--multistart", type=int, default=1, show_default=True,
-              help="initial guesses run as one batch")
-@click.option("--screen", type=click.IntRange(min=0), default=0, show_default=True,
-              help="rank this many random guesses by loss (no gradients) and start from the best")
-@click.option("--screen-rounds", type=click.IntRange(min=1), default=1, show_default=True,
-              help="rounds of screening; later rounds draw around the best so far (cross-entropy method)")
-@click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
+@click.option("--budget", type=click.IntRange(min=1), default=None,
+              help="most rollouts of the default search (default 20000; a Jacobian counts 3)")
+@click.option("--multistart", type=click.IntRange(min=1), default=None,
+              help="with --optimizer gd|adam|lbfgs|bfgs: initial guesses run as one batch")
+@click.option("--screen", type=click.IntRange(min=0), default=None,
+              help="with --optimizer gd|adam|lbfgs|bfgs: rank this many random guesses by loss first")
+@click.option("--lr", type=float, default=None, help="with a local optimiser: learning rate")
 @click.option("--plot", is_flag=True, help="also write loss.png")
 @click.option("--compile", "use_compile", is_flag=True,
               help="torch.compile the torch engine's rollouts (the native engine needs no compile)")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_compile, tolerance, backend,
+def command(scene, out_dir, budget, multistart, screen, lr, plot, use_compile, tolerance, backend,
             engine, iterations, optimizer, gradient, seed, quiet):
-    """Infer the initial state of SCENE's source object; write result.json, iterations.csv
-    and trajectory.csv (the best solution re-simulated) to DIR."""
+    """Infer the most probable initial state of SCENE's source object (its <prior> and
+    <observation>); write result.json, iterations.csv and trajectory.csv (the answer
+    re-simulated) to DIR."""
     from tqdm import tqdm
 
     from dejaview.inference import solve
@@ -47,7 +48,7 @@ def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_com
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
-                   lr=lr, multistart=multistart, screen=screen, screen_rounds=screen_rounds,
+                   lr=lr, multistart=multistart, screen=screen, budget=budget,
                    callback=progress, tolerance=tolerance,
                    compile=use_compile, backend=backend,
                    engine=None if engine == "auto" and backend != "spheres" else engine)
@@ -57,9 +58,14 @@ def command(scene, out_dir, multistart, screen, screen_rounds, lr, plot, use_com
         s = result.initial_state
         fmt = lambda v: "(" + ", ".join(f"{x:.3f}" for x in v) + ")"  # noqa: E731
         end_pos, _ = result.final_pose()
-        click.echo(f"best loss {result.loss:.5g} after {len(result.iterations)} iterations "
+        click.echo(f"best loss {result.loss:.5g} m after {len(result.iterations)} iterations "
                    f"({result.settings['backend']} backend, {result.settings['optimizer']}, "
                    f"{result.settings['gradient']} mode)")
+        search = result.settings.get("search")
+        if search is not None:
+            click.echo(f"  -log posterior {search['neg_log_posterior']:.4g} (end misfit chi2 "
+                       f"{search['observation_chi2']:.3g}), {len(search['modes'])} mode(s) found, "
+                       f"{search['rollouts']} rollouts")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
         click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")

@@ -242,7 +242,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     samples = hs.samples if samples is None else samples
     sigma = hs.sigma if sigma is None else sigma
     iterations = inf.iterations if iterations is None else iterations
-    optimizer = optimizer or DEFAULT_OPTIMIZER
+    optimizer = DEFAULT_OPTIMIZER if optimizer in (None, "auto") else optimizer
     seed = inf.seed if seed is None else seed
     for name, value in (("cells", nx), ("cells", ny), ("samples", samples), ("iterations", iterations),
                         ("batch_size", batch_size), ("directions", directions), ("workers", workers)):

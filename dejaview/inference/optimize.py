@@ -61,8 +61,10 @@ from dataclasses import dataclass, field
 import torch
 
 from dejaview.errors import InferenceError
+from dejaview.scene.model import OPTIMIZERS as ALL_OPTIMIZERS
 
-OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
+OPTIMIZERS = tuple(o for o in ALL_OPTIMIZERS if o != "auto")
+"""The local optimisers this loop runs (``auto`` is the search of ``dejaview.inference.search``)."""
 # on the 0.5 * loss^2 objective in scaled parameters (see dejaview.inference.params)
 DEFAULT_LR = {"gd": 1.0, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}
 STALL_RATIO = 1e-3

@@ -79,6 +79,16 @@ class ParameterLayout:
             out += ["angular_velocity.x", "angular_velocity.y", "angular_velocity.z"]
         return out
 
+    def block_slice(self, block: str) -> slice:
+        """Columns of ``x`` that hold a free block (``BLOCKS``; empty when it is not free)."""
+        start = 0
+        for b in BLOCKS:
+            width = (len(self.position_axes) if b == "position" else 3) if self.free[b] else 0
+            if b == block:
+                return slice(start, start + width)
+            start += width
+        raise KeyError(block)
+
     # --------------------------------------------------------------- mapping
     def decode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         """Initial state of the source from parameters.

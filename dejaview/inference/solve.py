@@ -221,6 +221,7 @@ class SolveResult:
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
+            **{k: self.settings[k] for k in ("prior", "observation", "search") if k in self.settings},
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}
                            for p in self.iterations],
@@ -283,69 +284,183 @@ def _check_engine(engine: str, compile: bool) -> str:
     return engine
 
 
+LOCAL_ONLY = ("multistart", "screen", "screen_rounds", "screen_near", "epsilon", "patience", "lr", "gradient",
+              "x0")
+"""Settings of the local optimisers with restarts (``gd|adam|lbfgs|bfgs``) that the default search
+(``auto``) has no use for: given with ``auto`` they are an error, not silently ignored."""
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """Everything a solve runs with, resolved once from the scene and the overrides.
+
+    The API (``solve``), the CLI and the service build it through ``SolveSettings.resolve``, so
+    they share its defaults and its one-line errors.
+
+    Attributes:
+        optimizer: ``auto`` (the search of ``dejaview.inference.search``) or a local optimiser.
+        iterations, seed, tolerance: budget, seed, early stop (scene loss in metres).
+        budget: rollouts of the ``auto`` search (``search.DEFAULT_BUDGET``).
+        gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
+            optimisers' settings (``optimize``).
+        posterior: ``PosteriorSettings`` (prior and observation noise).
+    """
+
+    optimizer: str
+    iterations: int
+    seed: int
+    tolerance: float | None = None
+    budget: int | None = None
+    gradient: str | None = None
+    lr: float | None = None
+    multistart: int = 1
+    screen: int = 0
+    screen_rounds: int = 1
+    screen_near: float = SCREEN_NEAR
+    epsilon: float = 0.0
+    patience: int = 25
+    posterior: object = None
+
+    @staticmethod
+    def resolve(scene, *, optimizer: str | None = None, iterations: int | None = None,
+                seed: int | None = None, tolerance: float | None = None, budget: int | None = None,
+                **local) -> "SolveSettings":
+        """Settings from the scene's ``<inference>`` and overrides (None: the scene's / default).
+
+        Args:
+            scene: a Scene with an ``<inference>`` section.
+            local: ``LOCAL_ONLY`` overrides (None: unset).
+        Raises:
+            InferenceError: one line naming a bad value, or a local optimiser's setting given with
+                the ``auto`` search.
+        """
+        from dejaview.inference.posterior import PosteriorSettings
+        from dejaview.scene.model import OPTIMIZERS
+
+        inf = scene.inference
+        if inf is None:
+            raise InferenceError("the scene has no <inference> section: nothing to solve")
+        unknown = set(local) - set(LOCAL_ONLY)
+        if unknown:
+            raise InferenceError(f"unknown solve setting {sorted(unknown)[0]!r}")
+        optimizer = inf.optimizer if optimizer is None else optimizer
+        if optimizer not in OPTIMIZERS:
+            raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
+        iterations = inf.iterations if iterations is None else iterations
+        _check_count(iterations, "iterations", 1)
+        seed = inf.seed if seed is None else seed
+        _check_count(seed, "seed", 0)
+        if tolerance is not None and not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance)
+                                          and tolerance >= 0):
+            raise InferenceError(f"tolerance must be a non-negative number, got {tolerance!r}")
+        given = {k: v for k, v in local.items() if v is not None}
+        if optimizer == "auto":
+            if given:
+                name = sorted(given)[0]
+                raise InferenceError(f"{name} applies to the local optimisers (gd, adam, lbfgs, bfgs), "
+                                     f"not to the default search: drop it or choose an optimizer")
+            if budget is not None:
+                _check_count(budget, "budget", 1)
+            return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed,
+                                 tolerance=tolerance, budget=budget, gradient="reverse",
+                                 posterior=PosteriorSettings.from_scene(scene))
+        if budget is not None:
+            raise InferenceError("budget applies to the default search (optimizer auto)")
+        exploration = inf.exploration
+        multistart = given.get("multistart", 1)
+        _check_count(multistart, "multistart", 1)
+        screen = given.get("screen", 0)
+        _check_count(screen, "screen", 0)
+        screen_rounds = given.get("screen_rounds", 1)
+        _check_count(screen_rounds, "screen rounds", 1)
+        screen_near = given.get("screen_near", SCREEN_NEAR)
+        if not 0.0 <= screen_near <= 1.0:
+            raise InferenceError(f"screen_near must be a fraction in [0, 1], got {screen_near!r}")
+        gradient = given.get("gradient", inf.gradient)
+        if gradient is not None and gradient not in ("forward", "reverse"):
+            raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+        return SolveSettings(
+            optimizer=optimizer, iterations=iterations, seed=seed, tolerance=tolerance,
+            gradient=gradient, lr=given.get("lr"), multistart=multistart, screen=screen,
+            screen_rounds=screen_rounds, screen_near=screen_near,
+            epsilon=given.get("epsilon", exploration.epsilon if exploration else 0.0),
+            patience=given.get("patience", exploration.patience if exploration else 25))
+
+
 def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           gradient: str | None = None, seed: int | None = None, lr: float | None = None,
-          multistart: int = 1, epsilon: float | None = None, patience: int | None = None,
+          multistart: int | None = None, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
           compile: bool = False, backend: str | None = None, engine: str | None = None,
-          screen: int = 0,
-          screen_rounds: int = 1, screen_near: float = SCREEN_NEAR) -> SolveResult:
-    """Infer the initial state of the scene's source object.
+          screen: int | None = None, screen_rounds: int | None = None,
+          screen_near: float | None = None, budget: int | None = None) -> SolveResult:
+    """Infer the initial state of the scene's source object: its most probable past.
+
+    The default (``optimizer="auto"``, what a scene without ``optimizer`` asks for) maximises the
+    posterior of ``dejaview.inference.posterior`` (the scene's ``<prior>`` and ``<observation>``)
+    with the search of ``dejaview.inference.search`` (CMA-ES, then Levenberg-Marquardt on exact
+    Jacobians). ``gd|adam|lbfgs|bfgs`` run one local optimiser on ``0.5 * loss^2`` with
+    epsilon-greedy restarts (``dejaview.inference.optimize``), as the original work did.
 
     Args:
         scene: a Scene (or a path to a scene file) with an ``<inference>`` section.
-        iterations, optimizer, gradient, seed: override the scene's settings.
-        lr: learning rate (default per optimiser).
-        multistart: K initial guesses run as one batch (the scene's guess plus K-1 random,
-            or the K best screened guesses), each with an optimiser of its own (see
-            ``dejaview.inference.optimize``).
-        screen: rank the scene's guess and ``screen`` random guesses by their loss
-            (``screen_guesses``, no gradients) and start from the best ``multistart``;
-            epsilon-greedy restarts then take the next-best screened guesses before
-            fresh random draws. 0: no screening.
-        screen_rounds: rounds of screening, ``screen`` guesses each; rounds after the first
-            draw around the best so far (cross-entropy method, ``screen_guesses``). The run
-            starts from the best guess of any round; restarts take the first round's guesses
-            before the refinements (those crowd around the start, where the hops search).
-        screen_near: fraction of the first round drawn around the scene's guess instead of
-            from the whole prior (``screen_guesses``' ``near``; default ``SCREEN_NEAR``).
-        epsilon, patience: override ``<exploration>``.
+        iterations, optimizer, seed, tolerance: override the scene's settings (``SolveSettings``).
+        budget: rollouts of the ``auto`` search.
+        gradient, lr, multistart, epsilon, patience, screen, screen_rounds, screen_near, x0: the
+            local optimisers' settings (see ``optimize`` and ``screen_rounds_ranked``):
+            multistart K guesses as one batch, ``screen`` random guesses ranked by loss first.
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops early (cancellation).
         world / problem: reuse an already built World (spheres) / problem (any backend's,
             ``dejaview.backends.make_problem``, or a bare ``InferenceProblem``).
-        x0: (K, P) explicit initial guesses.
-        tolerance: stop once the best loss is at or below this.
         compile: compiled rollouts (see ``InferenceProblem.compile``; spheres only).
         backend: ``spheres`` (default) | ``warp`` (``dejaview.backends``); ignored with ``problem``.
-        engine: simulation engine of the spheres backend, ``auto`` | ``native`` | ``torch``
-            (``InferenceProblem.engine``; None keeps the problem's, by default ``auto``).
+            The ``auto`` search needs the spheres backend's residual Jacobians; with another
+            backend ``auto`` runs ``lbfgs``.
+        engine: simulation engine of the spheres backend, ``auto`` | ``native`` | ``torch``.
     Returns:
         SolveResult.
     Raises:
         InferenceError: bad settings (one line naming the problem).
     """
-    from dejaview.backends import as_problem, make_problem
     from dejaview.scene import Scene
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
-    inf = scene.inference
-    if inf is None:
-        raise InferenceError("the scene has no <inference> section: nothing to solve")
-    iterations = inf.iterations if iterations is None else iterations
-    _check_count(iterations, "iterations", 1)
-    optimizer = inf.optimizer if optimizer is None else optimizer
-    if optimizer not in OPTIMIZERS:
-        raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
-    if multistart < 1:
-        raise InferenceError(f"multistart must be >= 1, got {multistart}")
-    _check_count(screen, "screen", 0)
-    _check_count(screen_rounds, "screen rounds", 1)
-    if not 0.0 <= screen_near <= 1.0:
-        raise InferenceError(f"screen_near must be a fraction in [0, 1], got {screen_near!r}")
-    seed = inf.seed if seed is None else seed
+    local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
+                 screen_near=screen_near, epsilon=epsilon, patience=patience, lr=lr, gradient=gradient,
+                 x0=x0)
+    settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
+                                     tolerance=tolerance, budget=budget, **local)
+    problem = _make_problem(scene, problem, world, backend, compile, engine)
+    if settings.optimizer == "auto" and problem.backend != "spheres":
+        settings = SolveSettings.resolve(scene, optimizer="lbfgs", iterations=iterations, seed=seed,
+                                         tolerance=tolerance, **local)
+    if settings.optimizer == "auto":
+        opt, extra = _search(scene, problem, settings, callback, should_stop)
+    else:
+        opt, extra = _optimize_locally(problem, settings, x0, callback, should_stop)
+    if not math.isfinite(opt.loss):
+        if opt.stopped and not opt.history:
+            raise InferenceError("stopped before the first iteration: no solution to report")
+        raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
+    best = opt.x.unsqueeze(0).to(problem.dtype)
+    with torch.no_grad():
+        decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
+        traj = problem.simulate(best, steps=problem.duration_steps, record_every=1)
+    info = {"optimizer": settings.optimizer, "gradient": settings.gradient, "iterations": settings.iterations,
+            "seed": settings.seed, "backend": problem.backend, **extra}
+    return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
+                       loss=opt.loss, trajectory=traj, settings=info)
+
+
+def _make_problem(scene, problem, world, backend, compile, engine):
+    """The backend problem of a solve, with its engine options applied."""
+    from dejaview.backends import as_problem, make_problem
+    from dejaview.inference.problem import check_inference
+
+    check_inference(scene)
     if problem is None:
         options = {} if world is None else {"world": world}
         problem = make_problem(scene, backend or "spheres", **options)
@@ -357,26 +472,47 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     elif compile or engine is not None:
         raise InferenceError(f"{'compile' if compile else 'engine'} is an option of the spheres backend, "
                              f"not of {problem.backend}")
-    gradient = gradient or inf.gradient or default_gradient(problem.num_params)
-    if gradient not in ("forward", "reverse"):
-        raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
+    return problem
+
+
+def _search(scene, problem, settings: SolveSettings, callback, should_stop):
+    """The default search: the most probable start under the scene's prior and observation noise."""
+    from dejaview.inference.posterior import Posterior, feasibility_check
+    from dejaview.inference.search import DEFAULT_BUDGET, map_search
+
+    inner = getattr(problem, "inner", problem)
+    post = Posterior(inner, settings.posterior, feasible=feasibility_check(scene, inner))
+    opt = map_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
+                     should_stop=should_stop, tolerance=settings.tolerance,
+                     budget=settings.budget or DEFAULT_BUDGET)
+    extra = {**settings.posterior.to_json(), "search": {
+        "neg_log_posterior": opt.cost, "observation_chi2": opt.chi2, "rollouts": opt.rollouts,
+        "jacobians": opt.jacobians, "budget": settings.budget or DEFAULT_BUDGET,
+        "modes": [{"neg_log_posterior": m.cost, "observation_chi2": m.chi2, "loss": m.loss,
+                   "initial_state": {k: v[0].tolist() for k, v in
+                                     problem.layout.decode(m.x.unsqueeze(0).to(problem.dtype)).items()}}
+                  for m in opt.modes]}}
+    return opt, extra
+
+
+def _optimize_locally(problem, settings: SolveSettings, x0, callback, should_stop):
+    """A local optimiser with epsilon-greedy restarts from screened or given guesses."""
+    gradient = settings.gradient or default_gradient(problem.num_params)
     if gradient not in problem.gradient_modes:
         raise InferenceError(f"the {problem.backend} backend offers {' and '.join(problem.gradient_modes)}-mode "
                              f"gradients only, not {gradient} mode; use --gradient reverse")
-    exploration = inf.exploration
-    eps = epsilon if epsilon is not None else (exploration.epsilon if exploration else 0.0)
-    pat = patience if patience is not None else (exploration.patience if exploration else 25)
-    gen = torch.Generator().manual_seed(int(seed))
+    s = settings
+    gen = torch.Generator().manual_seed(int(s.seed))
     sample = problem.layout.sample
     screened = 0
     if x0 is None:
         x0 = problem.layout.encode().to(problem.dtype)
-        if screen > 0:
-            ranked, _, drawn = screen_rounds_ranked(problem, x0, max(screen, multistart - 1), gen,
-                                                    should_stop=should_stop, rounds=screen_rounds,
-                                                    near=screen_near)
+        if s.screen > 0:
+            ranked, _, drawn = screen_rounds_ranked(problem, x0, max(s.screen, s.multistart - 1), gen,
+                                                    should_stop=should_stop, rounds=s.screen_rounds,
+                                                    near=s.screen_near)
             screened = ranked.shape[0]
-            x0, pool = ranked[:multistart], restart_pool(ranked[multistart:], drawn[multistart:])
+            x0, pool = ranked[:s.multistart], restart_pool(ranked[s.multistart:], drawn[s.multistart:])
 
             def sample(n, generator):
                 """Restarts: the next-best screened guesses, then fresh draws."""
@@ -385,23 +521,12 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                 if n > len(taken):
                     parts.append(problem.layout.sample(n - len(taken), generator).to(x0.dtype))
                 return torch.cat(parts, 0)
-        elif multistart > 1:
-            x0 = torch.cat([x0, problem.layout.sample(multistart - 1, gen)], 0)
+        elif s.multistart > 1:
+            x0 = torch.cat([x0, problem.layout.sample(s.multistart - 1, gen)], 0)
     x0 = x0.to(problem.dtype)
-    opt = optimize(problem.objective_and_grad, x0, optimizer=optimizer, iterations=iterations,
-                   gradient=gradient, lr=lr, epsilon=eps, patience=pat, sample=sample,
-                   seed=seed, callback=callback, should_stop=should_stop, tolerance=tolerance,
+    opt = optimize(problem.objective_and_grad, x0, optimizer=s.optimizer, iterations=s.iterations,
+                   gradient=gradient, lr=s.lr, epsilon=s.epsilon, patience=s.patience, sample=sample,
+                   seed=s.seed, callback=callback, should_stop=should_stop, tolerance=s.tolerance,
                    report=objective_to_loss)
-    if not math.isfinite(opt.loss):
-        if opt.stopped and not opt.history:
-            raise InferenceError("stopped before the first iteration: no solution to report")
-        raise InferenceError("every evaluation gave a non-finite loss: check the scene's numbers")
-    best = opt.x.unsqueeze(0)
-    with torch.no_grad():
-        decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
-        traj = problem.simulate(best, steps=problem.duration_steps, record_every=1)
-    settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
-                "backend": problem.backend, "multistart": multistart, "epsilon": eps, "patience": pat,
-                "screened": screened}
-    return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
-                       loss=opt.loss, trajectory=traj, settings=settings)
+    return opt, {"gradient": gradient, "multistart": s.multistart, "epsilon": s.epsilon,
+                 "patience": s.patience, "screened": screened}

@@ -10,9 +10,11 @@ from dejaview.scene.model import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    Observation,
     Optimize,
     Penalty,
     Pose,
+    Prior,
     Scene,
     SceneObject,
     SimulationSettings,
@@ -23,7 +25,7 @@ from dejaview.scene.model import (
 
 __all__ = [
     "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
-    "Exploration", "HeatmapSettings", "InferenceSettings", "Optimize", "Penalty",
-    "Pose", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
+    "Exploration", "HeatmapSettings", "InferenceSettings", "Observation", "Optimize", "Penalty",
+    "Pose", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
     "Target", "Velocity",
 ]

@@ -15,7 +15,9 @@ Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 
 SHAPES = ("plane", "box", "sphere", "cylinder")
-OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
+OPTIMIZERS = ("auto", "gd", "adam", "lbfgs", "bfgs")
+"""Optimiser names, the one list (scene, API, CLI, service). ``auto``, the default: the search for the
+most probable past (``dejaview.inference.search``); the others: one local optimiser with restarts."""
 GRADIENTS = ("forward", "reverse")
 LOSSES = ("pose", "add", "position")
 EVALUATES = ("best", "final")
@@ -149,6 +151,27 @@ class HeatmapSettings:
 
 
 @dataclass(frozen=True)
+class Prior:
+    """``<prior speed spin tilt>``: standard deviations of zero-mean normal priors on each component
+    of the initial linear velocity (m/s) and angular velocity (rad/s), and of the initial
+    orientation's rotation away from the ``<pose>`` orientation (rad). None: flat within the
+    backend's bounds (``dejaview.inference.posterior``)."""
+
+    speed: float | None = None
+    spin: float | None = None
+    tilt: float | None = None
+
+
+@dataclass(frozen=True)
+class Observation:
+    """``<observation sigma angle-sigma>``: standard deviations of the observed end pose's noise,
+    position (m) and orientation (rad). None: the defaults of ``dejaview.inference.posterior``."""
+
+    sigma: float | None = None
+    angle_sigma: float | None = None
+
+
+@dataclass(frozen=True)
 class InferenceSettings:
     """``<inference>``: what to infer and how."""
 
@@ -156,7 +179,7 @@ class InferenceSettings:
     target: Target
     iterations: int = 200
     seed: int = 0
-    optimizer: str = "lbfgs"
+    optimizer: str = "auto"
     gradient: str | None = None  # None: the faster for the problem
     loss: str = "pose"
     evaluate: str = "best"
@@ -165,6 +188,8 @@ class InferenceSettings:
     exploration: Exploration | None = None
     penalties: tuple[Penalty, ...] = ()
     heatmap: HeatmapSettings | None = None
+    prior: Prior | None = None
+    observation: Observation | None = None
 
 
 @dataclass(frozen=True)

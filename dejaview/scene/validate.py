@@ -353,6 +353,13 @@ class _Checker:
 
         if inf.heatmap is not None:
             self.heatmap(area)
+        if inf.prior is not None:
+            for name in ("speed", "spin", "tilt"):
+                self.number(("prior",), name, getattr(inf.prior, name), positive=True, optional=True)
+        if inf.observation is not None:
+            for attr, name in (("sigma", "sigma"), ("angle-sigma", "angle_sigma")):
+                self.number(("observation",), attr, getattr(inf.observation, name), positive=True,
+                            optional=True)
 
     def heatmap(self, area) -> None:
         h, key = self.scene.inference.heatmap, ("heatmap",)

@@ -35,9 +35,11 @@ from dejaview.scene.model import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    Observation,
     Optimize,
     Penalty,
     Pose,
+    Prior,
     Scene,
     SceneObject,
     SimulationSettings,
@@ -67,7 +69,7 @@ SCENE_VERSION = "1"
 # Counts that XML Schema 1.0 cannot express together with free element order.
 _AT_MOST_ONCE = {
     "scene": ("simulation", "inference"),
-    "inference": ("target", "optimize", "start-area", "exploration", "heatmap"),
+    "inference": ("target", "optimize", "start-area", "exploration", "heatmap", "prior", "observation"),
 }
 _REQUIRED_CHILDREN = {"inference": ("target",)}
 
@@ -621,6 +623,18 @@ class _SceneReader:
             heatmap = HeatmapSettings(cells=self.ints_attr(h, "cells", 2, dh.cells),
                                       samples=self.int_attr(h, "samples", dh.samples),
                                       sigma=self.float_attr(h, "sigma", dh.sigma))
+        prior = None
+        if "prior" in groups:
+            pr = groups["prior"][0]
+            self.lines[("prior",)] = pr.sourceline
+            prior = Prior(speed=self.float_attr(pr, "speed"), spin=self.float_attr(pr, "spin"),
+                          tilt=self.float_attr(pr, "tilt"))
+        observation = None
+        if "observation" in groups:
+            ob = groups["observation"][0]
+            self.lines[("observation",)] = ob.sourceline
+            observation = Observation(sigma=self.float_attr(ob, "sigma"),
+                                      angle_sigma=self.float_attr(ob, "angle-sigma"))
         return InferenceSettings(
             source=el.get("source"),
             target=target,
@@ -635,6 +649,8 @@ class _SceneReader:
             exploration=exploration,
             penalties=tuple(penalties),
             heatmap=heatmap,
+            prior=prior,
+            observation=observation,
         )
 
 
@@ -716,7 +732,8 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
     el = etree.Element("inference")
     el.set("source", inf.source)
     el.set("iterations", str(int(inf.iterations)))
-    el.set("optimizer", inf.optimizer)
+    if inf.optimizer != _default(InferenceSettings, "optimizer"):
+        el.set("optimizer", inf.optimizer)
     if inf.gradient is not None:
         el.set("gradient", inf.gradient)
     el.set("loss", inf.loss)
@@ -757,4 +774,12 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
         h.set("cells", " ".join(str(int(c)) for c in inf.heatmap.cells))
         h.set("samples", str(int(inf.heatmap.samples)))
         h.set("sigma", _f(inf.heatmap.sigma))
+    for tag, value, attrs in (("prior", inf.prior, (("speed", "speed"), ("spin", "spin"), ("tilt", "tilt"))),
+                              ("observation", inf.observation,
+                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma")))):
+        if value is not None:
+            e = etree.SubElement(el, tag)
+            for attr, name in attrs:
+                if getattr(value, name) is not None:
+                    e.set(attr, _f(getattr(value, name)))
     return el
