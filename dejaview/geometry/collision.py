@@ -17,20 +17,29 @@ How each object is represented:
   ``fcl.Convex``; and the exact surface as an ``fcl.BVHModel`` plus the
   watertight mesh for inside tests.
 
-Depth of a pair of solids: the largest penetration depth (the translation
-that separates them, from fcl's GJK/EPA) over all pairs of their convex
-pieces. For convex objects and primitives that is exact. Since a body that
-lies entirely inside another still overlaps one of its pieces, it is found
-too (a surface-crossing test would miss it). For a non-convex mesh the
-pieces fill its concavities a little (the mug's cavity and handle hole,
-measured: +4 % volume, no piece more than 0.07 mm outside the surface), so
-an overlap found between pieces is confirmed on the exact geometry: fcl's
-collision of the true surfaces (a BVH against the other's solid or
-surface), or, where no surfaces cross, whether one object lies inside the
-other. An overlap that is only in a filled concavity is no overlap (depth
-0); a confirmed one takes the smaller of the pieces' depth and the deepest
-exact contact. For non-convex meshes the depth is thus a close estimate,
-not an exact minimum translation; the yes/no answer is exact.
+Depth of a pair of solids: the largest penetration depth (the shortest
+translation that separates them) over all pairs of their convex pieces that
+fcl's GJK finds overlapping. The depth of two convex pieces is the smallest
+overlap of their projections onto the face normals of both (and, for a
+sphere or cylinder, EPA's contact normal): exact unless the deepest
+direction is an edge against an edge, where it is a little too deep. (fcl's
+own EPA depth is not used for polytopes: it is wrong by tens of percent in
+plain cases, see ``_piece_depth``.) Since a body that lies entirely inside
+another still overlaps one of its pieces, it is found too; a
+surface-crossing test would miss it. For a non-convex mesh the pieces fill
+its concavities a little (the mug's cavity and handle hole, measured: +4 %
+volume, no piece more than 0.07 mm outside the surface), so an overlap
+found between pieces is confirmed on the exact geometry: fcl's collision of
+the true surfaces (a BVH against the other's solid or surface), or, where
+no surfaces cross, whether one object lies inside the other. An overlap
+that is only in a filled concavity is no overlap (depth 0); a confirmed one
+up to ``REFINE_LIMIT`` deep takes the smaller of the pieces' depth and the
+deepest exact contact. For non-convex meshes the depth is thus a close
+estimate; the yes/no answer is exact.
+
+Speed (one core, 300 random poses of the bundled scenes' sources): 20-40 ms
+where few overlap, 190-490 ms where most of the mug is buried in the counter
+(29 mug pieces, each overlap measured).
 
 Resting contact is not a penetration: a pair counts only where its depth
 exceeds ``margin`` (and ``TOUCHING``, fcl's numerical noise).
