@@ -32,7 +32,9 @@ def command(mesh, max_spheres, output, min_radius, coverage, tolerance, resoluti
     volume as it can, until the budget (-n), the minimum radius or the coverage
     target is reached. No sphere reaches more than --tolerance outside the
     surface. Prints the sphere count, the covered share of the volume, how far
-    the spheres reach outside, and the time taken.
+    the spheres reach outside the surface and how far the surface lies from
+    the spheres (the largest gap: together the largest distance between the
+    packing's surface and the mesh's), and the time taken.
 
     \b
     Example:
@@ -67,4 +69,5 @@ def command(mesh, max_spheres, output, min_radius, coverage, tolerance, resoluti
     packing.write(output, source=mesh)
     quality = packing.quality(solid)
     click.echo(f"{output}: {quality.count} spheres, coverage {100 * quality.coverage:.1f} %, "
-               f"max outside {1000 * quality.max_outside:.2f} mm, {built:.1f} s")
+               f"max outside {1000 * quality.max_outside:.2f} mm, "
+               f"max gap {1000 * quality.max_gap:.2f} mm, {built:.1f} s")

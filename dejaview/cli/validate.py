@@ -6,18 +6,25 @@ import sys
 
 import click
 
-from dejaview.errors import SceneError
+from dejaview.errors import GeometryError, SceneError
+
+DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not imported: --help stays cheap)
 
 
 @click.command("validate")
 @click.argument("scenes", nargs=-1, required=True, metavar="SCENE...")
 @click.option("--no-file-check", "no_file_check", is_flag=True,
-              help="Do not check that mesh and sphere files exist.")
-def command(scenes: tuple[str, ...], no_file_check: bool) -> None:
-    """Check each SCENE file against the scene format.
+              help="Do not check that mesh and sphere files exist (nor whether objects overlap).")
+@click.option("--margin", type=click.FloatRange(min=0), default=DEFAULT_MARGIN, show_default=True,
+              metavar="METRES", help="Overlap accepted as resting contact between objects.")
+def command(scenes: tuple[str, ...], no_file_check: bool, margin: float) -> None:
+    """Check each SCENE file against the scene format, and that no objects overlap.
 
     Prints ``OK <path>: N objects, source=<id>`` for a valid scene and the
     one-line error (file:line: <element> reason) on stderr for the others.
+    Objects that interpenetrate at their given poses (deeper than --margin;
+    two fixed objects may) are errors too, one line per pair:
+    ``file:line: <object> 'a' and 'b' interpenetrate by D m``.
     Exit status 0 when every scene is valid, 2 otherwise.
     """
     from dejaview.scene.xml import read_scene_file
@@ -26,9 +33,15 @@ def command(scenes: tuple[str, ...], no_file_check: bool) -> None:
     for path in scenes:
         try:
             scene = read_scene_file(path, check_files=not no_file_check)
+            overlaps = [] if no_file_check else _interpenetrations(scene, path, margin)
         except SceneError as exc:
             failed += 1
             click.echo(f"error: {exc}", err=True)
+            continue
+        if overlaps:
+            failed += 1
+            for line in overlaps:
+                click.echo(f"error: {line}", err=True)
             continue
         n = len(scene.objects)
         source = scene.inference.source if scene.inference is not None else "none"
@@ -37,3 +50,21 @@ def command(scenes: tuple[str, ...], no_file_check: bool) -> None:
         # sys.exit, not ctx.exit: the entry point runs click with standalone_mode=False,
         # where click would return ctx.exit's status instead of exiting with it.
         sys.exit(2)
+
+
+def _interpenetrations(scene, path: str, margin: float) -> list[str]:
+    """One message per pair of objects that overlap deeper than ``margin`` at their poses."""
+    from dejaview.geometry.collision import SceneCollision
+
+    try:
+        pairs = SceneCollision(scene).interpenetrations(margin=margin)
+    except GeometryError as exc:
+        raise SceneError(str(exc), file=path, element="object") from exc
+    out = []
+    for a, b, depth in pairs:
+        # the line of the movable one: that is the pose to fix
+        obj = scene.object(b) if scene.object(a).fixed else scene.object(a)
+        where = f"{path}:{obj.line}" if obj.line is not None else path
+        out.append(f"{where}: <object> {a!r} and {b!r} interpenetrate by {depth:.4f} m "
+                   f"(more than the {margin:g} m accepted as resting contact)")
+    return out

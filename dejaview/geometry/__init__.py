@@ -7,5 +7,7 @@ Modules (import them directly; this package imports nothing, so that
   ``mass_properties``, ``primitive_mass_properties``, ``file_hash``;
 * ``dejaview.geometry.packing``: ``SpherePacking``, ``load_or_build_packing``;
 * ``dejaview.geometry.sdf``: ``SignedDistanceGrid``, ``load_or_build_sdf``;
-* ``dejaview.geometry.distance``: inside tests and exact distances on lattices.
+* ``dejaview.geometry.distance``: inside tests and exact distances on lattices;
+* ``dejaview.geometry.collision``: ``SceneCollision`` (exact interpenetration
+  tests with python-fcl), ``load_or_build_pieces`` (convex decomposition).
 """

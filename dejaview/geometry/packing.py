@@ -69,6 +69,13 @@ class PackingQuality:
         min_radius: smallest sphere radius, metres.
         max_radius: largest sphere radius, metres.
         samples: interior sample points used for ``coverage``.
+        max_gap: how far the mesh's surface lies from the union of spheres,
+            metres: the largest distance from a surface point to the nearest
+            sphere (0 where a sphere covers it), over the mesh's vertices, edge
+            midpoints and ``surface_samples`` random surface points (a lower
+            bound of the true largest gap, tight to the sample spacing).
+            With ``max_outside`` it bounds the distance between the packing's
+            surface and the mesh's.
     """
 
     count: int
@@ -78,6 +85,12 @@ class PackingQuality:
     min_radius: float
     max_radius: float
     samples: int
+    max_gap: float = 0.0
+
+    @property
+    def max_deviation(self) -> float:
+        """The largest distance between the packing's surface and the mesh's, metres."""
+        return max(self.max_outside, self.max_gap)
 
 
 @dataclass(eq=False)
@@ -312,17 +325,20 @@ class SpherePacking:
         return best_center, best_radius
 
     def quality(self, mesh: trimesh.Trimesh, samples: int = 200_000,
-                seed: int = 0) -> PackingQuality:
+                seed: int = 0, surface_samples: int = 20_000) -> PackingQuality:
         """Measure coverage of and overreach beyond ``mesh``.
 
         Coverage is estimated on a randomly jittered lattice (one random point
         per cell, about ``samples`` of them inside the mesh): the fraction of
-        interior points inside some sphere. Overreach is exact.
+        interior points inside some sphere. Overreach is exact; the gap is
+        measured at surface samples.
 
         Args:
             mesh: the mesh the packing approximates, in the same frame.
             samples: about how many interior points to test.
-            seed: random seed of the jitter.
+            seed: random seed of the jitter and the surface samples.
+            surface_samples: random surface points where the gap is measured
+                (besides every vertex and edge midpoint).
         Returns:
             PackingQuality.
         """
@@ -354,7 +370,29 @@ class SpherePacking:
             min_radius=float(self.radii.min()) if len(self) else 0.0,
             max_radius=float(self.radii.max()) if len(self) else 0.0,
             samples=len(points),
+            max_gap=self._max_gap(solid, surface_samples, rng),
         )
+
+    def _max_gap(self, mesh: trimesh.Trimesh, count: int, rng) -> float:
+        """Largest distance (m) from the mesh surface to the union of spheres, at samples."""
+        if not len(self):
+            return float(np.max(np.ptp(mesh.bounds, axis=0)))
+        edges = mesh.vertices[mesh.edges_unique].mean(axis=1)
+        tri = np.asarray(mesh.triangles)
+        area = np.asarray(mesh.area_faces)
+        face = rng.choice(len(tri), size=int(count), p=area / area.sum())
+        u, v = rng.random((2, int(count)))
+        flip = u + v > 1.0
+        u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+        random = tri[face, 0] + u[:, None] * (tri[face, 1] - tri[face, 0]) + v[:, None] * (
+            tri[face, 2] - tri[face, 0])
+        points = np.concatenate([np.asarray(mesh.vertices), edges, random])
+        gap = np.full(len(points), np.inf)
+        for start in range(0, len(points), 4096):  # bounded (4096, spheres) temporaries
+            chunk = points[start:start + 4096]
+            d = np.linalg.norm(chunk[:, None] - self.centers[None], axis=2) - self.radii[None]
+            gap[start:start + 4096] = d.min(axis=1)
+        return float(max(0.0, gap.max()))
 
 
 def load_or_build_packing(mesh_path, spheres_path=None, max_spheres: int = 256,

@@ -22,7 +22,8 @@ def test_pack_writes_a_packing_and_reports_quality(tmp_path, box_mesh):
     assert 1 <= len(packing) <= 24
     assert packing.header["source"] == "box.obj"
     line = result.output.strip().splitlines()[-1]
-    assert re.search(r"\d+ spheres, coverage \d+\.\d %, max outside \d+\.\d\d mm, \d+\.\d s", line)
+    assert re.search(r"\d+ spheres, coverage \d+\.\d %, max outside \d+\.\d\d mm, "
+                     r"max gap \d+\.\d\d mm, \d+\.\d s", line)
 
 
 def test_pack_default_output_is_beside_the_mesh(tmp_path, box_mesh):

@@ -51,6 +51,18 @@ def test_quality_coverage_of_one_inscribed_sphere(box_mesh):
     assert quality.volume == pytest.approx(0.003)
 
 
+def test_quality_gap_is_the_farthest_surface_point(box_mesh, box_packing):
+    """One 5 cm sphere at the 20 x 15 x 10 cm box's centre: the corners are the farthest
+    surface points, |(0.1, 0.075, 0.05)| - 0.05 from the sphere; a good packing comes closer."""
+    single = SpherePacking(np.zeros((1, 3)), [0.05])
+    quality = single.quality(box_mesh, samples=10_000)
+    assert quality.max_gap == pytest.approx(np.linalg.norm([0.1, 0.075, 0.05]) - 0.05, abs=1e-12)
+    assert quality.max_deviation == quality.max_gap
+    good = box_packing.quality(box_mesh, samples=10_000)
+    assert 0.0 < good.max_gap < quality.max_gap
+    assert good.max_deviation == max(good.max_gap, good.max_outside)
+
+
 def test_zero_tolerance_keeps_every_sphere_inside(box_mesh):
     packing = SpherePacking.from_mesh(box_mesh, max_spheres=32, tolerance=0.0, resolution=0.006)
     assert _exact_overreach(packing, box_mesh) <= 1e-9
