@@ -21,7 +21,6 @@ from pathlib import Path
 import torch
 
 from dejaview.scene import (
-    Exploration,
     HeatmapSettings,
     InferenceSettings,
     Optimize,
@@ -91,12 +90,11 @@ def ball_off_table():
         objects=(floor(), furniture("table"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.2, friction=0.5, restitution=0.3),
         inference=InferenceSettings(
-            source="ball", target=Target((0, 0, 0)), iterations=200, optimizer="lbfgs",
+            source="ball", target=Target((0, 0, 0)),
             loss="position", evaluate="best",
             optimize=Optimize(position=True, orientation=False, linear_velocity=True,
                               angular_velocity=True),
             start_area=StartArea((-0.5, -0.3, 0.80), (0.5, 0.3, 0.80)),
-            exploration=Exploration(epsilon=0.2, patience=20),
             heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
     return with_truth(scene, truth, guess)
 
@@ -111,10 +109,9 @@ def mug_off_counter():
         objects=(floor(), furniture("counter"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.2),
         inference=InferenceSettings(
-            source="mug", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            source="mug", target=Target((0, 0, 0)),
             loss="pose", evaluate="best",
             start_area=StartArea((-0.4, -0.25, 0.95), (0.45, 0.25, 0.95)),
-            exploration=Exploration(epsilon=0.2, patience=20),
             heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
     return with_truth(scene, truth, guess)
 
@@ -128,12 +125,12 @@ def box_along_shelf():
         objects=(floor(), furniture("shelf"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.0, friction=0.4, restitution=0.1),
         inference=InferenceSettings(
-            source="box", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            source="box", target=Target((0, 0, 0)),
             loss="pose", evaluate="best",
             optimize=Optimize(position=True, orientation=False, linear_velocity=True,
                               angular_velocity=False),
             start_area=StartArea((-0.4, -0.06, 1.05), (0.2, 0.04, 1.05)),
-            exploration=Exploration(epsilon=0.2, patience=20)))
+))
     return with_truth(scene, truth, guess)
 
 
@@ -149,10 +146,9 @@ def box_among_boxes():
         objects=(floor(), truth, *others),
         simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.1),
         inference=InferenceSettings(
-            source="thrown", target=Target((0, 0, 0)), iterations=150, optimizer="lbfgs",
+            source="thrown", target=Target((0, 0, 0)),
             loss="pose", evaluate="best",
             start_area=StartArea((-0.3, -0.3, 0.4), (0.3, 0.3, 0.8)),
-            exploration=Exploration(epsilon=0.2, patience=20),
             penalties=(Penalty(("thrown", "box0"), 0.1),)))
     return with_truth(scene, truth, guess)
 
@@ -177,7 +173,7 @@ def ramp_scene(name: str, truth: SceneObject, guess: SceneObject, *, dt: float, 
         simulation=SimulationSettings(dt=dt, duration=duration, friction=friction, restitution=0.2,
                                       extra=extra),
         inference=InferenceSettings(
-            source=truth.id, target=Target((0, 0, 0)), iterations=60, optimizer="adam",
+            source=truth.id, target=Target((0, 0, 0)), iterations=60,
             loss=loss, evaluate="final", optimize=optimize,
             start_area=StartArea(*area),
             heatmap=HeatmapSettings(cells=cells, samples=samples, sigma=sigma)))

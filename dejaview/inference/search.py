@@ -24,8 +24,9 @@ handle here or there). So the search has a global and a local stage:
 
 The search ends when the best candidate explains the observation (its
 observation chi-square is at most ``CHI2_EXPLAINED`` per observed residual)
-after a refinement, when every instance has stopped and no fresh start is left
-to try, or when the budget (``iterations``: generations + LM iterations;
+after a refinement, when the best cost has not improved for ``GLOBAL_PATIENCE``
+generations, when every instance has stopped and no fresh start is left to
+try, or when the budget (``iterations``: generations + LM iterations;
 ``budget``: rollouts, a Jacobian counting ``JACOBIAN_COST``) runs out. Stopped
 instances are replaced by fresh ones (from the next distinct screened starts,
 with twice the population: IPOP) while the budget lasts.
@@ -59,9 +60,13 @@ LM_FINAL_ITERATIONS = 30
 STALL_GENERATIONS = 15
 """An instance whose best cost fell by less than ``STALL_RATIO`` over this many generations stops."""
 STALL_RATIO = 1e-3
-CHI2_EXPLAINED = 1.0
-"""Observation chi-square per observed residual at or below which the end counts as explained:
-mean misfit one standard deviation of the observation noise."""
+CHI2_EXPLAINED = 0.05
+"""Observation chi-square per observed residual at or below which the end counts as explained and
+the search stops: a mean misfit of a fifth of the observation noise's standard deviation (a flat
+prior's maximum explains the end exactly; this stops the global search once a candidate does)."""
+GLOBAL_PATIENCE = 40
+"""Generations without a gain of ``STALL_RATIO`` in the best cost after which the search stops
+(where a prior keeps the maximum's misfit above ``CHI2_EXPLAINED``)."""
 JACOBIAN_COST = 3
 """Budget units of one candidate's residual Jacobian (a rollout with gradients ~3 rollouts)."""
 DEFAULT_BUDGET = 20000
@@ -130,6 +135,8 @@ class _Search:
         self.stopped = False
         self.done = False
         self.n_obs = None
+        self.generations = 0
+        self.improved_at = 0
 
     # -------------------------------------------------------------- bookkeeping
     def spent(self) -> int:
@@ -141,6 +148,8 @@ class _Search:
     def consider(self, x: torch.Tensor, cost: torch.Tensor, chi2: torch.Tensor, loss: torch.Tensor) -> float:
         """Keep the best of a batch; returns the batch's best cost."""
         i = int(torch.argmin(cost))
+        if float(cost[i]) < self.best.cost * (1 - STALL_RATIO):
+            self.improved_at = self.generations
         if float(cost[i]) < self.best.cost:
             self.best = Mode(x[i].detach().clone(), float(cost[i]), float(chi2[i]), float(loss[i]))
         return float(cost[i])
@@ -202,6 +211,7 @@ class _Search:
         asks = [es.ask() for es in instances]
         x = torch.as_tensor(np.concatenate(asks), dtype=torch.float64)
         cost, chi2, loss = self.post.cost(x)
+        self.generations += 1
         value = self.consider(x, cost, chi2, loss)
         ranked = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, 1e300)).numpy()
         start = 0
@@ -286,9 +296,8 @@ class _Search:
                 found = self.refine(torch.as_tensor(np.stack([es.result.xbest for es in pick]),
                                                     dtype=torch.float64))
                 self.add_modes(found)
-                if self.modes and self.explained(self.modes[0]) and self.modes[0].cost <= self.best.cost:
-                    # the end is explained: converge the best candidate fully, then stop
-                    self.add_modes(self.refine(self.modes[0].x.unsqueeze(0), LM_FINAL_ITERATIONS))
+                explained = self.modes and self.explained(self.modes[0]) and self.modes[0].cost <= self.best.cost
+                if explained or self.generations - self.improved_at >= GLOBAL_PATIENCE:
                     break
             if ended:
                 instances = [es for es in instances if es not in ended]
@@ -298,8 +307,9 @@ class _Search:
                 instances += [self.new_instance(x, popsize) for x in fresh]
                 if self.history:
                     self.history[-1].restarted = True
-        if not self.modes and not self.stopped and math.isfinite(self.best.cost):
-            self.add_modes(self.refine(self.best.x.unsqueeze(0)))
+        # converge the best candidate fully
+        if not self.stopped and math.isfinite(self.best.cost):
+            self.add_modes(self.refine(self.best.x.unsqueeze(0), LM_FINAL_ITERATIONS))
 
 
 def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,

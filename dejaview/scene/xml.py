@@ -731,7 +731,8 @@ def _object_element(obj: SceneObject) -> etree._Element:
 def _inference_element(inf: InferenceSettings) -> etree._Element:
     el = etree.Element("inference")
     el.set("source", inf.source)
-    el.set("iterations", str(int(inf.iterations)))
+    if inf.iterations != _default(InferenceSettings, "iterations"):
+        el.set("iterations", str(int(inf.iterations)))
     if inf.optimizer != _default(InferenceSettings, "optimizer"):
         el.set("optimizer", inf.optimizer)
     if inf.gradient is not None:
