@@ -25,6 +25,8 @@ SUBCOMMANDS = {
     "serve": "dejaview.cli.serve",
     "client": "dejaview.cli.client",
     "bench": "dejaview.cli.bench",
+    "export-mjcf": "dejaview.cli.export_mjcf",
+    "import-mjcf": "dejaview.cli.import_mjcf",
 }
 
 

@@ -47,6 +47,7 @@ import numpy as np
 import pytest
 import torch
 
+from dejaview.io.mjcf import MJ_TIMESTEP, OPTION, contact_parameters
 from dejaview.sim import StaticShape, World, rollout
 from dejaview.sim.rotation import quat_rotate
 from tests.sim.conftest import ball_body, box_body
@@ -64,7 +65,6 @@ BOX_PACKING = (4, 3, 2)
 DT = 0.002
 DURATION = 1.2  # s: the ball lands at 1.06 s; the boxes rest by 0.6 s
 TUMBLE_DURATION = 0.7
-MJ_TIMESTEP = 0.0005
 # Finer DejaView substeps for the tumble, contact stiffness kept at the default (0.5 / (DT / 2)).
 TUMBLE_SUBSTEPS = 8
 CONTACT_FREQUENCY = 500.0
@@ -114,12 +114,14 @@ def mujoco_xml() -> str:
         return (f'<body name="{name}" pos="{_vec(launch.position)}" quat="{_vec(launch.orientation)}">'
                 f'<freejoint/>{geoms}</body>')
 
+    # the export's mapping of friction and restitution (dejaview.io.mjcf)
+    contact = " ".join(f'{k}="{v}"' for k, v in contact_parameters(MU, 0.0).items())
+    option = " ".join(f'{k}="{v}"' for k, v in OPTION.items())
     return f"""
 <mujoco model="dejaview-crosscheck">
-  <option timestep="{MJ_TIMESTEP}" gravity="0 0 {-G}" integrator="implicitfast"
-          cone="elliptic" impratio="10"/>
+  <option timestep="{MJ_TIMESTEP}" gravity="0 0 {-G}" {option}/>
   <default>
-    <geom condim="3" friction="{MU} 0 0" solref="0.004 1" solimp="0.95 0.99 0.001"/>
+    <geom {contact}/>
   </default>
   <worldbody>
     <geom name="floor" type="plane" size="0 0 1"/>

@@ -1,0 +1,35 @@
+"""``dejaview export-mjcf SCENE -o MODEL.xml [--state result.json]``: the scene as a MuJoCo model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("export-mjcf")
+@click.argument("scene", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The MJCF file to write.")
+@click.option("--state", type=click.Path(dir_okay=False, path_type=Path), metavar="RESULT.json",
+              help="A solve's result.json: its initial_state replaces the source's in the keyframe.")
+def command(scene: Path, output: Path, state: Path | None) -> None:
+    """Write SCENE as an MJCF model that MuJoCo loads as it is.
+
+    Fixed objects become world geoms, movable ones bodies with a free joint;
+    the keyframe ``initial`` holds their initial state (from --state for the
+    source, else from the scene), so an answer replays in MuJoCo with
+    ``mj_resetDataKeyframe(model, data, 0)``. Meshes are inline mesh assets
+    (non-convex ones as convex pieces: MuJoCo collides convex hulls).
+    """
+    from dejaview.io.mjcf import MJCFError, export_mjcf, read_state
+    from dejaview.scene import Scene
+
+    sc = Scene.from_xml(scene)
+    text = export_mjcf(sc, read_state(state) if state is not None else None)
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise MJCFError(f"{output}: cannot write: {exc.strerror or exc}") from exc
+    click.echo(f"wrote {output}: {len(sc.objects)} objects, keyframe 'initial'")

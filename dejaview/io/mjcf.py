@@ -1,0 +1,410 @@
+"""MuJoCo round trips: a DejaView scene as an MJCF model, and an MJCF model as a scene.
+
+``export_mjcf(scene)`` writes a model MuJoCo loads as it is (meshes inline as
+mesh assets), with the movable objects' initial state as the keyframe
+``initial``; ``import_mjcf(path)`` reads a model with the ``mujoco`` package
+(an optional dependency, imported only here) and writes a scene.
+
+What carries over, and how (docs/robotics.md has the user-facing version):
+
+* Geometry: plane, box, sphere, cylinder map one to one. A mesh becomes
+  MuJoCo mesh assets: MuJoCo collides a mesh as its convex hull, so a
+  non-convex mesh goes as its convex pieces (``load_or_build_pieces``, the
+  same CoACD pieces the interpenetration tests use; they fill concavities a
+  little, e.g. part of a mug's handle hole), one geom each, named
+  ``id``, ``id#1``, ``id#2``... Importing, capsules and ellipsoids become meshes; height
+  fields and SDF geoms are refused.
+* Mass: each movable object gets an explicit ``<inertial>`` with DejaView's
+  mass, centre of mass and inertia (uniform density), so both engines move the
+  same body. Importing, a body's mass is the object's ``mass``.
+* Contact (``contact_parameters``): Coulomb friction ``mu`` is the geom's
+  sliding friction with ``condim=3`` (no torsional or rolling friction,
+  which DejaView lacks too) and an elliptic cone with ``impratio=10`` (close
+  to hard Coulomb friction). Restitution e becomes the damping ratio of
+  MuJoCo's contact spring, ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` (e = 0:
+  critically damped), with a stiff time constant (``solref="0.004 zeta"``);
+  importing inverts that. MuJoCo combines two geoms' friction by their
+  maximum, DejaView by the geometric mean: equal values agree.
+* State: DejaView's linear velocity is the centre of mass's, world frame;
+  a MuJoCo free joint's is the body origin's (world frame) and its angular
+  velocity is in the body frame: both are converted.
+* Not carried: DejaView's backend settings (substeps, contact stiffness),
+  the ``<inference>`` element (exported as an XML comment only) and, on
+  import, MuJoCo's actuators, tendons, equality constraints, joints other
+  than free joints (bodies with them are fixed at their keyframe pose) and
+  its time step (DejaView keeps its own).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from dejaview.errors import DejaViewError, SceneError
+
+# MuJoCo settings shared by the export and tests/sim/test_mujoco_crosscheck.py
+MJ_TIMESTEP = 0.0005
+TIME_CONSTANT = 0.004  # s: stiff contacts (little sinking) that MuJoCo still resolves at 0.5 ms
+SOLIMP = (0.95, 0.99, 0.001)
+OPTION = {"integrator": "implicitfast", "cone": "elliptic", "impratio": "10"}
+
+
+class MJCFError(DejaViewError):
+    """An MJCF model that cannot be imported, or a scene or state that cannot be exported."""
+
+
+def damping_ratio(restitution: float) -> float:
+    """Damping ratio of a mass-spring contact that rebounds with coefficient ``restitution``.
+
+    Args:
+        restitution: 0..1.
+    Returns:
+        zeta in (0, 1]; 1 (critically damped) for restitution 0.
+    """
+    if restitution <= 0.0:
+        return 1.0
+    log_e = math.log(min(float(restitution), 1.0 - 1e-9))
+    return -log_e / math.sqrt(math.pi ** 2 + log_e ** 2)
+
+
+def restitution_of(zeta: float) -> float:
+    """Inverse of ``damping_ratio``: 0 for zeta >= 1."""
+    if zeta >= 1.0:
+        return 0.0
+    return math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta * zeta))
+
+
+def contact_parameters(friction: float, restitution: float) -> dict[str, str]:
+    """MJCF geom attributes for DejaView's friction and restitution.
+
+    Args:
+        friction: Coulomb coefficient.
+        restitution: 0..1.
+    Returns:
+        ``{"condim", "friction", "solref", "solimp"}`` as attribute strings.
+    """
+    return {"condim": "3", "friction": f"{_num(friction)} 0 0",
+            "solref": f"{_num(TIME_CONSTANT)} {_num(damping_ratio(restitution))}",
+            "solimp": _vec(SOLIMP)}
+
+
+def _num(x) -> str:
+    return f"{float(x):.10g}"
+
+
+def _vec(values) -> str:
+    return " ".join(_num(v) for v in values)
+
+
+# -------------------------------------------------------------------- export
+def _initial_states(scene, state: dict | None) -> dict[str, dict]:
+    """Initial state per movable object: the scene's, with ``state`` (result.json) for its source."""
+    out = {}
+    for obj in scene.movable:
+        out[obj.id] = {"position": obj.pose.position, "orientation": obj.pose.orientation,
+                       "linear_velocity": obj.velocity.linear,
+                       "angular_velocity": obj.velocity.angular}
+    if state is not None:
+        source = state.get("source") or (scene.inference.source if scene.inference else None)
+        initial = state.get("initial_state")
+        if source not in out or not isinstance(initial, dict):
+            raise MJCFError("state: expected a result.json with 'source' (a movable object of the "
+                            "scene) and 'initial_state'")
+        merged = dict(out[source])
+        for key in merged:
+            if key in initial:
+                value = np.asarray(initial[key], dtype=np.float64)
+                if value.shape != np.shape(merged[key]) or not np.all(np.isfinite(value)):
+                    raise MJCFError(f"state: initial_state.{key} must be {len(merged[key])} finite numbers")
+                merged[key] = tuple(value.tolist())
+        out[source] = merged
+    return out
+
+
+def _geom(scene, obj, assets: list[str]) -> list[str]:
+    """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``."""
+    sim = scene.simulation
+    contact = contact_parameters(sim.friction if obj.friction is None else obj.friction,
+                                 sim.restitution if obj.restitution is None else obj.restitution)
+    attrs = {"name": obj.id}
+    kind = obj.geometry_kind
+    if kind == "plane":
+        attrs.update(type="plane", size="0 0 1")
+    elif kind == "box":
+        attrs.update(type="box", size=_vec(0.5 * np.asarray(obj.size)))
+    elif kind == "sphere":
+        attrs.update(type="sphere", size=_num(obj.radius))
+    elif kind == "cylinder":
+        attrs.update(type="cylinder", size=f"{_num(obj.radius)} {_num(0.5 * obj.height)}")
+    elif kind == "mesh":
+        from dejaview.geometry.collision import load_or_build_pieces
+
+        # MuJoCo collides a mesh as its convex hull: a non-convex one goes as its convex pieces
+        pieces = load_or_build_pieces(scene.resolve(obj.mesh))
+        geoms = []
+        for i, piece in enumerate(pieces):
+            name = obj.id if i == 0 else f"{obj.id}#{i}"
+            assets.append(f'<mesh name="mesh_{_xml(name)}" vertex="{_vec(piece.vertices.ravel())}" '
+                          f'face="{" ".join(str(int(k)) for k in piece.faces.ravel())}"/>')
+            geoms.append(_geom_text(dict(attrs, name=name, type="mesh", mesh=f"mesh_{name}"),
+                                    contact, obj.fixed))
+        return geoms
+    else:
+        raise MJCFError(f"object {obj.id!r}: geometry {kind!r} has no MJCF export")
+    return [_geom_text(attrs, contact, obj.fixed)]
+
+
+def _geom_text(attrs: dict, contact: dict, fixed: bool) -> str:
+    attrs = dict(attrs, **contact)
+    if not fixed:
+        attrs["mass"] = "0"  # the body's <inertial> carries mass and inertia
+    return "<geom " + " ".join(f'{k}="{_xml(v)}"' for k, v in attrs.items()) + "/>"
+
+
+def _xml(text) -> str:
+    return (str(text).replace("&", "&amp;").replace('"', "&quot;").replace("<", "&lt;")
+            .replace(">", "&gt;"))
+
+
+def _mass_properties(scene, obj):
+    from dejaview.geometry.mesh import load_mesh, mass_properties, primitive_mass_properties
+
+    density = obj.density if obj.density is not None else 1000.0
+    if obj.mesh is not None:
+        return mass_properties(load_mesh(scene.resolve(obj.mesh)), mass=obj.mass, density=density)
+    return primitive_mass_properties(obj.shape, size=obj.size, radius=obj.radius, height=obj.height,
+                                     mass=obj.mass, density=density)
+
+
+def export_mjcf(scene, state: dict | None = None) -> str:
+    """The scene as MJCF text that ``mujoco.MjModel.from_xml_string`` loads as it is.
+
+    Args:
+        scene: a validated Scene (mesh files must exist).
+        state: optional parsed ``result.json`` of a solve: its ``initial_state``
+            replaces the source's pose and velocity in the keyframe.
+    Returns:
+        MJCF XML. Fixed objects are world geoms, movable ones bodies with a free
+        joint (named after the object); the keyframe ``initial`` holds their
+        initial state, also written as the bodies' poses.
+    Raises:
+        MJCFError: a state that does not fit the scene.
+        GeometryError: a mesh that cannot be read.
+    """
+    from dejaview.geometry.collision import quaternion_matrices
+
+    states = _initial_states(scene, state)
+    assets: list[str] = []
+    world, qpos, qvel = [], [], []
+    for obj in scene.objects:
+        if obj.fixed:
+            for geom in _geom(scene, obj, assets):
+                world.append(geom.replace("<geom ", f'<geom pos="{_vec(obj.pose.position)}" '
+                                                    f'quat="{_vec(obj.pose.orientation)}" ', 1))
+            continue
+        s = states[obj.id]
+        props = _mass_properties(scene, obj)
+        inertia = props.inertia
+        full = (inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2])
+        world.append(f'<body name="{_xml(obj.id)}" pos="{_vec(s["position"])}" '
+                     f'quat="{_vec(s["orientation"])}"><freejoint name="{_xml(obj.id)}"/>'
+                     f'<inertial pos="{_vec(props.center_of_mass)}" mass="{_num(props.mass)}" '
+                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets))}</body>')
+        rot = quaternion_matrices(s["orientation"])
+        omega = np.asarray(s["angular_velocity"], dtype=np.float64)
+        # free joint: velocity of the body origin (world), angular velocity in the body frame
+        v_origin = np.asarray(s["linear_velocity"]) - np.cross(omega, rot @ props.center_of_mass)
+        quat = np.asarray(s["orientation"], dtype=np.float64)
+        qpos.extend([*s["position"], *(quat / np.linalg.norm(quat))])
+        qvel.extend([*v_origin, *(rot.T @ omega)])
+    option = " ".join(f'{k}="{v}"' for k, v in OPTION.items())
+    comment = ""
+    if scene.inference is not None:
+        comment = (f"\n  <!-- DejaView inference source: {_xml(scene.inference.source)}; "
+                   "the <inference> element has no MJCF counterpart -->")
+    keyframe = (f'\n  <keyframe>\n    <key name="initial" qpos="{_vec(qpos)}" qvel="{_vec(qvel)}"/>'
+                f"\n  </keyframe>" if qpos else "")
+    asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
+    body = "\n    ".join(world)
+    return f"""<mujoco model="{_xml(scene.name or 'dejaview-scene')}">{comment}
+  <compiler angle="radian"/>
+  <option timestep="{_num(MJ_TIMESTEP)}" gravity="{_vec(scene.gravity)}" {option}/>{asset}
+  <worldbody>
+    {body}
+  </worldbody>{keyframe}
+</mujoco>
+"""
+
+
+def read_state(path) -> dict:
+    """A solve's ``result.json`` (the keys export uses: ``source``, ``initial_state``)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise MJCFError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except ValueError as exc:
+        raise MJCFError(f"{path}: not JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise MJCFError(f"{path}: expected a JSON object (a solve's result.json)")
+    return data
+
+
+# -------------------------------------------------------------------- import
+_GEOM_NAMES = {0: "plane", 1: "hfield", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder",
+               6: "box", 7: "mesh", 8: "sdf"}
+
+
+def import_mjcf(path, out_path, key: str | None = None) -> "object":
+    """Write a DejaView scene from an MJCF model.
+
+    World geoms become fixed objects; every body with a free joint (it must
+    have exactly one geom) a movable object whose initial pose and velocity
+    come from ``qpos0`` or the keyframe ``key``. Meshes (and capsules,
+    ellipsoids) are written as .obj files into ``meshes/`` beside the scene.
+
+    Args:
+        path: the MJCF file.
+        out_path: the scene file to write.
+        key: name of a keyframe (default: the model's ``qpos0``, zero velocity).
+    Returns:
+        The Scene written (read back and validated).
+    Raises:
+        MJCFError: MuJoCo cannot load the model, an unknown keyframe, geometry
+            DejaView cannot represent; the message names the body or geom.
+    """
+    import mujoco
+
+    from dejaview.scene import Scene
+    from dejaview.scene.model import Pose, SceneObject, SimulationSettings
+
+    path, out_path = Path(path), Path(out_path)
+    try:
+        model = mujoco.MjModel.from_xml_path(str(path))
+    except Exception as exc:  # mujoco raises ValueError with its own parser message
+        raise MJCFError(f"{path}: MuJoCo cannot load it: {str(exc).strip().splitlines()[0]}") from exc
+    data = mujoco.MjData(model)
+    if key is not None:
+        kid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
+        if kid < 0:
+            names = [model.key(i).name for i in range(model.nkey)]
+            raise MJCFError(f"{path}: no keyframe {key!r} (keyframes: {', '.join(names) or 'none'})")
+        mujoco.mj_resetDataKeyframe(model, data, kid)
+    mujoco.mj_forward(model, data)
+
+    mesh_dir = out_path.parent / "meshes"
+    objects, used = [], set()
+    frictions, restitutions = [], []
+
+    def unique(name: str) -> str:
+        base = name or "object"
+        name, n = base, 1
+        while name in used:
+            n += 1
+            name = f"{base}_{n}"
+        used.add(name)
+        return name
+
+    for g in range(model.ngeom):
+        body = int(model.geom_bodyid[g])
+        root = int(model.body_rootid[body])
+        free = _free_joint(model, root) if body else None
+        if body and free is None:
+            fixed = True  # a body without a free joint: frozen at this pose
+        elif body:
+            fixed = False
+        else:
+            fixed = True
+        gname = model.geom(g).name or (model.body(body).name if body else f"geom{g}")
+        where = f"{path}: geom {gname!r}"
+        if not fixed:
+            n_geoms = int(model.body_geomnum[body])
+            if body != root or n_geoms != 1:
+                raise MJCFError(f"{path}: body {model.body(root).name!r} has {n_geoms} geoms or child "
+                                "bodies; a DejaView object has one geometry (merge them into one mesh)")
+            gname = model.body(body).name or gname
+        oid = unique(gname)
+        geometry = _geometry(model, g, where, mesh_dir, oid, out_path.parent)
+        pos = tuple(float(v) for v in data.geom_xpos[g])
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, data.geom_xmat[g])
+        zeta = float(model.geom_solref[g][1]) if model.geom_solref[g][0] > 0 else 1.0
+        friction, restitution = float(model.geom_friction[g][0]), restitution_of(zeta)
+        frictions.append(friction)
+        restitutions.append(restitution)
+        kwargs = dict(geometry, id=oid, fixed=fixed, friction=friction, restitution=round(restitution, 6),
+                      pose=Pose(pos, tuple(float(v) for v in quat)))
+        if not fixed:
+            kwargs["mass"] = float(model.body_mass[body])
+            kwargs["velocity"] = _velocity(mujoco, model, data, body, np.asarray(pos))
+        objects.append(SceneObject(**kwargs))
+    if not any(not o.fixed for o in objects):
+        raise MJCFError(f"{path}: no body with a free joint (DejaView needs a movable object)")
+    planes_first = sorted(objects, key=lambda o: (o.shape != "plane", not o.fixed))
+    friction = max(set(frictions), key=frictions.count)
+    restitution = max(set(restitutions), key=restitutions.count)
+    scene = Scene(objects=tuple(planes_first), name=path.stem,
+                  gravity=tuple(float(v) for v in model.opt.gravity),
+                  simulation=SimulationSettings(friction=friction, restitution=round(restitution, 6)),
+                  base_dir=out_path.parent)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    text = scene.to_xml()
+    try:
+        written = Scene.from_string(text, base_dir=out_path.parent, filename=str(out_path))
+    except SceneError as exc:
+        raise MJCFError(f"{path}: the imported scene is not valid: {exc}") from exc
+    out_path.write_text(text, encoding="utf-8")
+    return written
+
+
+def _free_joint(model, body: int):
+    """Index of the free joint of a body, or None."""
+    for j in range(int(model.body_jntadr[body]), int(model.body_jntadr[body] + model.body_jntnum[body])):
+        if j >= 0 and int(model.jnt_type[j]) == 0:  # mjJNT_FREE
+            return j
+    return None
+
+
+def _velocity(mujoco, model, data, body: int, origin: np.ndarray):
+    """DejaView velocity of a free body: centre-of-mass velocity and angular velocity, world frame."""
+    from dejaview.scene.model import Velocity
+
+    vel = np.zeros(6)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, vel, 0)  # [rot, lin] at the COM
+    return Velocity(tuple(float(v) for v in vel[3:]), tuple(float(v) for v in vel[:3]))
+
+
+def _geometry(model, g: int, where: str, mesh_dir: Path, oid: str, scene_dir: Path) -> dict:
+    """SceneObject geometry fields of one geom (meshes written to ``mesh_dir``)."""
+    import trimesh
+
+    kind = _GEOM_NAMES.get(int(model.geom_type[g]), "unknown")
+    size = np.asarray(model.geom_size[g], dtype=np.float64)
+    if kind == "plane":
+        return {"shape": "plane"}
+    if kind == "box":
+        return {"shape": "box", "size": tuple(float(v) for v in 2.0 * size)}
+    if kind == "sphere":
+        return {"shape": "sphere", "radius": float(size[0])}
+    if kind == "cylinder":
+        return {"shape": "cylinder", "radius": float(size[0]), "height": float(2.0 * size[1])}
+    if kind == "capsule":
+        mesh = trimesh.creation.capsule(height=2.0 * size[1], radius=size[0], count=[32, 32])
+    elif kind == "ellipsoid":
+        mesh = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+        mesh.apply_scale(size)
+    elif kind == "mesh":
+        m = int(model.geom_dataid[g])
+        start, count = int(model.mesh_vertadr[m]), int(model.mesh_vertnum[m])
+        fstart, fcount = int(model.mesh_faceadr[m]), int(model.mesh_facenum[m])
+        mesh = trimesh.Trimesh(np.asarray(model.mesh_vert[start:start + count], dtype=np.float64),
+                               np.asarray(model.mesh_face[fstart:fstart + fcount], dtype=np.int64))
+    else:
+        raise MJCFError(f"{where}: geom type {kind!r} has no DejaView counterpart")
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    file = mesh_dir / f"{oid}.obj"
+    mesh.export(file)
+    return {"mesh": str(file.relative_to(scene_dir))}

@@ -1,0 +1,179 @@
+"""MuJoCo round trips (dejaview.io.mjcf, dejaview export-mjcf / import-mjcf), checked in MuJoCo itself."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dejaview.cli import cli
+from dejaview.io.mjcf import damping_ratio, export_mjcf, import_mjcf, restitution_of
+from dejaview.scene import Scene
+
+mujoco = pytest.importorskip("mujoco")
+
+ROOT = Path(__file__).resolve().parents[2]
+SCENES = sorted((ROOT / "examples" / "scenes").glob("*.xml"))
+
+SLIDING = """<scene version="1" name="box-across-table">
+  <simulation dt="0.002" duration="1.0" friction="0.5" restitution="0.0"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="table" shape="box" size="1.6 0.8 0.7" fixed="true"><pose position="0 0 0.35"/></object>
+  <object id="box" shape="box" size="0.2 0.15 0.1" mass="1.0">
+    <pose position="-0.5 0 0.75"/><velocity linear="2.0 0 0"/>
+  </object>
+</scene>"""
+
+MODEL = """<mujoco model="table-world">
+  <worldbody>
+    <geom name="ground" type="plane" size="0 0 1" friction="0.6 0 0"/>
+    <geom name="table" type="box" pos="0 0 0.35" size="0.8 0.4 0.35" friction="0.6 0 0"/>
+    <body name="block" pos="0 0 0.76">
+      <freejoint/>
+      <geom type="box" size="0.05 0.05 0.05" mass="0.5" friction="0.6 0 0" solref="0.004 1"/>
+    </body>
+  </worldbody>
+  <keyframe>
+    <key name="pushed" qpos="-0.3 0 0.75 1 0 0 0" qvel="1.5 0 0 0 0 0"/>
+  </keyframe>
+</mujoco>"""
+
+
+def _run_mujoco(xml: str, seconds: float) -> tuple:
+    """Load MJCF text, reset to keyframe 0 and step; returns (model, data)."""
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    for _ in range(round(seconds / model.opt.timestep)):
+        mujoco.mj_step(model, data)
+    return model, data
+
+
+@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
+def test_export_of_every_bundled_scene_loads_and_runs_in_mujoco(path):
+    scene = Scene.from_xml(path)
+    model, data = _run_mujoco(export_mjcf(scene), 0.2)
+    assert model.key("initial").id == 0
+    assert np.all(np.isfinite(data.qpos))
+    for i, obj in enumerate(scene.movable):
+        body = model.body(obj.id)
+        adr = model.jnt_qposadr[body.jntadr[0]]
+        np.testing.assert_allclose(model.key_qpos[0][adr:adr + 3], obj.pose.position)
+        # nobody was launched out of the scene (MuJoCo's convex hulls of non-convex meshes would)
+        assert data.xpos[body.id][2] < max(2.0, obj.pose.position[2] + 0.5)
+
+
+def test_box_sliding_across_a_table_ends_within_3cm_in_both_engines():
+    """2 m/s with mu = 0.5: it slides v^2 / (2 mu g) = 0.41 m and stops on the table."""
+    from dejaview.sim.simulate import simulate
+
+    scene = Scene.from_string(SLIDING)
+    run = simulate(scene)
+    dejaview_end = run.trajectory.states.position[-1, 0, 0].numpy()
+    model, data = _run_mujoco(export_mjcf(scene), 1.0)
+    mujoco_end = data.xipos[model.body("box").id]
+    expected = np.array([-0.5 + 2.0 ** 2 / (2 * 0.5 * 9.81), 0.0, 0.75])
+    assert np.linalg.norm(mujoco_end - expected) < 0.03
+    assert np.linalg.norm(dejaview_end - expected) < 0.03
+    assert np.linalg.norm(dejaview_end - mujoco_end) < 0.03
+
+
+def test_state_from_a_result_json_goes_into_the_keyframe(tmp_path):
+    """The mug (centre of mass off its frame origin) launched spinning: MuJoCo sees the same
+    centre-of-mass velocity and world angular velocity as DejaView's initial_state."""
+    scene = Scene.from_xml(ROOT / "examples" / "scenes" / "mug_thrown.xml")
+    q = (math.cos(0.3), 0.0, math.sin(0.3), 0.0)
+    state = {"source": "mug", "initial_state": {"position": [0.1, 0.2, 1.3], "orientation": list(q),
+                                                "linear_velocity": [0.4, -0.2, 1.0],
+                                                "angular_velocity": [1.0, 2.0, -3.0]}}
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps(state))
+    out = tmp_path / "mug.xml"
+    cli_result = CliRunner().invoke(cli, ["export-mjcf", str(ROOT / "examples/scenes/mug_thrown.xml"),
+                                          "-o", str(out), "--state", str(result)])
+    assert cli_result.exit_code == 0, cli_result.output
+    model = mujoco.MjModel.from_xml_path(str(out))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, model.key("initial").id)
+    mujoco.mj_forward(model, data)
+    body = model.body("mug").id
+    np.testing.assert_allclose(data.xpos[body], [0.1, 0.2, 1.3], atol=1e-12)
+    np.testing.assert_allclose(data.xquat[body], q, atol=1e-12)
+    vel = np.zeros(6)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, vel, 0)
+    np.testing.assert_allclose(vel[:3], [1.0, 2.0, -3.0], atol=1e-9)
+    np.testing.assert_allclose(vel[3:], [0.4, -0.2, 1.0], atol=1e-9)
+    assert model.body_mass[body] == pytest.approx(scene.object("mug").mass)
+
+
+def test_import_mjcf_with_a_plane_a_table_and_a_free_body_validates_and_simulates(tmp_path):
+    from dejaview.sim.simulate import simulate
+
+    model = tmp_path / "model.xml"
+    model.write_text(MODEL)
+    out = tmp_path / "scene" / "scene.xml"
+    result = CliRunner().invoke(cli, ["import-mjcf", str(model), "-o", str(out), "--key", "pushed"])
+    assert result.exit_code == 0, result.output
+    assert CliRunner().invoke(cli, ["validate", str(out)]).exit_code == 0
+    scene = Scene.from_xml(out)
+    assert [o.id for o in scene.objects] == ["ground", "table", "block"]
+    block = scene.object("block")
+    assert not block.fixed and block.shape == "box" and block.size == pytest.approx((0.1, 0.1, 0.1))
+    assert block.mass == pytest.approx(0.5) and block.friction == pytest.approx(0.6)
+    assert block.restitution == 0.0
+    assert block.pose.position == pytest.approx((-0.3, 0.0, 0.75))
+    assert block.velocity.linear == pytest.approx((1.5, 0.0, 0.0))
+    assert scene.object("table").fixed and scene.object("ground").shape == "plane"
+    # it simulates: the block slides 1.5^2 / (2 * 0.6 * 9.81) = 0.19 m along the table
+    run = simulate(scene.replace(simulation=scene.simulation.__class__(duration=0.8, friction=0.6,
+                                                                       restitution=0.0)))
+    end = run.trajectory.states.position[-1, 0, 0].numpy()
+    assert end == pytest.approx([-0.3 + 1.5 ** 2 / (2 * 0.6 * 9.81), 0.0, 0.75], abs=0.03)
+    # without --key: qpos0 (the body's own pose), at rest
+    rest = import_mjcf(model, tmp_path / "rest.xml")
+    assert rest.object("block").pose.position == pytest.approx((0.0, 0.0, 0.76))
+    assert rest.object("block").velocity.linear == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_round_trip_of_a_primitive_scene(tmp_path):
+    scene = Scene.from_xml(ROOT / "examples" / "scenes" / "ball_down_ramp.xml")
+    model = tmp_path / "m.xml"
+    model.write_text(export_mjcf(scene))
+    back = import_mjcf(model, tmp_path / "back.xml", key="initial")
+    assert [o.id for o in back.objects] == [o.id for o in scene.objects]
+    ramp, ramp_back = scene.object("ramp"), back.object("ramp")
+    assert ramp_back.size == pytest.approx(ramp.size)
+    assert ramp_back.pose.position == pytest.approx(ramp.pose.position, abs=1e-9)
+    assert np.abs(np.dot(ramp_back.pose.orientation, ramp.pose.orientation)) == pytest.approx(1.0)
+    assert back.object("ball").restitution == pytest.approx(scene.simulation.restitution, abs=1e-6)
+
+
+def test_restitution_maps_to_a_damping_ratio_and_back():
+    assert damping_ratio(0.0) == 1.0 and restitution_of(1.0) == 0.0
+    for e in (0.05, 0.2, 0.5, 0.9):
+        assert restitution_of(damping_ratio(e)) == pytest.approx(e)
+
+
+def test_errors_are_one_line(tmp_path):
+    model = tmp_path / "model.xml"
+    model.write_text(MODEL)
+    result = CliRunner().invoke(cli, ["import-mjcf", str(model), "-o", str(tmp_path / "s.xml"),
+                                      "--key", "nope"])
+    assert result.exit_code != 0 and "no keyframe 'nope' (keyframes: pushed)" in str(result.exception)
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><geom type='box'/></worldbody>")
+    result = CliRunner().invoke(cli, ["import-mjcf", str(broken), "-o", str(tmp_path / "s.xml")])
+    assert "MuJoCo cannot load it" in str(result.exception)
+    static = tmp_path / "static.xml"
+    static.write_text("<mujoco><worldbody><geom type='plane' size='1 1 1'/></worldbody></mujoco>")
+    result = CliRunner().invoke(cli, ["import-mjcf", str(static), "-o", str(tmp_path / "s.xml")])
+    assert "no body with a free joint" in str(result.exception)
+    bad_state = tmp_path / "r.json"
+    bad_state.write_text('{"source": "nobody", "initial_state": {}}')
+    result = CliRunner().invoke(cli, ["export-mjcf", str(SCENES[0]), "-o", str(tmp_path / "m.xml"),
+                                      "--state", str(bad_state)])
+    assert "state: expected a result.json" in str(result.exception)
