@@ -260,33 +260,15 @@ def make_case(case: Case):
 
 # ----------------------------------------------------------------- measuring
 def pose_errors(result) -> dict:
-    """Errors of a SolveResult's re-simulated best solution at its best-matching record.
+    """Errors of a SolveResult's re-simulated best solution at its best-matching record
+    (``SolveResult.matched_pose``).
 
     Returns:
         dict with position_error_m (object-frame origins), angle_error_deg, record_time_s.
     """
-    import torch
-
-    from dejaview.losses import LOSSES
-    from dejaview.sim.rotation import geodesic_angle
-
-    problem, traj = result.problem, result.trajectory
-    world, source, target = problem.world, problem.source, problem.target
-    kw = dict(dtype=world.dtype)
-    t_pos = torch.tensor(target.position, **kw)
-    t_q = torch.tensor(target.orientation, **kw)
-    t_q = t_q / t_q.norm()
-    with torch.no_grad():
-        per_record = LOSSES[problem.loss_kind](world, source, traj.states, t_pos, t_q,
-                                               orientation_weight=problem.orientation_weight,
-                                               points=problem.points)[:, 0]  # (T,)
-        k = int(torch.argmin(per_record)) if problem.evaluate == "best" else len(per_record) - 1
-        origin = world.object_position(traj.states)[k, 0, source]
-        q = traj.states.orientation[k, 0, source]
-        pos_err = float(torch.linalg.vector_norm(origin - t_pos))
-        ang = float(geodesic_angle(q, t_q))
-    return dict(position_error_m=pos_err, angle_error_deg=math.degrees(ang),
-                record_time_s=float(traj.steps[k]) * traj.dt)
+    m = result.matched_pose()
+    return dict(position_error_m=m["position_error"], angle_error_deg=m["angle_error_deg"],
+                record_time_s=m["time"])
 
 
 def solve_case(case: Case, callback=None, **solve_options) -> dict:

@@ -68,5 +68,9 @@ def command(scene, out_dir, budget, multistart, screen, lr, plot, use_compile, t
                        f"{search['rollouts']} rollouts")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
+        if result.problem.backend == "spheres":
+            m = result.matched_pose()
+            click.echo(f"  meets the target at t = {m['time']:.3f} s: {m['position_error'] * 1000:.2f} mm, "
+                       f"{m['angle_error_deg']:.2f} deg off (position {fmt(m['position'])} m)")
         click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")
         click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))

@@ -200,6 +200,44 @@ class SolveResult:
         """Object-frame position and orientation of the source at the end of the trajectory."""
         return self.problem.final_pose(self.trajectory)
 
+    def matched_pose(self) -> dict:
+        """Where the answer meets the observation: the record of the re-simulated trajectory that
+        the scene compares with the target (its ``time``, else the best-matching record by the
+        scene's loss for ``evaluate="best"``, else the last), the source's object-frame pose
+        there and its errors against the target.
+
+        Returns:
+            dict with ``time`` (s), ``position``, ``orientation`` (w x y z), ``position_error``
+            (m, object-frame origins) and ``angle_error_deg`` (geodesic).
+        """
+        from dejaview.losses import LOSSES
+        from dejaview.losses.trajectory import nearest_record
+        from dejaview.sim.rotation import geodesic_angle
+
+        problem, traj = getattr(self.problem, "inner", self.problem), self.trajectory
+        target = self.scene.inference.target
+        world, source = problem.world, problem.source
+        kw = dict(dtype=world.dtype)
+        t_pos = torch.tensor(target.position, **kw)
+        t_q = torch.tensor(target.orientation, **kw)
+        t_q = t_q / t_q.norm()
+        with torch.no_grad():
+            if target.time is not None:
+                k = nearest_record(traj, target.time)
+            elif problem.evaluate == "best":
+                per_record = LOSSES[problem.loss_kind](world, source, traj.states, t_pos, t_q,
+                                                       orientation_weight=problem.orientation_weight,
+                                                       points=problem.points)[:, 0]  # (T,)
+                k = int(torch.argmin(per_record))
+            else:
+                k = len(traj.steps) - 1
+            origin = world.object_position(traj.states)[k, 0, source]
+            q = traj.states.orientation[k, 0, source]
+            return {"time": float(traj.steps[k]) * traj.dt, "position": origin.tolist(),
+                    "orientation": q.tolist(),
+                    "position_error": float(torch.linalg.vector_norm(origin - t_pos)),
+                    "angle_error_deg": math.degrees(float(geodesic_angle(q, t_q)))}
+
     def to_json(self) -> dict:
         """``result.json`` content (scene-format spec, "Outputs")."""
         end_pos, end_q = self.final_pose()
@@ -211,6 +249,7 @@ class SolveResult:
             "loss": self.loss,
             "initial_state": self.initial_state,
             "final_pose": {"position": end_pos, "orientation": end_q},
+            **({"matched_pose": self.matched_pose()} if self.problem.backend == "spheres" else {}),
             "target": {"position": list(self.scene.inference.target.position),
                        "orientation": list(self.scene.inference.target.orientation)},
             "loss_kind": self.problem.loss_kind,

@@ -68,15 +68,12 @@ def test_solve_screens_random_guesses(tmp_path):
     assert result.returncode == 0, result.stderr
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["screened"] == 6 and data["multistart"] == 1
-    result = run_cli("solve", BALL, "-o", tmp_path, "--quiet", "--iterations", "1", "--screen", "5",
-                     "--screen-rounds", "3")
-    assert result.returncode == 0, result.stderr
-    assert json.loads((tmp_path / "result.json").read_text())["screened"] == 6 + 5 + 5
 
 
 @pytest.mark.parametrize("args, needle", [
     (["solve", BALL, "--screen", "-1"], "screen"),
-    (["solve", BALL, "--screen-rounds", "0"], "screen-rounds"),
+    (["solve", BALL, "--optimizer", "auto", "--screen", "5"], "screen applies to the local optimisers"),
+    (["solve", BALL, "--budget", "0"], "budget"),
     (["solve", BALL, "--optimizer", "newton"], "newton"),
     (["solve", BALL, "--iterations", "0"], "iterations"),
     (["simulate", FIXTURES / "scenes" / "broken" / "nan-position.xml"], "nan-position.xml:"),

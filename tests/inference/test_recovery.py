@@ -20,12 +20,12 @@ def bench():
     return bench_module("recovery")
 
 
-def test_the_suite_has_at_least_twelve_cases_over_every_bundled_scene():
+def test_the_suite_has_at_least_twenty_cases_over_every_bundled_story_scene():
     recovery = bench()
     cases = recovery.ALL_CASES
-    assert len(cases) >= 12
+    assert len(cases) >= 20
     assert {c.scene for c in cases} == {"ball_off_table", "mug_off_counter", "box_along_shelf",
-                                         "box_among_boxes"}
+                                         "box_among_boxes", "ball_down_ramp", "box_down_ramp"}
     assert len({c.name for c in cases}) == len(cases)
 
 
@@ -46,15 +46,14 @@ def test_a_drawn_truth_is_reproducible_inside_the_start_area_and_keeps_the_story
 
 
 @pytest.mark.slow
-def test_recovery_suite_succeeds_in_at_least_90_percent_of_cases(tmp_path):
-    """The suite as ``python bench/recovery.py`` runs it (about an hour on one core, more with
-    a cold compile cache)."""
+def test_recovery_suite_succeeds_in_at_least_95_percent_of_cases(tmp_path):
+    """The suite as ``python bench/recovery.py`` runs it: solve's defaults, nothing else."""
     recovery = bench()
     rows = recovery.run(print_fn=print, csv_path=tmp_path / "recovery.csv")
-    assert len(rows) >= 12
+    assert len(rows) >= 20
     assert all(math.isfinite(r["position_error_m"]) for r in rows)
     rate = sum(r["success"] for r in rows) / len(rows)
-    assert rate >= 0.9, [(r["case"], r["position_error_m"], r["angle_error_deg"]) for r in rows]
+    assert rate >= 0.95, [(r["case"], r["position_error_m"], r["angle_error_deg"]) for r in rows]
     assert (tmp_path / "recovery.csv").read_text().count("\n") == len(rows) + 1
 
 

@@ -54,7 +54,7 @@ BROKEN_SCENES = {
     "truncated.xml": ("not well-formed XML", 12, None),
     "two-simulations.xml": ("<simulation> may appear only once inside <scene>", 5, "simulation"),
     "unknown-element.xml": ("unknown element <colour> inside <object>", 9, "colour"),
-    "unknown-optimizer.xml": ("optimizer 'sgd' is not one of gd, adam, lbfgs, bfgs", 11, "inference"),
+    "unknown-optimizer.xml": ("optimizer 'sgd' is not one of auto, gd, adam, lbfgs, bfgs", 11, "inference"),
     "unknown-shape.xml": ("shape 'cone' is not one of", 8, "object"),
     "unknown-version.xml": ("unknown scene version '2'", 3, "scene"),
     "unsupported-mesh-suffix.xml": ("unsupported suffix '.fbx'", 8, "object"),

@@ -153,7 +153,7 @@ def test_inference_defaults():
     text = ball_scene(extra='  <inference source="ball"><target position="1 0 0"/></inference>\n')
     inf = read_scene_string(text).inference
     assert inf == InferenceSettings(source="ball", target=Target(position=(1.0, 0.0, 0.0)))
-    assert inf.gradient is None and inf.optimizer == "lbfgs" and inf.iterations == 200
+    assert inf.gradient is None and inf.optimizer == "auto" and inf.iterations == 200
 
 
 def test_writer_always_writes_version_and_skips_defaults_that_mean_nothing():
