@@ -269,6 +269,29 @@ def backends(iterations, scene, backends, optimizers, integrator, quick, csv_pat
                                  warp_options={"integrator": integrator} if integrator else None)
 
 
+@command.command("search")
+@click.option("--scenes", default="mug_off_counter,box_among_boxes", show_default=True,
+              help="Comma-separated bundled scenes.")
+@click.option("--seeds", default="0,1,2", show_default=True, help="Comma-separated seeds.")
+@click.option("--pipelines", default="auto,seed-pipeline", show_default=True,
+              callback=_comma_list(("auto", "seed-pipeline")), help="Pipelines to compare.")
+@csv_option
+def search(scenes, seeds, pipelines, csv_path):
+    """The default search beside the seed's pipeline: wall time and answer per solve.
+
+    Solves each scene as shipped with `solve`'s defaults (auto) and with the settings the
+    recovery suite needed before (screening, four L-BFGS candidates, restarts), in one run,
+    and prints the time ratio and the issue's targets (mug 10 s, box_among_boxes 60 s).
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("search").run(print_fn=click.echo, scenes=tuple(scenes.split(",")),
+                                      seeds=tuple(int(s) for s in seeds.split(",")),
+                                      pipelines=pipelines)
+    _finish(rows, csv_path, False, [])
+
+
 @command.command("load")
 @click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
               help="Concurrent WebSocket clients, one short simulate job each.")
