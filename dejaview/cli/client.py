@@ -24,8 +24,11 @@ from dejaview.cli.options import OPTIMIZERS, show_progress
 @click.option("--seed", type=int, default=None)
 @click.option("--steps", type=int, default=None, help="simulation steps (simulate jobs)")
 @click.option("--timeout", type=float, default=None, help="give up after this many seconds")
+@click.option("--token", envvar="DEJAVIEW_TOKEN", default=None, show_envvar=True,
+              help="the server's token (needed when it listens off loopback or was given one)")
 @click.option("--quiet", "-q", is_flag=True, help="no progress bar or summary")
-def command(scene, kind, url, out_dir, as_path, iterations, optimizer, gradient, seed, steps, timeout, quiet):
+def command(scene, kind, url, out_dir, as_path, iterations, optimizer, gradient, seed, steps, timeout, token,
+            quiet):
     """Submit SCENE to a DejaView server, show its progress and save the artefacts in DIR.
 
     SCENE is a local scene file, sent as XML text (its relative mesh paths
@@ -62,7 +65,7 @@ def command(scene, kind, url, out_dir, as_path, iterations, optimizer, gradient,
 
     try:
         outcome = run_job(url, kind, overrides=overrides, out_dir=out_dir, on_message=progress,
-                          timeout=timeout, **source)
+                          timeout=timeout, token=token or None, **source)
     finally:
         bar.close()
     if outcome.state != "done":

@@ -5,7 +5,8 @@ workers start with the app (its lifespan) and stop with it. REST errors are
 ``{"code": ..., "message": ...}`` with the status listed in
 ``dejaview.server.messages``; the OpenAPI page is at ``/docs`` and includes
 the WebSocket message schemas (``ClientMessage``, ``ServerMessage``). The web viewer is served
-at ``/`` (``dejaview.server.viewer``).
+at ``/`` (``dejaview.server.viewer``). Origin, Host and token checks come before everything
+(``dejaview.server.access``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from dejaview import __version__
+from dejaview.server.access import AccessControl
 from dejaview.server.config import ServerConfig
 from dejaview.server.errors import ServiceError
 from dejaview.server.limits import BodyLimit
@@ -37,7 +39,7 @@ from dejaview.server.websocket import Connection
 
 Artefact = enum.Enum("Artefact", {name.replace(".", "_"): name for name in ARTEFACTS}, type=str)
 
-ERRORS = {status: {"model": ErrorBody} for status in (400, 404, 409, 413, 422, 503)}
+ERRORS = {status: {"model": ErrorBody} for status in (400, 401, 403, 404, 409, 413, 422, 503)}
 
 
 def _error(code: str, message: str, status: int) -> JSONResponse:
@@ -77,6 +79,9 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
     app.state.config = config
     app.state.runner = runner
     app.add_middleware(BodyLimit, max_bytes=config.max_body_bytes)
+    # added last, so it runs first: nothing is read from a client that may not use the server
+    app.add_middleware(AccessControl, token=config.token, allow_origins=config.allow_origins,
+                       allowed_hosts=config.allowed_hosts)
 
     @app.exception_handler(ServiceError)
     async def service_error(request, exc: ServiceError):
@@ -151,5 +156,5 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi
-    add_viewer_routes(app, config.scene_root)
+    add_viewer_routes(app, config.scene_root, config.token)
     return app

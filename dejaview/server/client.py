@@ -9,7 +9,8 @@ benchmark use).
     outcome = run_job("ws://127.0.0.1:8765/ws", "solve", scene_path="ball.xml", out_dir="out")
     outcome.state, outcome.files["trajectory.csv"], outcome.result["loss"]
 
-``submit_job`` is the same as a coroutine, for many clients at once.
+``submit_job`` is the same as a coroutine, for many clients at once. A server that needs a
+token gets it with ``token=`` (the ``?token=`` of the WebSocket URL, a Bearer header on REST).
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dejaview.errors import DejaViewError
+
+CLOSE_UNAUTHORIZED = 4401  # the server's WebSocket close code for a missing or wrong token
 
 
 class ClientError(DejaViewError):
@@ -72,10 +75,22 @@ def http_base(ws_url: str) -> str:
     return urllib.parse.urlunsplit((scheme, parts.netloc, "", "", "")).rstrip("/")
 
 
-def http_get(url: str, timeout: float = 30.0) -> bytes:
-    """GET a URL; raises ClientError with the server's one-line message on an HTTP error."""
+def with_token(url: str, token: str | None) -> str:
+    """``url`` with ``token=TOKEN`` added to its query (how a WebSocket client carries the token)."""
+    if not token:
+        return url
+    parts = urllib.parse.urlsplit(url)
+    query = urllib.parse.parse_qsl(parts.query, keep_blank_values=True)
+    query = [(k, v) for k, v in query if k != "token"] + [("token", token)]
+    return urllib.parse.urlunsplit(parts._replace(query=urllib.parse.urlencode(query)))
+
+
+def http_get(url: str, timeout: float = 30.0, token: str | None = None) -> bytes:
+    """GET a URL (with ``Authorization: Bearer TOKEN`` when a token is given); raises
+    ClientError with the server's one-line message on an HTTP error."""
+    request = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token else {})
     try:
-        with urllib.request.urlopen(url, timeout=timeout) as response:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
             return response.read()
     except urllib.error.HTTPError as exc:
         try:
@@ -88,8 +103,8 @@ def http_get(url: str, timeout: float = 30.0) -> bytes:
         raise ClientError(f"GET {url}: {getattr(exc, 'reason', exc)}") from None
 
 
-def get_json(url: str, timeout: float = 30.0):
-    return json.loads(http_get(url, timeout))
+def get_json(url: str, timeout: float = 30.0, token: str | None = None):
+    return json.loads(http_get(url, timeout, token))
 
 
 def wait_healthy(base: str, timeout: float = 60.0) -> dict:
@@ -111,14 +126,15 @@ def wait_healthy(base: str, timeout: float = 60.0) -> dict:
     raise ClientError(f"{base} is not healthy after {timeout:g} s ({last})")
 
 
-async def _fetch(url: str) -> bytes:
-    return await asyncio.to_thread(http_get, url)
+async def _fetch(url: str, token: str | None = None) -> bytes:
+    return await asyncio.to_thread(http_get, url, 30.0, token)
 
 
 async def submit_job(url: str, kind: str, *, scene_xml: str | None = None, scene_path: str | None = None,
                      overrides: dict | None = None, out_dir=None, request_id: str | None = None,
                      on_message=None, cancel_when=None, fetch: bool = True,
-                     timeout: float | None = None, open_timeout: float = 10.0) -> JobOutcome:
+                     timeout: float | None = None, open_timeout: float = 10.0,
+                     token: str | None = None) -> JobOutcome:
     """Submit a job over the WebSocket at ``url`` and follow it to ``done``.
 
     Args:
@@ -131,13 +147,14 @@ async def submit_job(url: str, kind: str, *, scene_xml: str | None = None, scene
         cancel_when: called with every message; True sends ``cancel`` for the job (once).
         fetch: fetch payloads sent as URLs only (and heatmap.png) over REST.
         timeout: seconds for the whole job (None: no limit).
+        token: the server's token (sent as ``?token=`` on the WebSocket, as a Bearer header on REST).
     Returns:
         JobOutcome; ``state`` is ``refused`` when the server answered the submit with an error.
     Raises:
         ClientError: the server cannot be reached, or closed the connection before ``done``.
     """
     from websockets.asyncio.client import connect
-    from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+    from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
 
     request_id = request_id or uuid.uuid4().hex[:12]
     message = {"type": "submit", "kind": kind, "request_id": request_id}
@@ -163,13 +180,17 @@ async def submit_job(url: str, kind: str, *, scene_xml: str | None = None, scene
         if inline is not None:
             return inline if isinstance(inline, str) else json.dumps(inline, indent=2)
         if link and fetch:
-            return (await _fetch(link if "://" in link else base + link)).decode("utf-8")
+            return (await _fetch(link if "://" in link else base + link, token)).decode("utf-8")
         return None
 
     async def follow():
         try:
-            ws_ctx = connect(url, max_size=None, open_timeout=open_timeout)
-            websocket = await ws_ctx
+            websocket = await connect(with_token(url, token), max_size=None, open_timeout=open_timeout)
+        except InvalidStatus as exc:
+            status = exc.response.status_code
+            why = " (this client's origin is not allowed)" if status == 403 else ""
+            raise ClientError(f"cannot connect to {url}: the server refused the connection with HTTP "
+                              f"{status}{why}", "forbidden" if status == 403 else None) from None
         except (OSError, InvalidHandshake, InvalidURI, asyncio.TimeoutError) as exc:
             raise ClientError(f"cannot connect to {url}: {exc}") from None
         cancelled = False
@@ -207,7 +228,7 @@ async def submit_job(url: str, kind: str, *, scene_xml: str | None = None, scene
                     if grid is not None:
                         save("heatmap.json", grid)
                     if fetch and out is not None and msg.get("png_url"):
-                        save("heatmap.png", await _fetch(msg["png_url"]))
+                        save("heatmap.png", await _fetch(msg["png_url"], token))
                 elif kind_ == "result":
                     text = await payload(msg.get("result"), msg.get("url"))
                     if text is not None:
@@ -223,6 +244,10 @@ async def submit_job(url: str, kind: str, *, scene_xml: str | None = None, scene
             else:
                 raise ClientError(f"the server closed the connection before job {outcome.job_id} was done")
         except ConnectionClosed as exc:
+            if exc.rcvd is not None and exc.rcvd.code == CLOSE_UNAUTHORIZED:
+                raise ClientError(f"{url}: the server wants a token and " + (
+                    "refused this one" if token else "none was given (--token or DEJAVIEW_TOKEN)")
+                    + " (WebSocket close code 4401)", "unauthorized") from None
             raise ClientError(f"the server closed the connection before job {outcome.job_id} was done "
                               f"({exc})", outcome=outcome) from None
         finally:

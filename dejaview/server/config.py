@@ -47,6 +47,12 @@ class ServerConfig:
         job_timeout_s: a running job is stopped (failed, ``timeout``) after this long.
         progress_interval_s: at most one progress message per job per this many seconds.
         keep_jobs: finished jobs kept on disk; the oldest are deleted beyond it.
+        token: every request but ``GET /health`` must carry it (``dejaview.server.access``);
+            None: none needed.
+        allow_origins: browser origins (``scheme://host[:port]``) that may use the server besides
+            its own pages.
+        allowed_hosts: names a request's ``Host`` may give (None: any); ``dejaview serve`` on a
+            loopback address sets the loopback names, against DNS rebinding.
     """
 
     scene_root: Path
@@ -68,6 +74,9 @@ class ServerConfig:
     job_timeout_s: float | None = 3600.0
     progress_interval_s: float = 0.25
     keep_jobs: int = 1000
+    token: str | None = None
+    allow_origins: tuple[str, ...] = ()
+    allowed_hosts: tuple[str, ...] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "scene_root", Path(self.scene_root).resolve())
@@ -81,6 +90,12 @@ class ServerConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.messages_per_second > 0:
             raise ValueError("messages_per_second must be > 0")
+        if self.token is not None and (not self.token or any(c.isspace() or not c.isprintable()
+                                                             for c in self.token)):
+            raise ValueError("the token must be non-empty, without spaces or control characters")
+        object.__setattr__(self, "allow_origins", tuple(_origin(o) for o in self.allow_origins))
+        if self.allowed_hosts is not None:
+            object.__setattr__(self, "allowed_hosts", tuple(h.lower() for h in self.allowed_hosts))
 
     @property
     def ws_max_size(self) -> int:
@@ -89,3 +104,15 @@ class ServerConfig:
 
     def replace(self, **changes) -> "ServerConfig":
         return replace(self, **changes)
+
+
+def _origin(text: str) -> str:
+    from dejaview.server.access import normalize_origin
+
+    if text.strip() == "null":
+        return "null"
+    origin = normalize_origin(text)
+    if origin is None:
+        raise ValueError(f"allowed origin {text!r} is not an origin: give scheme://host[:port], "
+                         f"e.g. http://192.168.1.20:8765")
+    return origin

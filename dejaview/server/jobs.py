@@ -3,7 +3,9 @@
 ``run_job`` is the same in a worker thread and in a worker process: it gets
 the job's spec (kind, scene text, overrides), a folder to write into, a
 function to report progress through and a ``StopCheck`` to poll, and returns
-the job's summary and the names of the files it wrote. Torch and the
+the job's summary and the names of the files it wrote. The files appear
+atomically (written aside, renamed into place), so a job run again after a
+crash simply writes the same files again. Torch and the
 simulator are imported here, inside the worker, never by the web process's
 event loop.
 """
@@ -13,7 +15,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
+import uuid
 from pathlib import Path
 
 from dejaview.server.errors import ServiceError
@@ -98,9 +102,30 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
     progress = Throttle(emit, progress_interval)
     stop.raise_if_stopped()
     runner = {"simulate": _simulate, "solve": _solve, "heatmap": _heatmap}[spec["kind"]]
-    out = runner(scene, overrides, Path(out_dir), progress, stop)
-    stop.raise_if_stopped()
+    out_dir = Path(out_dir)
+    # written into a folder of this run's own, then renamed into place one by one: a reader (or
+    # a run of the same job after a crash) never sees a half-written artefact
+    stage = out_dir / f".partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    stage.mkdir()
+    try:
+        out = runner(scene, overrides, stage, progress, stop)
+        stop.raise_if_stopped()
+        for name in out["artefacts"]:
+            _sync(stage / name)
+            os.replace(stage / name, out_dir / name)
+        _sync(out_dir)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     return out
+
+
+def _sync(path: Path) -> None:
+    """fsync a file or folder (a rename is durable once its folder is synced)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _simulate(scene, overrides, out_dir, progress, stop):

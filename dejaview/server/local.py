@@ -27,6 +27,25 @@ def free_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
+def descendants(pid: int) -> list[int]:
+    """The pids of the processes below ``pid`` (children, their children...), from ``/proc``."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        parents[int(entry.name)] = int(stat.rsplit(")", 1)[1].split()[1])  # field 4, after "(comm)"
+    found, frontier = [], [pid]
+    while frontier:
+        children = [child for child, parent in parents.items() if parent in frontier]
+        found += children
+        frontier = children
+    return found
+
+
 class LocalServer:
     """Run ``python -m dejaview serve`` with the given options until ``stop()`` (or the end of a
     ``with`` block); its log goes to ``log_path``.
@@ -60,7 +79,8 @@ class LocalServer:
         cmd = [sys.executable, "-m", "dejaview", "serve", "--host", self.host, "--port", str(self.port),
                "--scene-root", str(self.scene_root), "--results-dir", str(self.results_dir)]
         for key, value in self.options.items():
-            cmd += [f"--{key.replace('_', '-')}", str(value)]
+            for one in value if isinstance(value, (list, tuple)) else [value]:  # repeated options
+                cmd += [f"--{key.replace('_', '-')}", str(one)]
         return cmd
 
     def start(self) -> "LocalServer":
@@ -111,6 +131,20 @@ class LocalServer:
         except subprocess.TimeoutExpired:
             self.process.kill()
             return self.process.wait(5)
+
+    def kill_all(self) -> list[int]:
+        """SIGKILL the server and every process it started (its workers), as a crash or an OOM kill
+        of the whole group would; returns their pids. Linux (reads ``/proc``)."""
+        if self.process is None or self.process.poll() is not None:
+            return []
+        pids = [self.process.pid, *descendants(self.process.pid)]
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self.process.wait(30)
+        return pids
 
     def __enter__(self) -> "LocalServer":
         return self.start()

@@ -17,6 +17,9 @@ with the HTTP status REST answers with):
 ================== ====== ===================================================
 code               status meaning
 ================== ====== ===================================================
+unauthorized       401    missing or wrong token (WebSocket: closed with code 4401)
+forbidden_origin   403    a browser page of another origin (WebSocket: handshake refused)
+forbidden_host     403    a ``Host`` that is not a name of a loopback-only server
 invalid_json       400    the text is not JSON (or holds NaN / Infinity)
 invalid_message    422    JSON that is not a valid message / request
 unknown_type       422    a message ``type`` the server does not know
@@ -29,6 +32,7 @@ scene_not_found    400    ``scene_path`` names no file inside the scene root
 path_outside_root  400    a scene or mesh path that leaves the scene root
 limit_exceeded     422    a job bigger than the server allows (steps, iterations, heatmap size)
 queue_full         503    the job queue is full: retry later
+store_error        503    the job store (SQLite in the results dir) cannot be written
 too_many_jobs      429    this connection has too many unfinished jobs
 not_found          404    no such job (or route)
 not_ready          409    the job has not finished: no artefacts yet
@@ -38,8 +42,9 @@ simulation_error   --     the job failed in the simulator
 geometry_error     --     the job failed loading a mesh or packing
 inference_error    --     the job failed in the optimiser
 timeout            --     the job ran longer than the server's job time limit
-interrupted        --     the server stopped while the job was queued or running
-worker_crashed     --     the worker process running the job died
+interrupted        --     the server stopped under the job 5 times (or its record is from an
+                          older version); a job is otherwise run again after a restart
+worker_crashed     --     the job's worker process died twice while running it
 internal_error     500    a bug: the message names the exception
 ================== ====== ===================================================
 
@@ -256,7 +261,7 @@ class JobCreated(BaseModel):
 
 
 class JobStatus(BaseModel):
-    """``GET /jobs/{id}``; also the job record stored as ``job.json``."""
+    """``GET /jobs/{id}``; also the job's record in the job store."""
 
     job_id: str
     kind: JobKind

@@ -5,11 +5,20 @@ Everything here runs on the event loop (worker events arrive through
 
     queued -> running -> done | failed | cancelled      (queued -> cancelled too)
 
-and every change is written to ``<results_dir>/jobs/<id>/job.json`` beside
-the job's scene (``scene.xml``) and artefacts, so a client that went away can
-fetch the results later and a restarted server still serves finished jobs.
-Jobs a previous server left queued or running are marked failed
-(``interrupted``) when the next one starts, instead of waiting forever.
+and every change is written to the job store (``dejaview.server.store``:
+SQLite in ``<results_dir>/jobs.sqlite3``) before anyone hears of it; the
+job's scene (``scene.xml``) and artefacts are files in
+``<results_dir>/jobs/<id>/``. A client that went away can fetch the results
+later, and a restarted server serves finished jobs and runs again the jobs a
+previous server left queued or running (after a crash or a plain stop), in
+their order: at-least-once, as a job's outputs are a pure function of its
+scene and overrides, and a worker writes them atomically (``jobs.run_job``).
+
+A job whose worker process dies is queued again at the front; the second
+time (``MAX_CRASHES``) it fails with ``worker_crashed``, and the server goes
+on with the next job. A job the server itself was stopped under
+``MAX_STARTS`` times (a job that takes a thread-executor server down with it)
+fails with ``interrupted``.
 
 Subscribers are objects with a ``deliver(job_id, message)`` method; each job
 keeps them (with the request id each one's messages carry) and every
@@ -45,11 +54,14 @@ from dejaview.server.messages import (
     TrajectoryMessage,
 )
 from dejaview.server.scenes import SceneInput, check_job, read_scene_input
+from dejaview.server.store import JobStore
 from dejaview.server.workers import make_pool
 
 log = logging.getLogger("dejaview.server")
 
 JOB_ID_RE = re.compile(r"^[0-9a-f]{32}$")
+MAX_CRASHES = 2  # a job whose worker process dies this many times fails (worker_crashed)
+MAX_STARTS = 5  # a job started this many times, the server stopping under it each time, fails
 
 # artefact file name -> media type; what GET /jobs/{id}/{name} may serve
 ARTEFACTS = {
@@ -75,6 +87,8 @@ class Job:
         self.slot: int | None = None
         self.subscribers: dict[object, str | None] = {}  # subscriber -> its request id
         self.cancel_requested = False
+        self.starts = 0  # times a worker was given the job (kept in the store)
+        self.crashes = 0  # times its worker process died under it
 
     @property
     def id(self) -> str:
@@ -94,48 +108,91 @@ class JobRunner:
         self.pending: collections.deque[str] = collections.deque()
         self.free_slots: list[int] = list(range(config.workers))[::-1]
         self.pool = None
+        self.store: JobStore | None = None
+        self.closing = False
         self.loop: asyncio.AbstractEventLoop | None = None
         self.jobs_dir = config.results_dir / "jobs"
 
     # ------------------------------------------------------------ life cycle
     async def start(self) -> None:
+        """Open the store, queue again what a previous server left unfinished, start the workers.
+
+        Raises:
+            ServiceError: ``results_dir_busy`` / ``store_error`` (see ``JobStore``).
+        """
         self.loop = asyncio.get_running_loop()
         self.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self.store = JobStore(self.config.results_dir)
+        self._import_json_records()
         self._load_records()
         self._prune()
         self.pool = make_pool(self.config.executor, self.config.workers,
                               {"job_timeout_s": self.config.job_timeout_s,
                                "progress_interval_s": self.config.progress_interval_s})
         self.pool.start(self._from_worker)
+        self._dispatch()
 
     async def close(self) -> None:
-        """Stop the workers; unfinished jobs end as failed (``interrupted``), as after a crash."""
-        for job in list(self.jobs.values()):
-            if not job.finished:
-                self._finish(job, "failed", ErrorInfo(code="interrupted",
-                                                      message="the server stopped before this job finished"))
+        """Stop the workers. Unfinished jobs keep their records: the next server runs them."""
+        self.closing = True
         self.pending.clear()
         if self.pool is not None:
             await asyncio.to_thread(self.pool.close)
+        if self.store is not None:
+            self.store.close()
+            self.store = None
 
     def _load_records(self) -> None:
+        requeued = 0
+        for row in self.store.load():
+            try:
+                status = JobStatus.model_validate_json(row.record)
+            except ValueError as exc:
+                log.warning("skipping unreadable record of job %s: %s", row.job_id, first_line(exc))
+                continue
+            job = Job(status, row.spec)
+            job.starts, job.crashes = row.starts, row.crashes
+            self.jobs[job.id] = job
+            if job.finished:
+                job.spec = None
+            elif job.spec is None:
+                self._finish(job, "failed", ErrorInfo(
+                    code="interrupted", message="the server stopped before this job finished (its record "
+                                                "has no job spec to run it again)"))
+            elif job.starts >= MAX_STARTS:
+                self._finish(job, "failed", ErrorInfo(
+                    code="interrupted", message=f"the server stopped {job.starts} times while this job ran; "
+                                                f"it is not run again"))
+            else:
+                self._requeue(job)
+                requeued += 1
+        if requeued:
+            log.warning("%d unfinished job(s) of a previous server queued again", requeued)
+
+    def _import_json_records(self) -> None:
+        """Records of older versions (``jobs/<id>/job.json``) that the store does not hold yet."""
         for path in sorted(self.jobs_dir.glob("*/job.json")):
+            job_id = path.parent.name
+            if not JOB_ID_RE.match(job_id) or job_id in self.store:
+                continue
             try:
                 status = JobStatus.model_validate_json(path.read_text(encoding="utf-8"))
             except (OSError, ValueError) as exc:
-                log.warning("skipping unreadable job record %s: %s", path, exc)
+                log.warning("skipping unreadable job record %s: %s", path, first_line(exc))
                 continue
-            if status.job_id != path.parent.name:
-                continue
-            job = Job(status)
-            if status.state not in FINISHED_STATES:
-                status.state = "failed"
-                status.finished_at = time.time()
-                status.queue_position = None
-                status.error = ErrorInfo(code="interrupted",
-                                         message="the server stopped before this job finished")
-                self._save(job)
-            self.jobs[status.job_id] = job
+            if status.job_id == job_id:
+                self._save(Job(status))
+
+    def _requeue(self, job: Job, front: bool = False) -> None:
+        """Back into the queue (after a crash of the server or of the job's worker)."""
+        job.status.state = "queued"
+        job.status.started_at = None
+        job.status.progress = None
+        job.slot = None
+        (self.pending.appendleft if front else self.pending.append)(job.id)
+        for stale in (self.jobs_dir / job.id).glob(".partial-*"):
+            shutil.rmtree(stale, ignore_errors=True)  # what a killed worker left half written
+        self._save(job)
 
     # ------------------------------------------------------------ queries
     @property
@@ -198,15 +255,19 @@ class JobRunner:
         job_id = uuid.uuid4().hex
         folder = self.jobs_dir / job_id
         folder.mkdir(parents=True)
-        (folder / "scene.xml").write_text(scene_input.text, encoding="utf-8")
+        write_atomically(folder / "scene.xml", scene_input.text.encode("utf-8"))
         status = JobStatus(job_id=job_id, kind=kind, state="queued", created_at=time.time(),
                            scene=scene_input.source, overrides=overrides)
         spec = {"kind": kind, "text": scene_input.text, "base_dir": str(scene_input.base_dir),
                 "filename": scene_input.filename, "overrides": overrides}
         job = Job(status, spec)
+        try:
+            self._save(job, strict=True)  # on disk before anyone hears "accepted"
+        except ServiceError:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
         self.jobs[job_id] = job
         self.pending.append(job_id)
-        self._save(job)
         if subscriber is not None:
             job.subscribers[subscriber] = request_id
             subscriber.deliver(job_id, AcceptedMessage(job_id=job_id, request_id=request_id, kind=kind,
@@ -219,6 +280,7 @@ class JobRunner:
             job = self.jobs[self.pending.popleft()]
             slot = self.free_slots.pop()
             job.slot = slot
+            job.starts += 1
             job.status.state = "running"
             job.status.started_at = time.time()
             self._save(job)
@@ -282,6 +344,8 @@ class JobRunner:
         job = self.jobs.get(event[1])
         if job is None or job.finished:
             return
+        if self.closing and (kind == "crashed" or (kind == "cancelled" and not job.cancel_requested)):
+            return  # stopped by the server's own shutdown: the record stays, the next server runs it
         if kind == "progress":
             progress = Progress(**event[2])
             job.status.progress = progress
@@ -297,10 +361,26 @@ class JobRunner:
             self._finish(job, "failed", ErrorInfo(code=event[3], message=event[4]))
         elif kind == "cancelled":
             self._finish(job, "cancelled")
+        elif kind == "crashed":
+            self._crashed(job, event[3])
         if job.slot == slot:
             job.slot = None
             self.free_slots.append(slot)
         self._dispatch()
+
+    def _crashed(self, job: Job, exit_code) -> None:
+        job.crashes += 1
+        if job.cancel_requested:
+            self._finish(job, "cancelled")
+        elif job.crashes >= MAX_CRASHES:
+            self._finish(job, "failed", ErrorInfo(
+                code="worker_crashed", message=f"the job crashed its worker process {job.crashes} times "
+                                               f"(last exit code {exit_code}); it is not run again"))
+        else:
+            log.warning("job %s: its worker died (exit code %s); running it again", job.id, exit_code)
+            slot = job.slot
+            self._requeue(job, front=True)
+            job.slot = slot  # freed by the caller
 
     def _finish(self, job: Job, state: str, error: ErrorInfo | None = None) -> None:
         job.status.state = state
@@ -360,14 +440,17 @@ class JobRunner:
             return None, 0
 
     # ------------------------------------------------------------ records on disk
-    def _save(self, job: Job) -> None:
-        path = self.jobs_dir / job.id / "job.json"
-        tmp = path.with_name("job.json.tmp")
+    def _save(self, job: Job, strict: bool = False) -> None:
+        """Write the job's record to the store; ``strict``: raise ``store_error`` instead of
+        logging it (a submission is refused rather than accepted without a record)."""
+        record = job.status.model_copy(update={"queue_position": None}).model_dump_json()
         try:
-            tmp.write_text(job.status.model_dump_json(indent=2), encoding="utf-8")
-            os.replace(tmp, path)
-        except OSError as exc:
-            log.error("cannot write %s: %s", path, exc)
+            self.store.save(job.id, job.status.state, record, None if job.finished else job.spec,
+                            job.starts, job.crashes)
+        except ServiceError as exc:
+            if strict:
+                raise
+            log.error("%s", exc.message)
 
     def _prune(self) -> None:
         finished = [j for j in self.jobs.values() if j.finished]
@@ -375,6 +458,30 @@ class JobRunner:
         if excess <= 0:
             return
         finished.sort(key=lambda j: j.status.finished_at or 0.0)
+        try:
+            self.store.delete([job.id for job in finished[:excess]])
+        except ServiceError as exc:
+            log.error("%s", exc.message)
+            return
         for job in finished[:excess]:
             del self.jobs[job.id]
             shutil.rmtree(self.jobs_dir / job.id, ignore_errors=True)
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """Write a file so that a reader (or a crash) sees the old content or the new, never a part:
+    a temporary file beside it, flushed to disk, renamed over it."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]

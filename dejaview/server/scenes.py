@@ -154,14 +154,23 @@ def check_job(kind: str, scene, overrides: dict, config) -> None:
                            422)
     if kind == "heatmap" and inf.start_area is None:
         raise ServiceError("invalid_scene", "a heatmap needs an <inference> with a <start-area>", 422)
-    steps = overrides.get("steps") or scene.simulation.steps
+    try:
+        steps = overrides.get("steps") or scene.simulation.steps
+    except (OverflowError, ValueError):  # duration / dt beyond any integer (e.g. 1e308 / 0.01)
+        sim = scene.simulation
+        raise ServiceError("limit_exceeded", f"the scene's duration {sim.duration:g} s in steps of "
+                           f"{sim.dt:g} s is beyond counting, over the server's limit of {config.max_steps} "
+                           f"integration substeps", 422) from None
     try:
         substeps = int(scene.simulation.extra.get("substeps", 2))
     except ValueError:
         substeps = 2  # the simulator reports it when it builds the world
     if steps * max(substeps, 1) > config.max_steps:
-        raise ServiceError("limit_exceeded", f"the rollout has {steps * substeps} integration substeps "
-                           f"({steps} steps x {substeps} substeps), over the server's limit of "
+        def n(x):
+            return f"{x}" if x < 10 ** 12 else f"{float(x):.3g}"
+
+        raise ServiceError("limit_exceeded", f"the rollout has {n(steps * substeps)} integration substeps "
+                           f"({n(steps)} steps x {substeps} substeps), over the server's limit of "
                            f"{config.max_steps}", 422)
     if kind in ("solve", "heatmap"):
         iterations = overrides.get("iterations") or inf.iterations

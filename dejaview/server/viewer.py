@@ -9,7 +9,9 @@ scenes (``dejaview.server.scenes``), so a default scene root of ``.`` exposes no
 
 from __future__ import annotations
 
+import html
 import os
+import urllib.parse
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -65,15 +67,33 @@ def list_scenes(root: Path, limit: int = MAX_LISTED) -> list[str]:
     return sorted(found)
 
 
-def add_viewer_routes(app: FastAPI, root: Path) -> None:
-    """``GET /``, ``/static/*``, ``GET /scenes`` and ``GET /files/{path}`` on ``app``."""
+def index_page(token: str | None) -> str:
+    """``index.html``; with a token, its stylesheet and script URLs carry ``?token=`` so the
+    browser can load them from a server that requires one (the page itself was opened as
+    ``/?token=TOKEN``, and the script reads the token from that URL for its own requests)."""
+    page = STATIC_DIR / "index.html"
+    if not page.is_file():
+        raise ServiceError("not_found", "the web viewer is not built: run 'npm run build' in web/", 404)
+    text = page.read_text(encoding="utf-8")
+    if token:
+        query = html.escape(urllib.parse.urlencode({"token": token}))
+        for name in ("static/app.js", "static/style.css"):
+            text = text.replace(f'"{name}"', f'"{name}?{query}"')
+    return text
+
+
+def add_viewer_routes(app: FastAPI, root: Path, token: str | None = None) -> None:
+    """``GET /``, ``/static/*``, ``GET /scenes`` and ``GET /files/{path}`` on ``app``.
+
+    With a ``token`` every one of them needs it (``dejaview.server.access``): the browser opens
+    ``/?token=TOKEN``, and the page it gets asks for its script and stylesheet with the token.
+    """
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     async def index():
-        page = STATIC_DIR / "index.html"
-        if not page.is_file():
-            raise ServiceError("not_found", "the web viewer is not built: run 'npm run build' in web/", 404)
-        return FileResponse(page, media_type="text/html")
+        # the page's URL holds the token: it must not leak through Referer or a shared cache
+        headers = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"} if token else None
+        return HTMLResponse(index_page(token), headers=headers)
 
     @app.get("/scenes", summary="Scene files in the scene root (for the web viewer)")
     async def scenes():

@@ -10,8 +10,8 @@ processes; for the tiny 10-step jobs of ``bench/load.py`` the two are
 alike (20-21 jobs/s with 50 clients), as scene parsing and I/O dominate.
 Worker processes (``spawn``, one torch thread each) run on separate cores,
 keep the event loop's latency flat
-while they compute, can be restarted when one dies (a crash fails its job
-with ``worker_crashed``, not the server), and stop by themselves when the
+while they compute, can be restarted when one dies (a crash sends its job
+back to the runner, not the server down), and stop by themselves when the
 server goes away. The cost is a start-up of a few seconds per worker (torch
 imports) and progress travelling through a ``multiprocessing`` queue. Threads
 (``executor="thread"``) start instantly and suit tests and tiny deployments.
@@ -23,7 +23,8 @@ background thread:
 - ``("progress", job_id, data)`` throttled progress of a running job,
 - ``("finished", job_id, slot, {"summary": ..., "artefacts": [...]})``,
 - ``("failed", job_id, slot, code, message)``,
-- ``("cancelled", job_id, slot)``.
+- ``("cancelled", job_id, slot)``,
+- ``("crashed", job_id, slot, exit_code)`` the worker process died while running the job.
 
 Cancellation sets the slot's flag; the job's ``StopCheck`` sees it at its
 next iteration (solve, heatmap) or step (simulate). The pool's owner only
@@ -230,9 +231,8 @@ class ProcessPool:
             log.error("worker %d died (exit code %s); starting a new one", slot, proc.exitcode)
             self.ready = max(0, self.ready - 1)
             self._spawn(slot)
-            if job_id is not None:
-                self._on_event(("failed", job_id, slot, "worker_crashed",
-                                f"the worker process running the job died (exit code {proc.exitcode})"))
+            if job_id is not None:  # the runner queues the job again, or fails it the second time
+                self._on_event(("crashed", job_id, slot, proc.exitcode))
 
     def run(self, slot: int, job_id: str, spec: dict, out_dir: str) -> None:
         self._cancel[slot].clear()

@@ -150,5 +150,6 @@ def test_a_killed_server_restarts_with_its_records(tmp_path, live_root):
         status = get_json(f"{server.http_url}/jobs/{done.job_id}")
         assert status["state"] == "done"
         assert http_get(f"{server.http_url}/jobs/{done.job_id}/trajectory.csv").decode() == done.csv
-        status = get_json(f"{server.http_url}/jobs/{running}")
-        assert status["state"] == "failed" and status["error"]["code"] == "interrupted"
+        # the job cut off by the crash runs again, to the end (tests/server/test_durable.py: more)
+        status = wait_state(server.http_url, running, timeout=300)
+        assert status["state"] == "done" and status["error"] is None, status

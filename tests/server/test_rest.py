@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import sqlite3
+import subprocess
+import sys
 import time
 
 import pytest
@@ -235,15 +238,19 @@ def test_records_survive_a_restart(make_client, tmp_path):
     wait_state(first, done)
     csv_before = first.get(f"/jobs/{done}/trajectory.csv").text
     first.__exit__(None, None, None)
-    # what a crash leaves behind: records of a job queued and one running
-    jobs = tmp_path / "results" / "jobs"
-    for state in ("queued", "running"):
-        job_id = (state[0] * 32).replace("q", "a").replace("r", "b")
+    results = tmp_path / "results"
+    with sqlite3.connect(results / "jobs.sqlite3") as db:
+        assert db.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+        assert db.execute("SELECT state FROM jobs WHERE job_id = ?", (done,)).fetchone() == ("done",)
+    # records of an older version (job.json files): finished ones are imported as they are, unfinished
+    # ones (no job spec to run them with) fail, a broken one is skipped
+    jobs = results / "jobs"
+    for job_id, state in (("a" * 32, "queued"), ("b" * 32, "running"), ("d" * 32, "done")):
         (jobs / job_id).mkdir()
         (jobs / job_id / "job.json").write_text(json.dumps(
             {"job_id": job_id, "kind": "solve", "state": state, "created_at": 1.0}))
     (jobs / ("c" * 32)).mkdir()
-    (jobs / ("c" * 32) / "job.json").write_text("{broken")  # skipped, not fatal
+    (jobs / ("c" * 32) / "job.json").write_text("{broken")
 
     second = make_client()
     status = second.get(f"/jobs/{done}").json()
@@ -252,19 +259,43 @@ def test_records_survive_a_restart(make_client, tmp_path):
     for job_id in ("a" * 32, "b" * 32):
         status = second.get(f"/jobs/{job_id}").json()
         assert status["state"] == "failed" and status["error"]["code"] == "interrupted"
-        assert json.loads((jobs / job_id / "job.json").read_text())["state"] == "failed"
+    assert second.get(f"/jobs/{'d' * 32}").json()["state"] == "done"
     assert second.get(f"/jobs/{'c' * 32}").status_code == 404
 
 
-def test_graceful_shutdown_fails_unfinished_jobs(make_client, tmp_path):
+def test_a_stopped_server_runs_its_unfinished_jobs_after_a_restart(make_client, tmp_path):
     first = make_client(workers=1)
-    running = submit(first, kind="solve", scene_path="solve_long.xml")
+    running = submit(first, kind="solve", scene_path="solve_long.xml", overrides={"iterations": 10_000})
     queued = submit(first, kind="simulate", scene_path="ball.xml")
+    wait_state(first, running, states=("running",))
     first.__exit__(None, None, None)
-    second = make_client()
-    for job_id in (running, queued):
-        status = second.get(f"/jobs/{job_id}").json()
-        assert status["state"] == "failed" and status["error"]["code"] == "interrupted", status
+    second = make_client(workers=2)
+    assert second.get(f"/jobs/{running}").json()["state"] in ("queued", "running")
+    status = wait_state(second, queued)
+    assert status["state"] == "done" and status["error"] is None
+    fresh = submit(second, kind="simulate", scene_path="ball.xml")
+    wait_state(second, fresh)
+    assert (second.get(f"/jobs/{queued}/trajectory.csv").text
+            == second.get(f"/jobs/{fresh}/trajectory.csv").text)
+    wait_state(second, running, states=("running",))  # run again, from the start
+    assert second.delete(f"/jobs/{running}").status_code == 202
+    assert wait_state(second, running)["state"] == "cancelled"
+    leftovers = [p.name for p in (tmp_path / "results" / "jobs").glob("*/.*")]
+    assert leftovers == []  # no half-written artefact or temporary file is left behind
+
+
+def test_one_server_per_results_dir(tmp_path, scene_root):
+    from dejaview.server.store import JobStore
+
+    store = JobStore(tmp_path / "results")  # this process holds the results dir: another cannot
+    try:
+        code = ("import sys; from dejaview.server.store import JobStore\n"
+                "try:\n    JobStore(sys.argv[1])\nexcept Exception as exc:\n    print(exc.code, exc.message)")
+        out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "results")], capture_output=True,
+                             text=True, timeout=60)
+        assert out.stdout.startswith("results_dir_busy") and "another dejaview server" in out.stdout, out
+    finally:
+        store.close()
 
 
 def test_old_jobs_are_pruned(make_client, tmp_path):

@@ -4,6 +4,7 @@ import { OBJLoader } from 'three/addons/loaders/OBJLoader.js';
 import { STLLoader } from 'three/addons/loaders/STLLoader.js';
 import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { serverFetch } from './connection.js';
 
 const PLANE_SIZE = 12; // metres: the infinite plane z = 0, drawn as a square
 
@@ -33,7 +34,7 @@ function extension(name) {
 // A mesh file as one Object3D whose meshes all use `material`. name decides the loader.
 export async function loadMesh(url, name, material) {
   const ext = extension(name);
-  const response = await fetch(url);
+  const response = await serverFetch(url);
   if (!response.ok) throw new Error(`${name}: HTTP ${response.status}`);
   let node;
   if (ext === 'obj') {

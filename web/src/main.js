@@ -5,7 +5,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { TransformControls } from 'three/addons/controls/TransformControls.js';
 
 import { LossChart } from './chart.js';
-import { Connection } from './connection.js';
+import { Connection, serverFetch, socketUrl } from './connection.js';
 import { loadMesh, parseSpheres, primitiveGeometry, spheresMesh } from './geometry.js';
 import { applyPose, heatmapDecal, parseTrajectory, trajectorySpline } from './results.js';
 import { SceneModel } from './scene-xml.js';
@@ -172,7 +172,7 @@ async function buildObject(obj) {
   group.add(node.visual);
   if (obj.spheres) {
     try {
-      const response = await fetch(fileUrl(obj.spheres));
+      const response = await serverFetch(fileUrl(obj.spheres));
       if (!response.ok) throw new Error(`HTTP ${response.status}`);
       node.packing = spheresMesh(parseSpheres(await response.text()), colourOf(obj.id));
       node.packing.visible = $('show-spheres').checked;
@@ -265,7 +265,7 @@ async function loadScene(text, origin = '', files = null) {
 }
 
 async function loadScenePath(path) {
-  const response = await fetch(`files/${path.split('/').map(encodeURIComponent).join('/')}`);
+  const response = await serverFetch(`files/${path.split('/').map(encodeURIComponent).join('/')}`);
   if (!response.ok) throw new Error(`${path}: HTTP ${response.status}`);
   return loadScene(await response.text(), path);
 }
@@ -384,9 +384,7 @@ for (const id of ['iterations', 'optimizer', 'gradient', 'heatmap', 'cells-x', '
 }
 
 // ------------------------------------------------------------------ jobs
-const wsUrl = new URL('ws', window.location.href);
-wsUrl.protocol = wsUrl.protocol === 'https:' ? 'wss:' : 'ws:';
-const connection = new Connection(wsUrl.href, {
+const connection = new Connection(socketUrl(), {
   onMessage: handleMessage,
   onStatus: (status) => { $('connection').classList.toggle('connected', status === 'connected'); },
 });
@@ -404,7 +402,7 @@ function run(kind = 'solve') {
 }
 
 async function fetchText(url) {
-  const response = await fetch(url);
+  const response = await serverFetch(url);
   if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
   return response.text();
 }
@@ -614,7 +612,7 @@ window.addEventListener('keydown', (e) => {
 });
 
 async function listScenes() {
-  const response = await fetch('scenes');
+  const response = await serverFetch('scenes');
   const { scenes } = await response.json();
   $('scene-list').innerHTML = '';
   for (const path of scenes) $('scene-list').append(new Option(path, path));
