@@ -64,6 +64,8 @@ CHI2_EXPLAINED = 0.05
 """Observation chi-square per observed residual at or below which the end counts as explained and
 the search stops: a mean misfit of a fifth of the observation noise's standard deviation (a flat
 prior's maximum explains the end exactly; this stops the global search once a candidate does)."""
+MAX_POPULATION_FACTOR = 4
+"""A fresh instance doubles the population of the one it replaces (IPOP), up to this factor."""
 GLOBAL_PATIENCE = 40
 """Generations without a gain of ``STALL_RATIO`` in the best cost after which the search stops
 (where a prior keeps the maximum's misfit above ``CHI2_EXPLAINED``)."""
@@ -177,13 +179,18 @@ class _Search:
 
     # -------------------------------------------------------------- stages
     def screen(self) -> None:
-        """Rank the scene's guess and draws from the prior; fill the pool of instance seeds."""
-        x = torch.cat([self.lay.encode().to(torch.float64),
-                       self.post.sample(screen_size(self.P), self.gen)], 0)
+        """Rank the scene's guess and draws from the prior; fill the pool of instance seeds.
+
+        The scene's own guess (its ``<pose>`` and ``<velocity>``: what the user or robot assumes)
+        goes first in the pool whatever its cost, when feasible: one instance always starts there.
+        """
+        guess = self.lay.encode().to(torch.float64)
+        x = torch.cat([guess, self.post.sample(screen_size(self.P), self.gen)], 0)
         cost, chi2, loss = self.post.cost(x)
         self.consider(x, cost, chi2, loss)
-        order = torch.argsort(cost, stable=True)
-        self.pool = [x[i] for i in order.tolist() if math.isfinite(float(cost[i]))]
+        order = torch.argsort(cost[1:], stable=True) + 1
+        self.pool = ([x[0]] if math.isfinite(float(cost[0])) else []) + [
+            x[i] for i in order.tolist() if math.isfinite(float(cost[i]))]
         self.tick(float(cost.min()))
 
     def take_seeds(self, k: int, avoid: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -289,6 +296,8 @@ class _Search:
         instances = [self.new_instance(x, popsize) for x in self.take_seeds(CANDIDATES, [])]
         while instances and not self.finished():
             self.generation(instances)
+            if self.generations - self.improved_at >= GLOBAL_PATIENCE:
+                break
             ended = [es for es in instances if self.stalled(es)]
             polish = ended or instances[0].countiter % POLISH_EVERY == 0
             if polish and not self.finished():
@@ -296,12 +305,11 @@ class _Search:
                 found = self.refine(torch.as_tensor(np.stack([es.result.xbest for es in pick]),
                                                     dtype=torch.float64))
                 self.add_modes(found)
-                explained = self.modes and self.explained(self.modes[0]) and self.modes[0].cost <= self.best.cost
-                if explained or self.generations - self.improved_at >= GLOBAL_PATIENCE:
+                if self.modes and self.explained(self.modes[0]) and self.modes[0].cost <= self.best.cost:
                     break
             if ended:
                 instances = [es for es in instances if es not in ended]
-                popsize = min(popsize * 2, 256)
+                popsize = min(popsize * 2, MAX_POPULATION_FACTOR * population(self.P))
                 taken = [torch.as_tensor(es.result.xbest, dtype=torch.float64) for es in instances]
                 fresh = self.take_seeds(len(ended), taken + [m.x for m in self.modes])
                 instances += [self.new_instance(x, popsize) for x in fresh]

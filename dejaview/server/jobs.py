@@ -181,8 +181,8 @@ def _solve(scene, overrides, out_dir, progress, stop):
     from dejaview.inference.solve import solve
 
     total = overrides.get("iterations", scene.inference.iterations)
-    kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "gradient", "seed", "lr", "tolerance",
-                                        "backend", "multistart", "screen", "screen_rounds")
+    kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "budget", "gradient", "seed", "lr",
+                                        "tolerance", "backend", "multistart", "screen", "screen_rounds")
               if k in overrides}
     result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
     if stop.reason is not None:

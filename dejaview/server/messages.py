@@ -58,6 +58,8 @@ from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
+from dejaview.scene.model import OPTIMIZERS
+
 JobKind = Literal["simulate", "solve", "heatmap"]
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 FINISHED_STATES = ("done", "failed", "cancelled")
@@ -74,14 +76,15 @@ class Overrides(_Strict):
     """Settings that override the scene's for one job (all optional).
 
     simulate: ``steps``, ``record_every``; solve: ``iterations``,
-    ``optimizer``, ``gradient``, ``seed``, ``lr``, ``multistart``,
-    ``screen``, ``screen_rounds``, ``tolerance``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
+    ``optimizer``, ``budget`` (the default search's), ``seed``, ``tolerance``, and the local
+    optimisers' ``gradient``, ``lr``, ``multistart``, ``screen``, ``screen_rounds``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
     ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to all three.
     """
 
     backend: Literal["spheres", "warp"] | None = None
     iterations: Annotated[int, Field(ge=1)] | None = None
-    optimizer: Literal["gd", "adam", "lbfgs", "bfgs"] | None = None
+    optimizer: Literal[OPTIMIZERS] | None = None
+    budget: Annotated[int, Field(ge=1, le=10**7)] | None = None
     gradient: Literal["forward", "reverse"] | None = None
     seed: Annotated[int, Field(ge=0, lt=2**63)] | None = None
     lr: Annotated[float, Field(gt=0)] | None = None
@@ -103,8 +106,8 @@ class Overrides(_Strict):
 
 OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
     "simulate": frozenset({"backend", "steps", "record_every"}),
-    "solve": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "lr", "multistart",
-                        "screen", "screen_rounds", "tolerance"}),
+    "solve": frozenset({"backend", "iterations", "optimizer", "budget", "gradient", "seed", "lr",
+                        "multistart", "screen", "screen_rounds", "tolerance"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",
                           "sigma"}),
 }

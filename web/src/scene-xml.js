@@ -151,7 +151,7 @@ export class SceneModel {
     const heat = inf && child(inf, 'heatmap');
     return {
       iterations: Number(inf?.getAttribute('iterations') || 200),
-      optimizer: inf?.getAttribute('optimizer') || 'lbfgs',
+      optimizer: inf?.getAttribute('optimizer') || 'auto',
       gradient: inf?.getAttribute('gradient') || '',
       heatmap: Boolean(heat),
       cells: numbers(heat?.getAttribute('cells'), [32, 32]),
@@ -162,7 +162,11 @@ export class SceneModel {
     const inf = this.inference;
     if (!inf) throw new Error('choose a source first: the scene has no <inference>');
     if (iterations !== undefined) inf.setAttribute('iterations', String(Math.max(1, Math.round(iterations))));
-    if (optimizer !== undefined) inf.setAttribute('optimizer', optimizer);
+    if (optimizer !== undefined) {
+      // 'auto' is the default: the attribute stays out, as the Python writer leaves it
+      if (optimizer && optimizer !== 'auto') inf.setAttribute('optimizer', optimizer);
+      else inf.removeAttribute('optimizer');
+    }
     if (gradient !== undefined) {
       if (gradient) inf.setAttribute('gradient', gradient);
       else inf.removeAttribute('gradient');
