@@ -152,6 +152,15 @@ class Posterior:
         return self.problem.layout
 
     @property
+    def prior_is_flat(self) -> bool:
+        """No ``<prior>`` deviation applies to a free block (bounds aside, every start is as
+        likely as any other)."""
+        s, free = self.settings, self.layout.free
+        return not ((free["orientation"] and s.tilt is not None)
+                    or (free["linear_velocity"] and s.speed is not None)
+                    or (free["angular_velocity"] and s.spin is not None))
+
+    @property
     def num_observed(self) -> int:
         """Observation residuals per candidate (6 for a pose, 3 for a position, 1 for ADD, plus
         3 per target velocity)."""

@@ -24,7 +24,7 @@ handle here or there). So the search has a global and a local stage:
 
 The search ends when the best candidate explains the observation (its
 observation chi-square is at most ``CHI2_EXPLAINED`` per observed residual)
-after a refinement, when the best cost has not improved for ``GLOBAL_PATIENCE``
+after a refinement and the prior is flat, when the best cost has not improved for ``GLOBAL_PATIENCE``
 generations, when every instance has stopped and no fresh start is left to
 try, or when the budget (``iterations``: generations + LM iterations;
 ``budget``: rollouts, a Jacobian counting ``JACOBIAN_COST``) runs out. Stopped
@@ -172,7 +172,10 @@ class _Search:
             self.done = True
 
     def explained(self, mode: Mode) -> bool:
-        return mode.chi2 <= CHI2_EXPLAINED * self.n_obs
+        """A flat prior's maximum explains the end exactly: a candidate that comes within
+        ``CHI2_EXPLAINED`` ends the search. Under an informative prior the first past that explains
+        the end need not be the most probable one, so the search goes on (``GLOBAL_PATIENCE``)."""
+        return self.post.prior_is_flat and mode.chi2 <= CHI2_EXPLAINED * self.n_obs
 
     def finished(self) -> bool:
         return self.stopped or self.done or self.out_of_budget()
