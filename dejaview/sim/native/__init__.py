@@ -25,9 +25,10 @@ shape altogether. Results equal the torch simulator's up to the order of
 floating-point sums (``tests/sim/test_native.py``).
 
 Limits: float64 on the CPU; the body pair broad phase is per candidate. The
-extension is compiled on first use with ``torch.utils.cpp_extension`` (g++,
-about a minute) and cached in torch's extension directory
-(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``).
+extension is compiled by ``scripts/setup`` or on first use (g++, about a
+minute) into a folder of this install named after a hash of the source,
+torch, Python and the compiler flags (``dejaview.sim.native.loader``: a build
+killed half-way never blocks the next one).
 """
 
 from __future__ import annotations
@@ -70,24 +71,28 @@ def threads() -> int:
     return os.cpu_count() or 1
 
 
+CFLAGS = ["-O3", "-march=native", "-fno-math-errno"]
+
+
 def extension():
-    """The compiled C++ module (built on first call, then loaded from torch's cache).
+    """The compiled C++ module (built on first call, then loaded from this install's build folder).
 
     Raises:
-        SimulationError: the build failed (no compiler, ...); remembered for the process.
+        SimulationError: the build failed (no compiler, another process's build did not finish
+            in time, ...); remembered for the process.
     """
     global _EXTENSION, _BUILD_ERROR
     with _LOCK:
         if _BUILD_ERROR is not None:
             raise _BUILD_ERROR
         if _EXTENSION is None:
-            from torch.utils.cpp_extension import load
+            from dejaview.sim.native.loader import load_extension
 
-            _ninja_on_path()
             try:
-                _EXTENSION = load(name="dejaview_native", sources=[str(SOURCE)],
-                                  extra_cflags=["-O3", "-march=native", "-fno-math-errno"],
-                                  verbose=False)
+                _EXTENSION = load_extension("dejaview_native", SOURCE, CFLAGS)
+            except SimulationError as exc:
+                _BUILD_ERROR = exc
+                raise
             except Exception as exc:  # no compiler, a broken build
                 lines = str(exc).strip().splitlines() or ["unknown error"]
                 first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
@@ -95,19 +100,6 @@ def extension():
                                                f"{SOURCE}: {first.strip()[:300]}")
                 raise _BUILD_ERROR from exc
     return _EXTENSION
-
-
-def _ninja_on_path() -> None:
-    """torch's builder runs ``ninja`` from PATH: add the ``ninja`` package's binary folder (a
-    virtual environment's ``bin`` is not on PATH unless activated)."""
-    try:
-        import ninja
-    except ImportError:
-        return
-    folder = getattr(ninja, "BIN_DIR", None)
-    path = os.environ.get("PATH", "")
-    if folder and folder not in path.split(os.pathsep):
-        os.environ["PATH"] = os.pathsep.join(p for p in (folder, path) if p)
 
 
 def available() -> bool:
