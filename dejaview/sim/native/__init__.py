@@ -233,8 +233,9 @@ class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(init, steps, record_every, with_jac, packed):
         tensors, floats, ints = packed
-        return tuple(extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
-                                         tensors, floats, ints, threads()))
+        states, phi, _ = extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
+                                             tensors, floats, ints, threads())
+        return states, phi
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -286,7 +287,8 @@ def _needs_jacobian(init: torch.Tensor) -> bool:
     return torch.autograd.forward_ad.unpack_dual(init).tangent is not None
 
 
-def native_rollout(world, state: State, steps: int, record_every: int = 1):
+def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
+                   check_divergence: bool = False, first_step: int = 0):
     """``dejaview.sim.integrate.rollout`` on the native simulator.
 
     Args:
@@ -294,9 +296,15 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1):
         state: initial State (B, N, ...).
         steps: number of steps (>= 1).
         record_every: record interval; the initial and final states are always recorded.
+        check_divergence: forward simulation: end with the error of ``dejaview.sim.divergence``
+            when a state turns non-finite or out of range (no gradients then). Off, a diverged
+            candidate of a batch just carries its NaN or inf to its loss.
+        first_step: number of the first step, for the error (simulations run in chunks).
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records, differentiable with
         respect to ``state`` in reverse and forward mode.
+    Raises:
+        SimulationError: with ``check_divergence``, naming the object, the step and the quantity.
     """
     from dejaview.sim.integrate import Trajectory
 
@@ -305,7 +313,20 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1):
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")
     init = torch.cat(state.tensors(), -1)  # (B, N, 13)
-    states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
+    if check_divergence:
+        from dejaview.sim import divergence
+
+        tensors, floats, ints = packed
+        states, _, status = extension().rollout(init.detach().contiguous(), int(steps), int(record_every),
+                                                False, tensors, floats + divergence.native_limits(), ints,
+                                                threads())
+        bad = (status[:, 0] >= 0).nonzero()
+        if bad.numel():
+            b = int(bad[0, 0])
+            step, body, quantity, record = (int(v) for v in status[b])
+            raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
+    else:
+        states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
     recorded = [0] + [i for i in range(1, steps + 1) if i % record_every == 0 or i == steps]
     return Trajectory(State(seq[..., :3], seq[..., 3:7], seq[..., 7:10], seq[..., 10:]),
