@@ -134,6 +134,10 @@ def budget_problem(steps: float, substeps: int, max_steps: int, what: str) -> st
     total = steps * substeps
     if total <= max_steps:
         return None
+
+    def count(x: float) -> str:
+        return str(int(x)) if x < 1e12 else f"{x:.4g}"
+
     per = f" x {substeps} substeps" if substeps != 1 else ""
-    return (f"{what} is {steps:.4g} steps{per} = {total:.4g} integration steps, over the budget of "
+    return (f"{what} is {count(steps)} steps{per} = {count(total)} integration steps, over the budget of "
             f"{max_steps} (raise it with --max-steps or DEJAVIEW_MAX_STEPS)")

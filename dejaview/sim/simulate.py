@@ -125,6 +125,7 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
     reason = bounds.budget_problem(n, world.substeps, max_steps, "the simulation")
     if reason:
         raise SimulationError(reason)
+    record_every = min(int(record_every), n)  # the same records, and a number C++ can hold
     state = initial_state(world, scene)
     done = 0
 
