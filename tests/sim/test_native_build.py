@@ -202,3 +202,32 @@ def test_killing_the_first_cli_run_while_it_compiles_does_not_hang_the_next(tmp_
         assert (tmp_path / "o2" / "trajectory.csv").read_text().startswith("step,time,object")
     finally:
         _end(first)
+
+
+def test_two_installs_sharing_a_folder_keep_their_own_builds(tmp_path):
+    """Two checkouts with different sources and one extension folder (TORCH_EXTENSIONS_DIR shared):
+    each build gets its own folder, so neither rebuilds the other's."""
+    root = tmp_path / "shared"
+    env = _env(TORCH_EXTENSIONS_DIR=str(root))
+    sources = []
+    for i in range(2):
+        src = tmp_path / f"install{i}" / "tiny.cpp"
+        src.parent.mkdir()
+        src.write_text(TINY.replace("42", str(42 + i)))
+        sources.append(src)
+    code = """
+        import sys
+        from dejaview.sim.native.loader import load_extension
+        m = load_extension("dv_tiny", sys.argv[1], [], timeout=240)
+        print(m.answer(), m.__file__)
+        """
+    paths = []
+    for i, src in enumerate(sources + sources):  # A, B, then A and B again: loaded, not rebuilt
+        out = subprocess.run([sys.executable, "-c", textwrap.dedent(code), str(src)], env=env, capture_output=True,
+                             text=True, timeout=300)
+        assert out.returncode == 0, out.stderr
+        answer, path = out.stdout.split()
+        assert answer == str(42 + i % 2)
+        paths.append((path, Path(path).stat().st_mtime_ns))
+    assert paths[0] == paths[2] and paths[1] == paths[3] and paths[0][0] != paths[1][0]
+    assert sorted(p.name for p in root.iterdir()) == sorted(Path(p).parent.name for p, _ in paths[:2])
