@@ -16,14 +16,16 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--steps", type=int, default=None, help="number of steps (default: duration / dt)")
 @click.option("--record-every", type=int, default=1, show_default=True, help="record every k-th step")
 @click.option("--float32", is_flag=True, help="simulate in float32 instead of float64")
+@click.option("--max-steps", type=int, default=None,
+              help="step budget, steps x substeps (default 2000000 or DEJAVIEW_MAX_STEPS)")
 @common_options
-def command(scene, out_dir, steps, record_every, float32, backend, engine, iterations, optimizer,
+def command(scene, out_dir, steps, record_every, float32, max_steps, backend, engine, iterations, optimizer,
             gradient, seed, quiet):
     """Simulate SCENE from the objects' given poses and velocities; write DIR/trajectory.csv."""
     import torch
     from tqdm import tqdm
 
-    from dejaview.scene import Scene
+    from dejaview.scene import Scene, bounds
     from dejaview.sim.simulate import simulate
 
     configure_torch()
@@ -31,10 +33,16 @@ def command(scene, out_dir, steps, record_every, float32, backend, engine, itera
         raise click.BadParameter("must be >= 1", param_hint="--record-every")
     if steps is not None and steps < 1:
         raise click.BadParameter("must be >= 1", param_hint="--steps")
+    if max_steps is not None and max_steps < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--max-steps")
+    max_steps = bounds.max_steps(max_steps)
+    if steps is not None and steps > max_steps:
+        raise click.BadParameter(f"{steps} steps is over the step budget of {max_steps} (--max-steps)",
+                                 param_hint="--steps")
     if backend != "spheres" and engine != "auto":
         raise click.BadParameter(f"the engine is an option of the spheres backend, not of {backend}",
                                  param_hint="--engine")
-    sc = Scene.from_xml(scene)
+    sc = Scene.from_xml(scene, max_steps=max_steps)
     if backend == "warp":
         _simulate_warp(sc, out_dir, steps, record_every, quiet)
         return
@@ -49,7 +57,7 @@ def command(scene, out_dir, steps, record_every, float32, backend, engine, itera
                                  param_hint="--engine")
     run = simulate(sc, steps=steps, record_every=record_every,
                    dtype=torch.float32 if float32 else torch.float64,
-                   callback=None if bar.disable else progress, engine=engine)
+                   callback=None if bar.disable else progress, engine=engine, max_steps=max_steps)
     bar.close()
     path = run.write(out_dir)["trajectory"]
     if not quiet:

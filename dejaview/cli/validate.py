@@ -17,11 +17,15 @@ DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not import
               help="Do not check that mesh and sphere files exist (nor whether objects overlap).")
 @click.option("--margin", type=click.FloatRange(min=0), default=DEFAULT_MARGIN, show_default=True,
               metavar="METRES", help="Overlap accepted as resting contact between objects.")
-def command(scenes: tuple[str, ...], no_file_check: bool, margin: float) -> None:
+@click.option("--max-steps", type=click.IntRange(min=1), default=None,
+              help="step budget of a simulation, steps x substeps (default 2000000 or DEJAVIEW_MAX_STEPS)")
+def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_steps: int | None) -> None:
     """Check each SCENE file against the scene format, and that no objects overlap.
 
     Prints ``OK <path>: N objects, source=<id>`` for a valid scene and the
-    one-line error (file:line: <element> reason) on stderr for the others.
+    one-line error (file:line: <element> reason) on stderr for the others:
+    everything ``dejaview simulate`` would refuse, the sphere simulator's
+    <simulation> attributes, physical ranges and the step budget included.
     Objects that interpenetrate at their given poses (deeper than --margin;
     two fixed objects may) are errors too, one line per pair:
     ``file:line: <object> 'a' and 'b' interpenetrate by D m``.
@@ -32,7 +36,7 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float) -> None
     failed = 0
     for path in scenes:
         try:
-            scene = read_scene_file(path, check_files=not no_file_check)
+            scene = read_scene_file(path, check_files=not no_file_check, max_steps=max_steps)
             overlaps = [] if no_file_check else _interpenetrations(scene, path, margin)
         except SceneError as exc:
             failed += 1

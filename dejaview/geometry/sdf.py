@@ -103,13 +103,14 @@ class SignedDistanceGrid:
         name = mesh_name(mesh)
         solid = watertight_mesh(mesh, name)
         lo, hi = solid.bounds
-        shape = np.ceil((hi - lo + 2 * padding) / spacing).astype(np.int64) + 1
-        shape = np.maximum(shape, 2)
-        if np.prod(shape) > _MAX_NODES:
+        extent = np.maximum(np.ceil((hi - lo + 2 * padding) / spacing) + 1, 2)  # floats: no int64 overflow
+        nodes = float(np.prod(extent))
+        if not nodes <= _MAX_NODES:
             raise GeometryError(
                 f"{name}: a signed distance grid at {spacing:g} m spacing would have "
-                f"{int(np.prod(shape))} nodes (limit {_MAX_NODES}); use a coarser spacing"
+                f"{nodes:.4g} nodes (limit {_MAX_NODES}); use a coarser spacing"
             )
+        shape = extent.astype(np.int64)
         # centre the grid on the box so that symmetric meshes give symmetric grids
         origin = 0.5 * (lo + hi) - 0.5 * (shape - 1) * spacing
         values = distance.lattice_signed_distance(solid, origin, spacing, shape,

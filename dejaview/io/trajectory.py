@@ -11,7 +11,10 @@ import csv
 import io
 from pathlib import Path
 
+import numpy as np
 import torch
+
+from dejaview.errors import SimulationError
 
 HEADER = ("step", "time", "object", "x", "y", "z", "qw", "qx", "qy", "qz")
 
@@ -23,6 +26,10 @@ def trajectory_rows(world, traj, batch_index: int = 0):
         world: the World (body names, centre-of-mass offsets).
         traj: Trajectory with states (T, B, N, ...).
         batch_index: which candidate of the batch to write.
+    Raises:
+        SimulationError: a non-finite number, naming the object and the step (never written: the
+            forward simulation's divergence check, ``dejaview.sim.divergence``, stops such runs
+            first; this guards every other writer).
     """
     states = traj.states
     with torch.no_grad():
@@ -34,6 +41,11 @@ def trajectory_rows(world, traj, batch_index: int = 0):
         origin = (pos - quat_rotate(q, com.expand_as(pos))).cpu().double().numpy()
         q = q.cpu().double().numpy()
     steps = traj.steps.tolist()
+    finite = np.isfinite(origin).all(-1) & np.isfinite(q).all(-1)  # (T, N)
+    if not finite.all():
+        t, i = (int(v) for v in np.argwhere(~finite)[0])
+        raise SimulationError(f"trajectory of object {world.names[i]!r} is not finite at step {steps[t]} "
+                              f"(t = {steps[t] * traj.dt:.6g} s); nothing written")
     for t, step in enumerate(steps):
         time = step * traj.dt
         for i, name in enumerate(world.names):

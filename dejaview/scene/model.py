@@ -89,8 +89,14 @@ class SimulationSettings:
 
     @property
     def steps(self) -> int:
-        """Number of steps of length ``dt`` in ``duration`` (rounded)."""
-        return max(1, int(round(self.duration / self.dt)))
+        """Number of steps of length ``dt`` in ``duration`` (rounded; ``sys.maxsize`` where that
+        overflows: the reader refuses such scenes, see ``dejaview.scene.bounds.MAX_STEPS``)."""
+        import sys
+
+        from dejaview.scene.bounds import step_count
+
+        n = step_count(self.duration, self.dt)
+        return int(n) if n < sys.maxsize else sys.maxsize
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ import re
 from pathlib import Path
 
 from dejaview.errors import SceneError
+from dejaview.scene import bounds as B
 from dejaview.scene.model import (
     EVALUATES,
     GRADIENTS,
@@ -50,7 +51,7 @@ Lines = dict[tuple, "int | None"]
 
 
 def validate_scene(scene: Scene, *, check_files: bool = True, lines: Lines | None = None,
-                   file: str | None = None) -> Scene:
+                   file: str | None = None, max_steps: int | None = None) -> Scene:
     """Check a scene's meaning and return it unchanged.
 
     Args:
@@ -59,34 +60,36 @@ def validate_scene(scene: Scene, *, check_files: bool = True, lines: Lines | Non
             with ``scene.resolve``, i.e. against the scene's folder).
         lines: line of each element, keyed as in the module docstring.
         file: file name for messages (default: ``scene.path`` or ``<scene>``).
+        max_steps: step budget of a simulation of the scene (default ``bounds.max_steps()``).
     Returns:
         ``scene``.
     Raises:
         SceneError: the first problem in file order.
     """
-    problems = scene_problems(scene, check_files=check_files, lines=lines, file=file)
+    problems = scene_problems(scene, check_files=check_files, lines=lines, file=file, max_steps=max_steps)
     if problems:
         raise problems[0]
     return scene
 
 
 def scene_problems(scene: Scene, *, check_files: bool = True, lines: Lines | None = None,
-                   file: str | None = None) -> list[SceneError]:
+                   file: str | None = None, max_steps: int | None = None) -> list[SceneError]:
     """Every semantic problem of ``scene``, one :class:`SceneError` each, in file order.
 
     Arguments as for :func:`validate_scene`.
     """
     if file is None:
         file = str(scene.path) if scene.path is not None else "<scene>"
-    checker = _Checker(scene, file, lines or {}, check_files)
+    checker = _Checker(scene, file, lines or {}, check_files, max_steps)
     checker.run()
     # Stable sort: by line, problems without a line last, otherwise in check order.
     return sorted(checker.problems, key=lambda e: (e.line is None, e.line or 0))
 
 
 class _Checker:
-    def __init__(self, scene: Scene, file: str, lines: Lines, check_files: bool):
+    def __init__(self, scene: Scene, file: str, lines: Lines, check_files: bool, max_steps: int):
         self.scene = scene
+        self.max_steps = B.max_steps(max_steps)
         self.file = file
         self.lines = lines
         self.check_files = check_files
@@ -111,7 +114,7 @@ class _Checker:
 
     # -- value checks (each returns True when fine) ----------------------------
     def number(self, key, name, value, *, positive=False, nonnegative=False,
-               unit_interval=False, optional=False) -> bool:
+               unit_interval=False, optional=False, minimum=None, limit=None, unit="") -> bool:
         if value is None:
             if not optional:
                 self.report(key, f"'{name}' is missing")
@@ -131,9 +134,16 @@ class _Checker:
         if unit_interval and not 0 <= value <= 1:
             self.report(key, f"'{name}' must be between 0 and 1, got {value!r}")
             return False
+        if minimum is not None and value < minimum:
+            self.report(key, f"'{name}' {value!r}{unit} is below the smallest meaningful value, {minimum:g}{unit}")
+            return False
+        if limit is not None and abs(value) > limit:
+            self.report(key, f"'{name}' {value!r}{unit} is beyond the limit of {limit:g}{unit}")
+            return False
         return True
 
-    def vector(self, key, name, value, n=3, *, positive=False, optional=False) -> bool:
+    def vector(self, key, name, value, n=3, *, positive=False, optional=False, minimum=None, limit=None,
+               norm=None, unit="") -> bool:
         if value is None:
             if not optional:
                 self.report(key, f"'{name}' is missing")
@@ -146,14 +156,25 @@ class _Checker:
         if count != n:
             self.report(key, f"'{name}' needs {n} numbers, got {count}")
             return False
-        return all([self.number(key, name, v, positive=positive) for v in value])
+        if not all([self.number(key, name, v, positive=positive, minimum=minimum, limit=limit, unit=unit)
+                    for v in value]):
+            return False
+        if norm is not None:
+            size = math.hypot(*(float(v) for v in value))
+            if size > norm:
+                self.report(key, f"'{name}' has magnitude {size:.4g}{unit}, beyond the limit of {norm:g}{unit}")
+                return False
+        return True
 
-    def integer(self, key, name, value, minimum) -> bool:
+    def integer(self, key, name, value, minimum, maximum=None) -> bool:
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             self.report(key, f"'{name}' must be an integer, got {value!r}")
             return False
         if value < minimum:
             self.report(key, f"'{name}' must be >= {minimum}, got {value!r}")
+            return False
+        if maximum is not None and value > maximum:
+            self.report(key, f"'{name}' {value!r} is over the limit of {maximum}")
             return False
         return True
 
@@ -194,7 +215,7 @@ class _Checker:
         if scene.version != 1:
             self.report(root, f"unknown scene version {scene.version!r} "
                               "(this reader knows version 1)")
-        self.vector(root, "gravity", scene.gravity)
+        self.vector(root, "gravity", scene.gravity, norm=B.MAX_GRAVITY, unit=" m/s^2")
         if not scene.objects:
             self.report(root, "scene has no objects")
         self.simulation()
@@ -207,15 +228,35 @@ class _Checker:
     def simulation(self) -> None:
         s = self.scene.simulation
         key = ("simulation",)
-        self.number(key, "dt", s.dt, positive=True)
-        self.number(key, "duration", s.duration, positive=True)
-        self.number(key, "friction", s.friction, nonnegative=True)
+        dt_ok = self.number(key, "dt", s.dt, positive=True, limit=B.MAX_DT, unit=" s")
+        duration_ok = self.number(key, "duration", s.duration, positive=True, unit=" s")
+        self.number(key, "friction", s.friction, nonnegative=True, limit=B.MAX_FRICTION)
         self.number(key, "restitution", s.restitution, unit_interval=True)
+        extras = {}
         for name, value in s.extra.items():
             if not isinstance(name, str) or not _XML_NAME_RE.match(name) or name in _SIMULATION_ATTRS:
                 self.report(key, f"extra setting name {name!r} is not a usable attribute name")
             elif not isinstance(value, str):
                 self.report(key, f"extra setting '{name}' must be text, not {type(value).__name__}")
+            elif name in B.SIM_EXTRAS:  # the sphere simulator's own settings: what it would refuse
+                parsed, reason = B.parse_extra(name, value)
+                if reason:
+                    self.report(key, reason)
+                else:
+                    extras[name] = parsed
+        substeps = extras.get("substeps", B.DEFAULT_SUBSTEPS)
+        if dt_ok and "contact-frequency" in extras:
+            h = s.dt / substeps
+            omega = extras["contact-frequency"]
+            if omega * h > B.MAX_CONTACT_OMEGA_H:
+                self.report(key, f"simulation attribute contact-frequency={s.extra['contact-frequency']!r} "
+                                 f"is unstable with substeps of {h:.4g} s (contact-frequency x dt / substeps "
+                                 f"= {omega * h:.4g}, over {B.MAX_CONTACT_OMEGA_H:g})")
+        if dt_ok and duration_ok and ("substeps" in extras or "substeps" not in s.extra):
+            reason = B.budget_problem(B.step_count(s.duration, s.dt), substeps, self.max_steps,
+                                      f"duration / dt = {s.duration!r} s / {s.dt!r} s")
+            if reason:
+                self.report(key, reason)
 
     def object(self, i: int, obj: SceneObject, first_line: dict[str, int]) -> None:
         key = ("object", i)
@@ -246,17 +287,44 @@ class _Checker:
 
         if not isinstance(obj.fixed, bool):
             self.report(key, f"'fixed' must be a boolean, got {obj.fixed!r}")
-        self.number(key, "mass", obj.mass, positive=True, optional=True)
-        self.number(key, "density", obj.density, positive=True, optional=True)
-        self.number(key, "friction", obj.friction, nonnegative=True, optional=True)
+        self.number(key, "mass", obj.mass, positive=True, optional=True, minimum=B.MIN_MASS,
+                    limit=B.MAX_MASS, unit=" kg")
+        density_ok = self.number(key, "density", obj.density, positive=True, optional=True,
+                                 minimum=B.MIN_DENSITY, limit=B.MAX_DENSITY, unit=" kg/m^3")
+        if obj.mass is None and (obj.density is None or density_ok):
+            self.primitive_mass(key, obj)
+        self.number(key, "friction", obj.friction, nonnegative=True, optional=True, limit=B.MAX_FRICTION)
         self.number(key, "restitution", obj.restitution, unit_interval=True, optional=True)
 
         pose_key = ("object", i, "pose")
-        self.vector(pose_key, "position", obj.pose.position)
+        self.vector(pose_key, "position", obj.pose.position, limit=B.MAX_LENGTH, unit=" m")
         self.quaternion(pose_key, "orientation", obj.pose.orientation)
         vel_key = ("object", i, "velocity")
-        self.vector(vel_key, "linear", obj.velocity.linear)
-        self.vector(vel_key, "angular", obj.velocity.angular)
+        self.vector(vel_key, "linear", obj.velocity.linear, norm=B.MAX_SPEED, unit=" m/s")
+        self.vector(vel_key, "angular", obj.velocity.angular, norm=B.MAX_SPIN, unit=" rad/s")
+
+    def primitive_mass(self, key, obj: SceneObject) -> None:
+        """A movable primitive without a mass gets density x volume: that must be in range too."""
+        if obj.fixed or obj.mass is not None or obj.mesh is not None or obj.shape not in ("box", "sphere",
+                                                                                         "cylinder"):
+            return
+        dims = list(obj.size or ()) if obj.shape == "box" else [obj.radius] + ([obj.height] if obj.shape == "cylinder" else [])
+        if not all(isinstance(d, numbers.Real) and B.MIN_SIZE <= d <= B.MAX_LENGTH for d in dims):
+            return  # reported by the shape checks
+        try:
+            if obj.shape == "box":
+                volume = math.prod(float(v) for v in obj.size)
+            elif obj.shape == "sphere":
+                volume = 4.0 / 3.0 * math.pi * float(obj.radius) ** 3
+            else:
+                volume = math.pi * float(obj.radius) ** 2 * float(obj.height)
+        except (TypeError, ValueError, OverflowError):
+            return  # reported by the shape checks
+        density = obj.density if obj.density is not None else 1000.0
+        mass = density * volume
+        if math.isfinite(mass) and not B.MIN_MASS <= mass <= B.MAX_MASS:
+            self.report(key, f"object {obj.id!r} would weigh {mass:.4g} kg (density x volume), outside "
+                             f"{B.MIN_MASS:g}..{B.MAX_MASS:g} kg; give a 'mass' or another density")
 
     def primitive(self, key, obj: SceneObject) -> None:
         if obj.shape not in SHAPES:
@@ -271,9 +339,10 @@ class _Checker:
             elif value is None:
                 self.report(key, f"a {obj.shape} needs '{name}'")
             elif name == "size":
-                self.vector(key, "size", value, positive=True)
+                self.vector(key, "size", value, positive=True, minimum=B.MIN_SIZE, limit=B.MAX_LENGTH,
+                            unit=" m")
             else:
-                self.number(key, name, value, positive=True)
+                self.number(key, name, value, positive=True, minimum=B.MIN_SIZE, limit=B.MAX_LENGTH, unit=" m")
         if obj.shape == "plane" and obj.fixed is not True:
             self.report(key, f"plane {obj.id!r} must be fixed (add fixed=\"true\")")
 
@@ -300,18 +369,19 @@ class _Checker:
             self.report(key, f"source {inf.source!r} is not an object of the scene")
         elif source.fixed:
             self.report(key, f"source {inf.source!r} is fixed; the source must be movable")
-        self.integer(key, "iterations", inf.iterations, 1)
-        self.integer(key, "seed", inf.seed, 0)
+        self.integer(key, "iterations", inf.iterations, 1, B.MAX_ITERATIONS)
+        self.integer(key, "seed", inf.seed, 0, B.MAX_SEED)
         self.choice(key, "optimizer", inf.optimizer, OPTIMIZERS)
         self.choice(key, "gradient", inf.gradient, GRADIENTS, optional=True)
         self.choice(key, "loss", inf.loss, LOSSES)
         self.choice(key, "evaluate", inf.evaluate, EVALUATES)
 
         t, tkey = inf.target, ("target",)
-        self.vector(tkey, "position", t.position)
+        self.vector(tkey, "position", t.position, limit=B.MAX_LENGTH, unit=" m")
         self.quaternion(tkey, "orientation", t.orientation)
-        self.vector(tkey, "linear-velocity", t.linear_velocity, optional=True)
-        self.vector(tkey, "angular-velocity", t.angular_velocity, optional=True)
+        self.vector(tkey, "linear-velocity", t.linear_velocity, optional=True, norm=B.MAX_SPEED, unit=" m/s")
+        self.vector(tkey, "angular-velocity", t.angular_velocity, optional=True, norm=B.MAX_SPIN,
+                    unit=" rad/s")
         if self.number(tkey, "time", t.time, nonnegative=True, optional=True):
             duration = self.scene.simulation.duration
             if isinstance(duration, numbers.Real) and t.time > duration:
@@ -325,8 +395,8 @@ class _Checker:
         area = inf.start_area
         if area is not None:
             akey = ("start-area",)
-            min_ok = self.vector(akey, "min", area.min)
-            max_ok = self.vector(akey, "max", area.max)
+            min_ok = self.vector(akey, "min", area.min, limit=B.MAX_LENGTH, unit=" m")
+            max_ok = self.vector(akey, "max", area.max, limit=B.MAX_LENGTH, unit=" m")
             if min_ok and max_ok:
                 bad = [ax for ax, lo, hi in zip("xyz", area.min, area.max) if lo > hi]
                 if bad:
@@ -335,7 +405,7 @@ class _Checker:
         if inf.exploration is not None:
             xkey = ("exploration",)
             self.number(xkey, "epsilon", inf.exploration.epsilon, unit_interval=True)
-            self.integer(xkey, "patience", inf.exploration.patience, 1)
+            self.integer(xkey, "patience", inf.exploration.patience, 1, B.MAX_ITERATIONS)
 
         for j, pen in enumerate(inf.penalties):
             pkey = ("penalty", j)
@@ -349,7 +419,7 @@ class _Checker:
                                       + ", ".join(repr(x) for x in missing))
                 elif a == b:
                     self.report(pkey, f"'between' names {a!r} twice; give two distinct objects")
-            self.number(pkey, "weight", pen.weight, nonnegative=True)
+            self.number(pkey, "weight", pen.weight, nonnegative=True, limit=B.MAX_PENALTY_WEIGHT)
 
         if inf.heatmap is not None:
             self.heatmap(area)
@@ -376,6 +446,6 @@ class _Checker:
             self.report(key, f"'cells' needs 2 integers, got {len(cells)}")
         else:
             for c in cells:
-                self.integer(key, "cells", c, 1)
-        self.integer(key, "samples", h.samples, 1)
-        self.number(key, "sigma", h.sigma, positive=True)
+                self.integer(key, "cells", c, 1, B.MAX_HEATMAP_CELLS)
+        self.integer(key, "samples", h.samples, 1, B.MAX_HEATMAP_SAMPLES)
+        self.number(key, "sigma", h.sigma, positive=True, limit=B.MAX_LENGTH, unit=" m")

@@ -91,7 +91,7 @@ _UNIT_TOLERANCE = 1e-12
 # public entry points
 # ---------------------------------------------------------------------------
 def read_scene_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
-                    check_files: bool = True) -> Scene:
+                    check_files: bool = True, max_steps: int | None = None) -> Scene:
     """Read, check and return the scene in the XML file ``path``.
 
     Args:
@@ -99,6 +99,8 @@ def read_scene_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
             against its folder.
         max_bytes: refuse files larger than this.
         check_files: check that mesh and sphere files exist.
+        max_steps: step budget of a simulation of the scene (default
+            ``dejaview.scene.bounds.max_steps()``).
     Returns:
         The :class:`Scene`, with ``path`` and ``base_dir`` set.
     Raises:
@@ -116,13 +118,13 @@ def read_scene_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
     except OSError as exc:
         raise SceneError(f"cannot read scene file: {exc.strerror or exc}", filename) from None
     scene = read_scene_string(data, base_dir=path.absolute().parent, filename=filename,
-                              max_bytes=max_bytes, check_files=check_files)
+                              max_bytes=max_bytes, check_files=check_files, max_steps=max_steps)
     return scene.replace(path=path)
 
 
 def read_scene_string(text: str | bytes, base_dir: str | Path | None = None,
                       filename: str = "<string>", max_bytes: int = DEFAULT_MAX_BYTES,
-                      check_files: bool = True) -> Scene:
+                      check_files: bool = True, max_steps: int | None = None) -> Scene:
     """Parse, check and return scene XML given as text or bytes.
 
     Args:
@@ -132,6 +134,8 @@ def read_scene_string(text: str | bytes, base_dir: str | Path | None = None,
         filename: name used in error messages.
         max_bytes: refuse documents larger than this many bytes.
         check_files: check that mesh and sphere files exist.
+        max_steps: step budget of a simulation of the scene (default
+            ``dejaview.scene.bounds.max_steps()``).
     Returns:
         The :class:`Scene` (``path`` unset, ``base_dir`` as given).
     Raises:
@@ -145,7 +149,7 @@ def read_scene_string(text: str | bytes, base_dir: str | Path | None = None,
     scene = _SceneReader(filename, lines).read_scene(root)
     base = Path(base_dir) if base_dir is not None else None
     scene = scene.replace(base_dir=base)
-    validate_scene(scene, check_files=check_files, lines=lines, file=filename)
+    validate_scene(scene, check_files=check_files, lines=lines, file=filename, max_steps=max_steps)
     return scene
 
 

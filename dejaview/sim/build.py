@@ -20,39 +20,28 @@ import numpy as np
 import torch
 
 from dejaview.errors import GeometryError, SceneError
+from dejaview.scene import bounds
 from dejaview.sim.state import State
 from dejaview.sim.world import (DEFAULT_MAX_PAIR_CONTACTS, DEFAULT_MAX_STATIC_CONTACTS, BodySpec,
                                 StaticShape, World)
 
-SIM_EXTRAS = {
-    "substeps": int,
-    "contact-frequency": float,
-    "unload-velocity": float,
-    "sdf-spacing": float,
-    "max-static-contacts": int,
-    "max-pair-contacts": int,
-}
+SIM_EXTRAS = {name: kind for name, (kind, _, _) in bounds.SIM_EXTRAS.items()}
 
 
 def simulation_extras(scene) -> dict:
     """The backend attributes of ``<simulation>`` this simulator understands, parsed.
 
     Raises:
-        SceneError: a value that is not a positive number (unknown attributes are ignored:
-            they may belong to another backend).
+        SceneError: a value that is not a number in its range (``dejaview.scene.bounds.SIM_EXTRAS``;
+            the reader refuses the same, so ``dejaview validate`` says so first). Unknown
+            attributes are ignored: they may belong to another backend.
     """
     out = {}
-    for key, kind in SIM_EXTRAS.items():
+    for key in bounds.SIM_EXTRAS:
         if key in scene.simulation.extra:
-            text = scene.simulation.extra[key]
-            try:
-                value = kind(text)
-            except ValueError:
-                value = None
-            if value is None or not math.isfinite(value) or value <= 0:
-                raise SceneError(f"simulation attribute {key}={text!r} must be a positive "
-                                 f"{'integer' if kind is int else 'number'}",
-                                 file=str(scene.path) if scene.path else None, element="simulation")
+            value, reason = bounds.parse_extra(key, scene.simulation.extra[key])
+            if reason:
+                raise SceneError(reason, file=str(scene.path) if scene.path else None, element="simulation")
             out[key] = value
     return out
 
@@ -124,7 +113,7 @@ def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:
 
 def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                      max_spheres: int = 256, sdf_spacing: float | None = None,
-                     progress=None) -> World:
+                     progress=None, max_steps: int | None = None) -> World:
     """The simulator's World for a scene.
 
     Args:
@@ -134,8 +123,10 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
         sdf_spacing: grid spacing of mesh signed distance fields (default from
             ``<simulation sdf-spacing>`` or 1 cm).
         progress: optional callable(str) told what is being built.
+        max_steps: step budget of the scene's duration (default ``dejaview.scene.bounds.max_steps()``).
     Raises:
         SceneError: no movable object, or a geometry problem (naming the object).
+        SimulationError: the duration is over the step budget, or a mass out of range.
     """
     extras = simulation_extras(scene)
     spacing = sdf_spacing or extras.get("sdf-spacing", 0.01)
@@ -159,7 +150,7 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                         unload_velocity=extras.get("unload-velocity", 0.01),
                         max_static_contacts=extras.get("max-static-contacts", DEFAULT_MAX_STATIC_CONTACTS),
                         max_pair_contacts=extras.get("max-pair-contacts", DEFAULT_MAX_PAIR_CONTACTS),
-                        dtype=dtype, device=device)
+                        max_steps=max_steps, dtype=dtype, device=device)
     return world
 
 

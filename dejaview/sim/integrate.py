@@ -39,6 +39,8 @@ from dataclasses import dataclass
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from dejaview.errors import SimulationError
+from dejaview.scene import bounds
 from dejaview.sim import contacts
 from dejaview.sim.rotation import integrate_quat, quat_to_matrix, small_matmul
 from dejaview.sim.state import State
@@ -173,7 +175,7 @@ def compiled_chunk(world: World, steps: int):
 def rollout(world: World, state: State, steps: int | None = None, record_every: int = 1,
             checkpoint_every: int | None = None, step_fn=None,
             broadphase: bool | None = None, compile: bool = False,
-            compile_chunk: int = 5, engine: str = "torch") -> Trajectory:
+            compile_chunk: int = 5, engine: str = "torch", max_steps: int | None = None) -> Trajectory:
     """Simulate ``steps`` steps from ``state`` and record every ``record_every``-th state.
 
     Args:
@@ -193,14 +195,21 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
             the same model in C++, differentiable in both modes; float64 on the CPU) or
             ``auto`` (native where it applies). Native rollouts keep no autograd graph,
             so ``checkpoint_every``, ``compile`` and ``broadphase`` do not apply to them.
+        max_steps: step budget, steps x substeps (default ``dejaview.scene.bounds.max_steps()``).
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records.
+    Raises:
+        SimulationError: ``steps`` over the step budget (or an engine that cannot run).
     """
     steps = world.steps if steps is None else int(steps)
     if steps < 0:
         raise ValueError("steps must be >= 0")
     if record_every < 1:
         raise ValueError("record_every must be >= 1")
+    reason = bounds.budget_problem(steps, world.substeps, bounds.max_steps(max_steps), "the rollout")
+    if reason:
+        raise SimulationError(reason)
+    record_every = min(int(record_every), max(steps, 1))
     if steps > 0 and engine != "torch":
         from dejaview.sim import native
 

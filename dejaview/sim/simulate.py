@@ -8,6 +8,7 @@ without gradients, and hand back the trajectory ready to be written as
 
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,7 @@ from pathlib import Path
 import torch
 
 from dejaview.errors import SimulationError
+from dejaview.scene import bounds
 from dejaview.sim.integrate import Trajectory
 from dejaview.sim.world import World
 
@@ -35,7 +37,7 @@ def _native_chunks(world: World, state, n: int, record_every: int, callback, sho
             if should_stop is not None and should_stop():
                 raise SimulationStopped(f"stopped after {done} of {n} steps")
             k = min(chunk, n - done)
-            part = native_rollout(world, state, k, record_every)
+            part = native_rollout(world, state, k, record_every, check_divergence=True, first_step=done)
             records.extend(State(*(t[i] for t in part.states.tensors())) for i in range(1, len(part)))
             steps.extend(done + int(s) for s in part.steps[1:])
             state = part.final
@@ -81,7 +83,7 @@ class SimulationRun:
 
 def simulate(scene, *, steps: int | None = None, record_every: int = 1,
              dtype: torch.dtype = torch.float64, callback=None, should_stop=None,
-             world: World | None = None, engine: str = "auto") -> SimulationRun:
+             world: World | None = None, engine: str = "auto", max_steps: int | None = None) -> SimulationRun:
     """Simulate a scene forward without gradients.
 
     Args:
@@ -95,10 +97,13 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
         engine: ``auto`` | ``native`` | ``torch`` (``dejaview.sim.native.ENGINES``; auto: the
             native C++ simulator in float64, torch otherwise). Native runs call ``callback``
             and ``should_stop`` between chunks of ``NATIVE_CHUNK`` steps.
+        max_steps: step budget, steps x substeps (default ``dejaview.scene.bounds.max_steps()``).
     Returns:
-        SimulationRun.
+        SimulationRun, every recorded number finite.
     Raises:
-        SimulationError: ``steps`` or ``record_every`` below 1.
+        SceneError: a scene file that cannot be read (or over the step budget).
+        SimulationError: ``steps`` or ``record_every`` below 1, steps over the budget, or a state
+            that diverged (``dejaview.sim.divergence``: naming the object, the step and the quantity).
         SimulationStopped: ``should_stop`` answered True.
     """
     from dejaview.scene import Scene
@@ -107,12 +112,20 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
 
     if record_every < 1:
         raise SimulationError(f"record_every must be >= 1, got {record_every}")
+    max_steps = bounds.max_steps(max_steps)
     if not hasattr(scene, "objects"):
-        scene = Scene.from_xml(scene)
-    world = world or World.from_scene(scene, dtype=dtype)
+        scene = Scene.from_xml(scene, max_steps=max_steps)
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, numbers.Integral):
+            raise SimulationError(f"steps must be an integer, got {steps!r}")
+        if steps < 1:
+            raise SimulationError(f"steps must be >= 1, got {steps}")
+    world = world or World.from_scene(scene, dtype=dtype, max_steps=max_steps)
     n = world.steps if steps is None else int(steps)
-    if n < 1:
-        raise SimulationError(f"steps must be >= 1, got {n}")
+    reason = bounds.budget_problem(n, world.substeps, max_steps, "the simulation")
+    if reason:
+        raise SimulationError(reason)
+    record_every = min(int(record_every), n)  # the same records, and a number C++ can hold
     state = initial_state(world, scene)
     done = 0
 
@@ -122,12 +135,12 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
             raise SimulationStopped(f"stopped after {done} of {n} steps")
         out = step(world_, state_, broadphase)
         done += 1
+        divergence.check(world_, out, done)
         if callback is not None:
             callback(done, n)
         return out
 
-    hooked = callback is not None or should_stop is not None
-    from dejaview.sim import native
+    from dejaview.sim import divergence, native
 
     if native.use_native(engine, world):
         start = time.perf_counter()
@@ -136,6 +149,5 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
                              elapsed_s=time.perf_counter() - start)
     start = time.perf_counter()
     with torch.no_grad():
-        traj = rollout(world, state, steps=n, record_every=record_every,
-                       step_fn=step_with_hooks if hooked else None)
+        traj = rollout(world, state, steps=n, record_every=record_every, step_fn=step_with_hooks)
     return SimulationRun(world=world, trajectory=traj, steps=n, elapsed_s=time.perf_counter() - start)

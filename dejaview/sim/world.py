@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from dejaview.errors import SimulationError
+from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
@@ -269,7 +270,7 @@ class World:
               duration: float | None = None, friction: float = 0.5, restitution: float = 0.2,
               contact_frequency: float | None = None, unload_velocity: float = 0.01,
               max_static_contacts: int = DEFAULT_MAX_STATIC_CONTACTS,
-              max_pair_contacts: int = DEFAULT_MAX_PAIR_CONTACTS,
+              max_pair_contacts: int = DEFAULT_MAX_PAIR_CONTACTS, max_steps: int | None = None,
               dtype: torch.dtype = torch.float64, device=None) -> "World":
         """Assemble a world from body and static descriptions.
 
@@ -282,14 +283,31 @@ class World:
             contact_frequency: omega_0 in rad/s (default ``DEFAULT_OMEGA_H / (dt / substeps)``).
             unload_velocity: speed over which contacts blend loading/unloading stiffness (m/s).
             max_static_contacts, max_pair_contacts: contact capacity (see ``ContactSettings``).
+            max_steps: budget of the default rollout, steps x substeps (default ``bounds.max_steps()``).
+        Raises:
+            SimulationError: settings out of range (``dejaview.scene.bounds``), a default rollout over
+                the step budget, a body without spheres or with a bad mass or inertia.
         """
         if not bodies:
             raise SimulationError("a world needs at least one movable body")
-        if not (dt > 0 and math.isfinite(dt)) or substeps < 1:
-            raise SimulationError(f"invalid time step dt={dt} substeps={substeps}")
-        if min(max_static_contacts, max_pair_contacts) < 1:
-            raise SimulationError(f"contact capacities must be >= 1, got {max_static_contacts} "
-                                  f"(static) and {max_pair_contacts} (pair)")
+        if not (dt > 0 and math.isfinite(dt)) or not 1 <= substeps <= bounds.MAX_SUBSTEPS:
+            raise SimulationError(f"invalid time step dt={dt} substeps={substeps} (substeps 1.."
+                                  f"{bounds.MAX_SUBSTEPS})")
+        if not 1 <= min(max_static_contacts, max_pair_contacts) <= max(max_static_contacts,
+                                                                     max_pair_contacts) <= bounds.MAX_CONTACTS:
+            raise SimulationError(f"contact capacities must be 1..{bounds.MAX_CONTACTS}, got "
+                                  f"{max_static_contacts} (static) and {max_pair_contacts} (pair)")
+        g = [float(c) for c in gravity]
+        if not all(math.isfinite(c) for c in g) or math.hypot(*g) > bounds.MAX_GRAVITY:
+            raise SimulationError(f"gravity {tuple(g)} is beyond the limit of {bounds.MAX_GRAVITY:g} m/s^2")
+        if steps is None:
+            count = bounds.step_count(duration if duration is not None else 1.5, dt)
+        else:
+            count = float(steps)
+        reason = bounds.budget_problem(count, substeps, bounds.max_steps(max_steps), "the default rollout")
+        if reason:
+            raise SimulationError(reason)
+        steps = int(count)
         n = len(bodies)
         s_max = max(len(b.radii) for b in bodies)
         centers = np.zeros((n, s_max, 3))
@@ -301,8 +319,9 @@ class World:
         inv_i_min = np.zeros(n)
         mass = np.zeros(n)
         for i, b in enumerate(bodies):
-            if not (b.mass > 0 and math.isfinite(b.mass)):
-                raise SimulationError(f"body {b.name!r}: mass must be positive, got {b.mass}")
+            if not (bounds.MIN_MASS <= b.mass <= bounds.MAX_MASS):
+                raise SimulationError(f"body {b.name!r}: mass {b.mass:.4g} kg is outside "
+                                      f"{bounds.MIN_MASS:g}..{bounds.MAX_MASS:g} kg")
             if len(b.radii) == 0:
                 raise SimulationError(f"body {b.name!r}: no spheres")
             s = len(b.radii)
@@ -322,6 +341,9 @@ class World:
         es = np.array([restitution if b.restitution is None else b.restitution for b in bodies])
         h = dt / substeps
         omega = float(contact_frequency or DEFAULT_OMEGA_H / h)
+        if not (omega > 0 and omega * h <= bounds.MAX_CONTACT_OMEGA_H):
+            raise SimulationError(f"contact frequency {omega:.4g} rad/s is unstable with substeps of {h:.4g} s "
+                                  f"(frequency x substep must be in (0, {bounds.MAX_CONTACT_OMEGA_H:g}])")
         unload = functools.partial(restitution_to_unloading, omega_h=omega * h)
         k = len(statics)
         mu_static = np.zeros((n, k))
@@ -333,8 +355,6 @@ class World:
         mu_pair = np.array([math.sqrt(mus[a] * mus[b]) for a, b in pairs])
         unload_pair = np.array([unload(0.5 * (es[a] + es[b])) for a, b in pairs])
         mass_pair = np.array([mass[a] * mass[b] / (mass[a] + mass[b]) for a, b in pairs])
-        if steps is None:
-            steps = max(1, int(round((duration if duration is not None else 1.5) / dt)))
         f = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
         world = World(
             names=tuple(b.name for b in bodies), mass=f(mass), inertia=f(inertia),
@@ -353,12 +373,14 @@ class World:
 
     @staticmethod
     def from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
-                   max_spheres: int = 256, sdf_spacing: float = 0.01, progress=None) -> "World":
-        """Build the world of a ``dejaview.scene.Scene`` (see ``dejaview.sim.build``)."""
+                   max_spheres: int = 256, sdf_spacing: float | None = None, progress=None,
+                   max_steps: int | None = None) -> "World":
+        """Build the world of a ``dejaview.scene.Scene`` (see ``dejaview.sim.build``; ``sdf_spacing``
+        default: the scene's ``<simulation sdf-spacing>``, else 1 cm)."""
         from dejaview.sim.build import world_from_scene
 
         return world_from_scene(scene, dtype=dtype, device=device, max_spheres=max_spheres,
-                                sdf_spacing=sdf_spacing, progress=progress)
+                                sdf_spacing=sdf_spacing, progress=progress, max_steps=max_steps)
 
     def to(self, device=None, dtype=None) -> "World":
         """Move every tensor (statics included) to ``device`` / floating ``dtype``."""

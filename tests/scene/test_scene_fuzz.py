@@ -30,6 +30,7 @@ from dejaview.scene import (
     Target,
     Velocity,
 )
+from dejaview.scene.bounds import SIM_EXTRAS
 from dejaview.scene.validate import scene_problems
 from dejaview.scene.xml import normalize_quaternion, read_scene_string
 
@@ -161,6 +162,10 @@ def finite(lo=-1e3, hi=1e3):
 
 
 positive = st.floats(1e-6, 1e3)
+# within dejaview.scene.bounds: sizes 1 cm..10 m and densities 1..1e4 kg/m^3 keep every
+# primitive's mass from its density within MIN_MASS..MAX_MASS
+size = st.floats(1e-2, 10)
+density = st.floats(1, 1e4)
 vec3 = st.tuples(finite(), finite(), finite())
 ids = st.from_regex(r"[A-Za-z_][A-Za-z0-9_.\-]{0,11}", fullmatch=True)
 
@@ -176,9 +181,9 @@ def unit_quaternions(draw):
 def scene_objects(draw, object_id: str, movable: bool):
     kind = draw(st.sampled_from(["box", "sphere", "cylinder", "mesh"] + ([] if movable else ["plane"])))
     geometry = {
-        "box": lambda: dict(shape="box", size=draw(st.tuples(positive, positive, positive))),
-        "sphere": lambda: dict(shape="sphere", radius=draw(positive)),
-        "cylinder": lambda: dict(shape="cylinder", radius=draw(positive), height=draw(positive)),
+        "box": lambda: dict(shape="box", size=draw(st.tuples(size, size, size))),
+        "sphere": lambda: dict(shape="sphere", radius=draw(size)),
+        "cylinder": lambda: dict(shape="cylinder", radius=draw(size), height=draw(size)),
         "plane": lambda: dict(shape="plane"),
         "mesh": lambda: dict(mesh="meshes/cube.obj",
                              spheres=draw(st.sampled_from([None, "packings/cube.spheres"]))),
@@ -189,7 +194,7 @@ def scene_objects(draw, object_id: str, movable: bool):
         pose=Pose(draw(vec3), draw(unit_quaternions())),
         velocity=draw(st.one_of(st.just(Velocity()), st.builds(Velocity, vec3, vec3))),
         fixed=not movable,
-        mass=optional(positive), density=optional(positive),
+        mass=optional(positive), density=optional(density),
         friction=optional(finite(0, 10)), restitution=optional(finite(0, 1)),
         **geometry,
     )
@@ -205,7 +210,8 @@ def scenes(draw):
         dt=draw(st.floats(1e-5, 1e-1)), duration=duration,
         friction=draw(finite(0, 5)), restitution=draw(finite(0, 1)),
         extra=draw(st.dictionaries(st.from_regex(r"[a-z][a-z0-9\-]{0,8}", fullmatch=True)
-                                   .filter(lambda k: k not in ("dt", "duration", "friction", "restitution")),
+                                   .filter(lambda k: k not in ("dt", "duration", "friction", "restitution")
+                                           and k not in SIM_EXTRAS),
                                    xml_text.filter(lambda t: "\r" not in t), max_size=3)),
     )
     inference = None
@@ -223,7 +229,7 @@ def scenes(draw):
                 angular_velocity=draw(st.one_of(st.none(), vec3)),
                 time=draw(st.one_of(st.none(), st.floats(0, duration))),
             ),
-            iterations=draw(st.integers(1, 10_000)), seed=draw(st.integers(0, 2**63)),
+            iterations=draw(st.integers(1, 10_000)), seed=draw(st.integers(0, 2**63 - 1)),
             optimizer=draw(st.sampled_from(OPTIMIZERS)),
             gradient=draw(st.sampled_from((None,) + GRADIENTS)),
             loss=draw(st.sampled_from(LOSSES)), evaluate=draw(st.sampled_from(EVALUATES)),
@@ -240,7 +246,7 @@ def scenes(draw):
     return Scene(
         objects=objects,
         name=draw(st.one_of(st.none(), xml_text.filter(lambda t: "\r" not in t))),
-        gravity=draw(vec3), simulation=simulation, inference=inference, base_dir=VALID,
+        gravity=draw(st.tuples(*[finite(-500, 500)] * 3)), simulation=simulation, inference=inference, base_dir=VALID,
     )
 
 

@@ -128,14 +128,26 @@ def test_subscribe_to_running_and_finished_jobs(make_client):
 
 
 def test_a_failed_job_sends_error_then_done(client, scene_root):
-    # valid XML whose <simulation> backend attribute only the simulator rejects (at run time)
-    bad = BALL_XML.replace('restitution="0.2"/>', 'restitution="0.2" substeps="0"/>')
+    # a scene the reader accepts but the simulator cannot build (at run time): a signed distance
+    # grid of the 10 cm cube at 0.1 mm spacing would have 2.7e10 nodes
+    bad = (BALL_XML.replace('restitution="0.2"/>', 'restitution="0.2" sdf-spacing="0.0001"/>')
+           .replace("  <inference", '  <object id="block" mesh="meshes/cube.obj" fixed="true">'
+                                    '<pose position="1 0 0.05"/></object>\n  <inference'))
     with client.websocket_connect("/ws") as ws:
         submit(ws, kind="simulate", scene_xml=bad, request_id="b")
         messages = until_done(ws)
     assert types(messages) == ["accepted", "error", "done"]
-    assert messages[1]["code"] == "invalid_scene" and "substeps" in messages[1]["message"]
+    assert messages[1]["code"] == "invalid_scene" and "spacing" in messages[1]["message"]
     assert messages[2]["state"] == "failed"
+
+
+def test_a_backend_attribute_the_simulator_refuses_is_refused_at_submission(client):
+    bad = BALL_XML.replace('restitution="0.2"/>', 'restitution="0.2" substeps="0"/>')
+    with client.websocket_connect("/ws") as ws:
+        submit(ws, kind="simulate", scene_xml=bad, request_id="b")
+        message = receive(ws)
+    assert message["type"] == "error" and message["code"] == "invalid_scene"
+    assert "substeps='0' must be at least 1" in message["message"]
 
 
 BAD_FRAMES = [

@@ -40,3 +40,32 @@ def test_steps_and_record_every():
     for bad in ({"steps": 0}, {"record_every": 0}):
         with pytest.raises(SimulationError):
             simulate(Scene.from_xml(BALL), **bad)
+
+
+def test_a_step_budget_on_every_entry_point(monkeypatch):
+    """``simulate`` and ``rollout`` refuse absurd step counts with one line instead of running for
+    ever (or failing to allocate); the budget (steps x substeps) is a named constant, overridable."""
+    from dejaview.scene import bounds
+    from dejaview.sim import World
+    from dejaview.sim.build import initial_state
+    from dejaview.sim.integrate import rollout
+
+    scene = Scene.from_xml(BALL)  # 2 substeps
+    for engine in ("native", "torch"):
+        with pytest.raises(SimulationError, match=r"the simulation is 1e\+12 steps x 2 substeps = "
+                                                  r"2e\+12 integration steps, over the budget of 2000000"):
+            simulate(scene, steps=10 ** 12, engine=engine)
+    with pytest.raises(SimulationError, match="over the budget of 40 "):
+        simulate(scene, steps=21, max_steps=40)
+    assert simulate(scene, steps=20, max_steps=40).steps == 20
+    world = World.from_scene(scene)
+    with pytest.raises(SimulationError, match="the rollout is 1000001 steps x 2 substeps"):
+        rollout(world, initial_state(world, scene), steps=bounds.MAX_STEPS // 2 + 1, engine="native")
+    monkeypatch.setenv("DEJAVIEW_MAX_STEPS", "30")
+    with pytest.raises(SimulationError, match="over the budget of 30 "):
+        simulate(scene, steps=16)
+    with pytest.raises(SimulationError, match="the default rollout is 20 steps x 2 substeps"):
+        World.from_scene(scene)
+    # recording every 10**30th step is recording the first and the last (and fits in C++)
+    monkeypatch.delenv("DEJAVIEW_MAX_STEPS")
+    assert simulate(scene, steps=5, record_every=10 ** 30).trajectory.steps.tolist() == [0, 5]

@@ -25,9 +25,10 @@ shape altogether. Results equal the torch simulator's up to the order of
 floating-point sums (``tests/sim/test_native.py``).
 
 Limits: float64 on the CPU; the body pair broad phase is per candidate. The
-extension is compiled on first use with ``torch.utils.cpp_extension`` (g++,
-about a minute) and cached in torch's extension directory
-(``TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``).
+extension is compiled by ``scripts/setup`` or on first use (g++, about a
+minute) into a folder of this install named after a hash of the source,
+torch, Python and the compiler flags (``dejaview.sim.native.loader``: a build
+killed half-way never blocks the next one).
 """
 
 from __future__ import annotations
@@ -70,24 +71,28 @@ def threads() -> int:
     return os.cpu_count() or 1
 
 
+CFLAGS = ["-O3", "-march=native", "-fno-math-errno"]
+
+
 def extension():
-    """The compiled C++ module (built on first call, then loaded from torch's cache).
+    """The compiled C++ module (built on first call, then loaded from this install's build folder).
 
     Raises:
-        SimulationError: the build failed (no compiler, ...); remembered for the process.
+        SimulationError: the build failed (no compiler, another process's build did not finish
+            in time, ...); remembered for the process.
     """
     global _EXTENSION, _BUILD_ERROR
     with _LOCK:
         if _BUILD_ERROR is not None:
             raise _BUILD_ERROR
         if _EXTENSION is None:
-            from torch.utils.cpp_extension import load
+            from dejaview.sim.native.loader import load_extension
 
-            _ninja_on_path()
             try:
-                _EXTENSION = load(name="dejaview_native", sources=[str(SOURCE)],
-                                  extra_cflags=["-O3", "-march=native", "-fno-math-errno"],
-                                  verbose=False)
+                _EXTENSION = load_extension("dejaview_native", SOURCE, CFLAGS)
+            except SimulationError as exc:
+                _BUILD_ERROR = exc
+                raise
             except Exception as exc:  # no compiler, a broken build
                 lines = str(exc).strip().splitlines() or ["unknown error"]
                 first = next((ln for ln in lines if "error" in ln.lower()), lines[-1])
@@ -95,19 +100,6 @@ def extension():
                                                f"{SOURCE}: {first.strip()[:300]}")
                 raise _BUILD_ERROR from exc
     return _EXTENSION
-
-
-def _ninja_on_path() -> None:
-    """torch's builder runs ``ninja`` from PATH: add the ``ninja`` package's binary folder (a
-    virtual environment's ``bin`` is not on PATH unless activated)."""
-    try:
-        import ninja
-    except ImportError:
-        return
-    folder = getattr(ninja, "BIN_DIR", None)
-    path = os.environ.get("PATH", "")
-    if folder and folder not in path.split(os.pathsep):
-        os.environ["PATH"] = os.pathsep.join(p for p in (folder, path) if p)
 
 
 def available() -> bool:
@@ -241,8 +233,9 @@ class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(init, steps, record_every, with_jac, packed):
         tensors, floats, ints = packed
-        return tuple(extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
-                                         tensors, floats, ints, threads()))
+        states, phi, _ = extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
+                                             tensors, floats, ints, threads())
+        return states, phi
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -294,7 +287,8 @@ def _needs_jacobian(init: torch.Tensor) -> bool:
     return torch.autograd.forward_ad.unpack_dual(init).tangent is not None
 
 
-def native_rollout(world, state: State, steps: int, record_every: int = 1):
+def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
+                   check_divergence: bool = False, first_step: int = 0):
     """``dejaview.sim.integrate.rollout`` on the native simulator.
 
     Args:
@@ -302,9 +296,15 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1):
         state: initial State (B, N, ...).
         steps: number of steps (>= 1).
         record_every: record interval; the initial and final states are always recorded.
+        check_divergence: forward simulation: end with the error of ``dejaview.sim.divergence``
+            when a state turns non-finite or out of range (no gradients then). Off, a diverged
+            candidate of a batch just carries its NaN or inf to its loss.
+        first_step: number of the first step, for the error (simulations run in chunks).
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records, differentiable with
         respect to ``state`` in reverse and forward mode.
+    Raises:
+        SimulationError: with ``check_divergence``, naming the object, the step and the quantity.
     """
     from dejaview.sim.integrate import Trajectory
 
@@ -313,7 +313,20 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1):
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")
     init = torch.cat(state.tensors(), -1)  # (B, N, 13)
-    states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
+    if check_divergence:
+        from dejaview.sim import divergence
+
+        tensors, floats, ints = packed
+        states, _, status = extension().rollout(init.detach().contiguous(), int(steps), int(record_every),
+                                                False, tensors, floats + divergence.native_limits(), ints,
+                                                threads())
+        bad = (status[:, 0] >= 0).nonzero()
+        if bad.numel():
+            b = int(bad[0, 0])
+            step, body, quantity, record = (int(v) for v in status[b])
+            raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
+    else:
+        states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
     recorded = [0] + [i for i in range(1, steps + 1) if i % record_every == 0 or i == steps]
     return Trajectory(State(seq[..., :3], seq[..., 3:7], seq[..., 7:10], seq[..., 10:]),

@@ -813,9 +813,28 @@ void phi_update(int dim, const S* J, const S* phi, S* out, const std::vector<cha
     }
 }
 
+// Divergence check of forward simulations (dejaview.sim.divergence): the first quantity of body
+// state s (13 numbers) that is not finite or out of range -- 0 position (|coordinate| > reach),
+// 1 orientation, 2 linear velocity (|v| > speed), 3 angular velocity (|w| bound > speed) -- or -1.
+template <typename S>
+inline int diverged(const S* s, S reach, S speed, S bound) {
+  for (int i = 0; i < 3; ++i)
+    if (!(std::abs(s[i]) <= reach)) return 0;  // NaN fails every comparison
+  for (int i = 3; i < 7; ++i)
+    if (!std::isfinite(s[i])) return 1;
+  const S v2 = s[7] * s[7] + s[8] * s[8] + s[9] * s[9];
+  if (!(v2 <= speed * speed)) return 2;
+  const S w2 = s[10] * s[10] + s[11] * s[11] + s[12] * s[12];
+  if (!(w2 * bound * bound <= speed * speed)) return 3;
+  return -1;
+}
+
+// limits: nullptr, or {reach, speed}: a body whose state diverges (above) ends the candidate; its
+// state is then the last record written, status = {step, body, quantity, record} and the records
+// after it are NaN. status stays {-1, -1, -1, -1} otherwise.
 template <typename S>
 void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
-                   S* rec_states, S* rec_phi) {
+                   S* rec_states, S* rec_phi, const S* limits, int64_t* status) {
   const int n = w.n;
   const int dim = 13 * n;
   Scratch<S> sc;
@@ -846,10 +865,26 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
       phi_update<S>(dim, sc.jac.data(), phi.data(), tmp.data(), sc.blk);  // phi <- J phi
       phi.swap(tmp);
     }
-    if (step % record_every == 0 || step == steps) {
+    int bad_body = -1, bad_quantity = -1;
+    if (limits) {
+      for (int a = 0; a < n && bad_body < 0; ++a) {
+        bad_quantity = diverged<S>(state.data() + 13 * a, limits[0], limits[1], w.bound[a]);
+        if (bad_quantity >= 0) bad_body = a;
+      }
+    }
+    if (bad_body >= 0 || step % record_every == 0 || step == steps) {
       std::copy(state.begin(), state.end(), rec_states + r * dim);
       if (with_jac) std::copy(phi.begin(), phi.end(), rec_phi + r * static_cast<int64_t>(dim) * dim);
       ++r;
+    }
+    if (bad_body >= 0) {
+      status[0] = step; status[1] = bad_body; status[2] = bad_quantity; status[3] = r - 1;
+      const int64_t records = (steps + record_every - 1) / record_every;
+      const S nan = std::numeric_limits<S>::quiet_NaN();
+      std::fill(rec_states + r * dim, rec_states + records * dim, nan);
+      if (with_jac)
+        std::fill(rec_phi + r * static_cast<int64_t>(dim) * dim, rec_phi + records * static_cast<int64_t>(dim) * dim, nan);
+      return;
     }
   }
 }
@@ -923,7 +958,9 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
 
 // threads: candidates are spread over this many threads (torch's intra-op pool is not used, so the
 // simulator's parallelism does not depend on torch.set_num_threads).
-// init: (B, N, 13) -> states (B, R, N, 13) and, with_jac, phi (B, R, 13N, 13N) = d state / d init
+// init: (B, N, 13) -> states (B, R, N, 13) and, with_jac, phi (B, R, 13N, 13N) = d state / d init, and
+// status (B, 4): where a candidate diverged (run_candidate), checked only when floats carries the
+// limits {reach, speed} after its first 6 numbers
 std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, bool with_jac,
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
                                    std::vector<int64_t> ints, int64_t threads) {
@@ -937,7 +974,10 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
   const int64_t records = (steps + record_every - 1) / record_every;
   auto states = torch::empty({b, records, n, 13}, init.options());
   auto phi = with_jac ? torch::empty({b, records, dim, dim}, init.options()) : torch::empty({0}, init.options());
+  auto status = torch::full({b, 4}, -1, init.options().dtype(torch::kInt64));
   TORCH_CHECK(init.scalar_type() == torch::kFloat64, "the native simulator runs in float64");
+  TORCH_CHECK(floats.size() == 6 || floats.size() == 8, "floats: gravity(3), h, omega, unload_velocity "
+              "[, reach, speed]");
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
@@ -945,10 +985,13 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
     const S* in = init.data_ptr<S>();
     S* out = states.data_ptr<S>();
     S* ph = with_jac ? phi.data_ptr<S>() : nullptr;
+    const S limit_values[2] = {floats.size() == 8 ? floats[6] : S(0), floats.size() == 8 ? floats[7] : S(0)};
+    const S* limits = floats.size() == 8 ? limit_values : nullptr;
+    int64_t* st = status.data_ptr<int64_t>();
     pybind11::gil_scoped_release no_gil;  // other Python threads (a server's event loop) run meanwhile
     auto work = [&](int64_t i) {
       dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
-                           with_jac ? ph + i * records * dim * dim : nullptr);
+                           with_jac ? ph + i * records * dim * dim : nullptr, limits, st + 4 * i);
     };
     const int64_t workers = std::min<int64_t>(std::max<int64_t>(threads, 1), b);
     if (workers <= 1) {
@@ -971,7 +1014,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
       if (error) std::rethrow_exception(error);
     }
   }
-  return {states, phi};
+  return {states, phi, status};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
