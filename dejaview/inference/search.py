@@ -60,9 +60,9 @@ LM_FINAL_ITERATIONS = 30
 STALL_GENERATIONS = 15
 """An instance whose best cost fell by less than ``STALL_RATIO`` over this many generations stops."""
 STALL_RATIO = 1e-3
-CHI2_EXPLAINED = 0.05
+CHI2_EXPLAINED = 0.01
 """Observation chi-square per observed residual at or below which the end counts as explained and
-the search stops: a mean misfit of a fifth of the observation noise's standard deviation (a flat
+the search stops: a mean misfit of a tenth of the observation noise's standard deviation (a flat
 prior's maximum explains the end exactly; this stops the global search once a candidate does)."""
 MAX_POPULATION_FACTOR = 4
 """A fresh instance doubles the population of the one it replaces (IPOP), up to this factor."""

@@ -45,6 +45,16 @@ def test_a_drawn_truth_is_reproducible_inside_the_start_area_and_keeps_the_story
     assert scene.inference.target.position[0] > 0.36  # it reached the side panel
 
 
+@pytest.mark.parametrize("name", ["ball_down_ramp", "box_down_ramp"])
+def test_a_ramp_case_starts_at_rest_in_the_area_and_ends_on_the_floor(name):
+    recovery = bench()
+    scene, truth, _ = recovery.make_case(recovery.Case(name, 0))
+    assert truth["linear"] == [0.0, 0.0, 0.0] and truth["angular"] == [0.0, 0.0, 0.0]
+    area = scene.inference.start_area
+    assert all(lo <= p <= hi for lo, p, hi in zip(area.min, truth["position"], area.max))
+    assert scene.inference.target.position[2] < 0.2
+
+
 @pytest.mark.slow
 def test_recovery_suite_succeeds_in_at_least_95_percent_of_cases(tmp_path):
     """The suite as ``python bench/recovery.py`` runs it: solve's defaults, nothing else."""
