@@ -470,12 +470,11 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
                  screen_near=screen_near, epsilon=epsilon, patience=patience, lr=lr, gradient=gradient,
                  x0=x0)
+    problem = _make_problem(scene, problem, world, backend, compile, engine)
+    if (optimizer or scene.inference.optimizer) == "auto" and problem.backend != "spheres":
+        optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
     settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
                                      tolerance=tolerance, budget=budget, **local)
-    problem = _make_problem(scene, problem, world, backend, compile, engine)
-    if settings.optimizer == "auto" and problem.backend != "spheres":
-        settings = SolveSettings.resolve(scene, optimizer="lbfgs", iterations=iterations, seed=seed,
-                                         tolerance=tolerance, **local)
     if settings.optimizer == "auto":
         opt, extra = _search(scene, problem, settings, callback, should_stop)
     else:
