@@ -2,8 +2,8 @@
 line naming the lock, and a build killed half-way (SIGKILL) does not block the next one.
 
 The kill tests build a tiny pybind11 module through the same code path as ``rollout.cpp``
-(``dejaview.sim.native.loader``), so they take seconds; the slow one kills the real CLI while it
-compiles the real simulator, as a user would."""
+(``dejaview.sim.native.loader``), so they take seconds; the last one kills the real CLI while it
+compiles the real simulator, as a user would (about a minute: it compiles rollout.cpp twice)."""
 
 from __future__ import annotations
 
@@ -181,7 +181,6 @@ def test_a_build_killed_mid_way_does_not_block_the_next(tmp_path):
         _end(first)
 
 
-@pytest.mark.slow
 def test_killing_the_first_cli_run_while_it_compiles_does_not_hang_the_next(tmp_path):
     """The issue's report: ``dejaview simulate`` killed (SIGKILL) while it compiles the native
     simulator on first use; the next run with the same extension folder must finish."""
