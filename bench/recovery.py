@@ -268,6 +268,15 @@ def pose_errors(result) -> dict:
                 record_time_s=m["time"])
 
 
+def explains_the_end(result, errors: dict | None = None) -> bool:
+    """The suite's success: the answer re-simulated meets the target within ``POSITION_TOL`` and
+    ``ANGLE_TOL`` (the angle not required for a ``position`` loss); ``errors``: ``pose_errors``."""
+    errors = pose_errors(result) if errors is None else errors
+    angle_required = result.problem.loss_kind != "position"
+    return errors["position_error_m"] <= POSITION_TOL and (
+        not angle_required or errors["angle_error_deg"] <= ANGLE_TOL)
+
+
 def solve_case(case: Case, callback=None, **solve_options) -> dict:
     """Draw, simulate and solve one case with ``dejaview.solve``'s defaults (``solve_options``
     override them, e.g. for a comparison; ``callback``: solve's); the row of the table."""
@@ -280,8 +289,7 @@ def solve_case(case: Case, callback=None, **solve_options) -> dict:
     errors = pose_errors(result)
     start = np.asarray(result.initial_state["position"])
     angle_required = result.problem.loss_kind != "position"
-    success = errors["position_error_m"] <= POSITION_TOL and (
-        not angle_required or errors["angle_error_deg"] <= ANGLE_TOL)
+    success = explains_the_end(result, errors)
     history = result.iterations
     return {
         "case": case.name, "scene": case.scene, "success": bool(success),

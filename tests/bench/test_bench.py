@@ -142,3 +142,12 @@ def test_profile_reports_time_per_evaluation_and_the_top_ops():
     out = bench_module("op_profile").run(steps=3, rows=5, print_fn=None)
     assert out["seconds_per_evaluation"] > 0 and out["warmup_s"] > 0
     assert "Self CPU" in out["table"]
+
+
+def test_search_bench_solves_with_both_pipelines_and_reports_the_ratio():
+    """``dejaview bench search`` on a cheap scene: both pipelines' rows, success and the time ratio."""
+    lines = []
+    rows = bench_module("search").run(print_fn=lines.append, scenes=("box_down_ramp",), seeds=(0,))
+    assert [r["pipeline"] for r in rows] == ["auto", "seed-pipeline"]
+    assert rows[0]["success"] and rows[0]["seconds"] > 0
+    assert any("time ratio" in line for line in lines)
