@@ -22,12 +22,17 @@ against 14.3 s for every record, the same penalties).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from dejaview.errors import InferenceError
 from dejaview.sim.integrate import Trajectory
 from dejaview.sim.rotation import quat_rotate
 
+SCREEN_TOLERANCE = 1e-3
+"""Metres: records whose float32 gap lies within this of the least one are searched in float64
+(float32's error on these gaps is below 1e-4 m)."""
 DEFAULT_CHUNK_ELEMENTS = 1 << 20
 """Sphere pairs the closest-pair search evaluates at once (~32 MiB of float64 temporaries)."""
 
@@ -117,15 +122,26 @@ def _body_body_gap(world, pos, quat, a: int, b: int, chunk_elements: int) -> tor
     pos_d, quat_d = pos.detach(), quat.detach()
     n_cand = pos.shape[1]
 
-    def gaps(t, c):
-        """Sphere-pair gaps (K, Sa * Sb) at records t (K,) of candidates c (K,)."""
+    def gaps(t, c, dtype=pos.dtype):
+        """Sphere-pair gaps (K, Sa * Sb) at records t (K,) of candidates c (K,), in ``dtype``."""
         # relative to a's COM, |x|^2 + |y|^2 - 2 x.y stays accurate; the chosen pair is recomputed exactly
-        origin = pos_d[t, c, a].unsqueeze(-2)
-        ca = _sphere_centres(world, a, pos_d[t, c, a], quat_d[t, c, a]) - origin  # (K, Sa, 3)
-        cb = _sphere_centres(world, b, pos_d[t, c, b], quat_d[t, c, b]) - origin
+        pa, qa = pos_d[t, c, a].to(dtype), quat_d[t, c, a].to(dtype)
+        pb, qb = pos_d[t, c, b].to(dtype), quat_d[t, c, b].to(dtype)
+        ca = quat_rotate(qa.unsqueeze(-2), world.centers[a].to(dtype).unsqueeze(0))  # (K, Sa, 3)
+        cb = quat_rotate(qb.unsqueeze(-2), world.centers[b].to(dtype).unsqueeze(0)) + (pb - pa).unsqueeze(-2)
         sq = ((ca * ca).sum(-1).unsqueeze(-1) + (cb * cb).sum(-1).unsqueeze(-2)
               - 2.0 * ca @ cb.transpose(-1, -2))  # (K, Sa, Sb) squared distances, one matmul
-        return (sq.clamp(min=0.0).sqrt() - reach).flatten(-2)
+        return (sq.clamp(min=0.0).sqrt() - reach.to(dtype)).flatten(-2)
+
+    def least(t, c, dtype=pos.dtype):
+        """Least gap and its pair (K,) of each entry, in chunks of ``chunk_elements`` pairs."""
+        per = max(1, chunk_elements // max(1, ra.shape[0] * sb))
+        values, pairs = [], []
+        for k0 in range(0, t.shape[0], per):
+            v, p_ = gaps(t[k0:k0 + per], c[k0:k0 + per], dtype).min(-1)
+            values.append(v)
+            pairs.append(p_)
+        return torch.cat(values), torch.cat(pairs)
 
     # Pruning, exact: the bounding spheres about the COMs bound every record's gap from below,
     # lb(t) = |x_a - x_b| - R_a - R_b. The gap at the record of the smallest lb is an upper
@@ -139,13 +155,15 @@ def _body_body_gap(world, pos, quat, a: int, b: int, chunk_elements: int) -> tor
     keep = (lb <= upper.unsqueeze(0)) & (upper > 0).unsqueeze(0)
     keep[t_star, cand] = True  # each candidate keeps its record t*, a non-finite one that alone
     et, ec = keep.nonzero(as_tuple=True)  # (K,) records and candidates to search
-    per = max(1, chunk_elements // max(1, ra.shape[0] * sb))
-    values, pairs = [], []
-    for k0 in range(0, et.shape[0], per):
-        v, p_ = gaps(et[k0:k0 + per], ec[k0:k0 + per]).min(-1)
-        values.append(v)
-        pairs.append(p_)
-    ev, ep = torch.cat(values), torch.cat(pairs)
+    if pos.dtype == torch.float64 and et.shape[0] > n_cand:
+        # screen the entries in float32 (~4x faster; its gaps are off by < 0.1 mm) and search
+        # exactly only those within SCREEN_TOLERANCE of their candidate's least screened gap
+        v32, _ = least(et, ec, torch.float32)
+        v32 = v32.to(pos.dtype)
+        m32 = torch.full((n_cand,), math.inf, dtype=pos.dtype).scatter_reduce(0, ec, v32, "amin")
+        near = (v32 <= m32[ec] + SCREEN_TOLERANCE) | (et == t_star[ec])
+        et, ec = et[near], ec[near]
+    ev, ep = least(et, ec)
     # per candidate, its entry of least gap (first record on ties, as a scan in time would pick)
     order = torch.argsort(ev, stable=True)
     order = order[torch.argsort(ec[order], stable=True)]
