@@ -16,8 +16,10 @@ carries tangents of (B,) values. Between two bodies the search is pruned
 exactly by their bounding spheres: only records whose bounding-sphere gap is
 below the pair gap at the record of closest bounding spheres are searched,
 and none where the bodies touch there (the penalty is then 0 whichever pair
-touches; measured on ``box_among_boxes``, 41 candidates of 750 records: 0.7 s
-against 14.3 s for every record, the same penalties).
+touches); the records left are screened in float32 and searched in float64
+only where they come within ``SCREEN_TOLERANCE`` of the least screened gap.
+Measured on ``box_among_boxes``, 41 candidates of 750 records: 0.32 s against
+14-16 s for every record in float64, the same penalties and gradients.
 """
 
 from __future__ import annotations
