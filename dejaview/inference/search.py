@@ -229,8 +229,7 @@ class _Search:
             f = ranked[start:start + len(a)]
             start += len(a)
             es.tell(a, f.tolist())
-            best, at = es.dejaview_best
-            if f.min() < best * (1 - STALL_RATIO):
+            if f.min() < es.dejaview_best[0] * (1 - STALL_RATIO):
                 es.dejaview_best = (float(f.min()), es.countiter)
         self.tick(value)
 
@@ -240,7 +239,6 @@ class _Search:
     def refine(self, x: torch.Tensor, iterations: int = LM_ITERATIONS) -> list[Mode]:
         """Levenberg-Marquardt from each row of x (K, P), as one batch; the refined modes."""
         post = self.post
-        k = x.shape[0]
         cost, chi2, loss = post.cost(x)
         ok = torch.isfinite(cost)
         if not bool(ok.any()):
@@ -250,7 +248,7 @@ class _Search:
         lam = torch.full((k,), 1e-2, dtype=x.dtype)
         active = torch.ones(k, dtype=torch.bool)
         r, J = post.jacobian(x)
-        for _ in range(iterations):
+        for it in range(iterations):
             if self.stopped or self.out_of_budget() or not bool(active.any()):
                 break
             JT = J.transpose(1, 2)
@@ -273,7 +271,7 @@ class _Search:
             active = active & ~((better & ((rel < 1e-10) | (cost < 1e-12))) | (lam > 1e8))
             value = self.consider(x, cost, chi2, loss)
             self.tick(value)
-            if better.any() and active.any():
+            if it + 1 < iterations and not self.out_of_budget():
                 idx = (better & active).nonzero().flatten()
                 if idx.numel():
                     r_new, J_new = post.jacobian(x[idx])
