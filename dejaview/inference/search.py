@@ -316,9 +316,11 @@ class _Search:
                 instances += [self.new_instance(x, popsize) for x in fresh]
                 if self.history:
                     self.history[-1].restarted = True
-        # converge the best candidate fully
+        # converge the best candidates fully (the best so far and the best refined modes: under
+        # an informative prior a mode behind the best one may refine to a more probable past)
         if not self.stopped and math.isfinite(self.best.cost):
-            self.add_modes(self.refine(self.best.x.unsqueeze(0), LM_FINAL_ITERATIONS))
+            starts = [self.best.x] + [m.x for m in self.modes[:CANDIDATES - 1]]
+            self.add_modes(self.refine(torch.stack(starts), LM_FINAL_ITERATIONS))
 
 
 def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,
