@@ -247,7 +247,10 @@ class Posterior:
         return torch.cat(parts, -1)
 
     def residuals(self, x: torch.Tensor, traj=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """All residuals R (B, M) of parameters x (B, P), and the scene's loss (B,) in metres."""
+        """All residuals R (B, M) of parameters x (B, P), and the scene's loss (B,) in metres.
+
+        Columns: the ``num_observed`` observation residuals first, then the penalties' and the
+        prior's."""
         p = self.problem
         if traj is None:
             traj = p.simulate(x)
@@ -282,12 +285,11 @@ class Posterior:
             return cost, chi2, loss
         xs = x[ok]
         with torch.no_grad():
-            traj = self.problem.simulate(xs)
-            r, l_ = self.residuals(xs, traj)
-            obs, _ = self.observation_residuals(traj)
+            r, l_ = self.residuals(xs)
         self.rollouts += xs.shape[0]
         c = 0.5 * (r * r).sum(-1)
         finite = torch.isfinite(c)
+        obs = r[:, :self.num_observed]  # ``residuals`` puts the observation's first
         cost[ok] = torch.where(finite, c, torch.full_like(c, math.inf))
         chi2[ok] = torch.where(finite, (obs * obs).sum(-1), torch.full_like(c, math.inf))
         loss[ok] = torch.where(finite, l_, torch.full_like(c, math.inf))
