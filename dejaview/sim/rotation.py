@@ -1,8 +1,11 @@
 """Quaternion and rotation helpers that are safe to differentiate.
 
-Quaternions are ``(..., 4)`` tensors ``w x y z``. Conversions come from
-``pytorch_kinematics.transforms`` (imported lazily: it pulls matplotlib); the
-functions here are the few that library gets wrong for our use:
+Quaternions are ``(..., 4)`` tensors ``w x y z``, in the conventions of
+``pytorch_kinematics.transforms`` (the user's robotics stack): products,
+matrices, rotations and axis-angle vectors equal that library's results
+(``tests/sim/test_rotation_conventions.py`` pins each on random inputs). They
+are written here rather than imported (importing pytorch-kinematics pulls
+matplotlib, ~2 s) and differ from it in three places on purpose:
 
 - ``axis_angle_to_quaternion`` there has a NaN reverse-mode gradient at zero
   rotation, so ``rotvec_to_quat`` uses a series expansion near zero;
@@ -18,7 +21,7 @@ no data-dependent Python branches.
 The two functions of the integrator's inner loop, ``quat_multiply`` and
 ``quat_to_matrix``, are written as one contraction of the outer product of
 their inputs with a constant matrix (3 tensor ops instead of ~25): a rollout
-is bound by per-op overhead. Tests pin them to pytorch_kinematics' results.
+is bound by per-op overhead.
 """
 
 from __future__ import annotations
