@@ -281,7 +281,8 @@ class SolveResult:
                                  f"{p.duration_s:.6f}", int(p.restarted)])
         self.problem.write_trajectory(paths["trajectory"], self.trajectory)
         if plot:
-            paths["plot"] = plot_losses(self.iterations, out / "loss.png")
+            quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
+            paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)
         return paths
 
 
@@ -289,8 +290,9 @@ def _num(v: float):
     return v if math.isfinite(v) else None
 
 
-def plot_losses(history: list[Progress], path) -> Path:
-    """loss.png: loss and best loss per iteration (log scale)."""
+def plot_losses(history: list[Progress], path, quantity: str = "loss") -> Path:
+    """loss.png: the objective per iteration and the best so far (log scale); ``quantity`` names
+    it (``loss``, or ``-log posterior`` for the default search)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -298,13 +300,13 @@ def plot_losses(history: list[Progress], path) -> Path:
 
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
     its = [p.iteration for p in history]
-    ax.semilogy(its, [max(p.loss, 1e-12) for p in history], lw=1, alpha=0.6, label="loss")
-    ax.semilogy(its, [max(p.best_loss, 1e-12) for p in history], lw=2, label="best loss")
+    ax.semilogy(its, [max(p.loss, 1e-12) for p in history], lw=1, alpha=0.6, label=quantity)
+    ax.semilogy(its, [max(p.best_loss, 1e-12) for p in history], lw=2, label=f"best {quantity}")
     for p in history:
         if p.restarted:
             ax.axvline(p.iteration, color="grey", lw=0.5, ls=":")
     ax.set_xlabel("iteration")
-    ax.set_ylabel("loss")
+    ax.set_ylabel(quantity)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path)
