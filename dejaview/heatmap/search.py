@@ -193,6 +193,11 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     engine: str = "auto") -> HeatmapResult:
     """Start-position heatmap of a scene's source (module docstring).
 
+    The steps: the settings (``_settings``), the problem (``_with_problem``), every chunk's
+    first guesses (``_first_guesses``), the batched optimisations (``_optimise_chunks``), the
+    solutions deduplicated (``_candidates``), their basins (``_robustness``), the weighting
+    (``_weigh``) and the best solution re-simulated (``_best_solution``).
+
     Args:
         scene: Scene (or path) with ``<inference>`` and a ``<start-area>`` with x and y extent.
         cells, samples, sigma: override ``<heatmap>`` (defaults 16 x 16, 4, 0.02).
@@ -223,15 +228,90 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     Raises:
         InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite.
     """
-    from dejaview.heatmap.weighting import (cell_probability, deduplicate, log_weights,
-                                            perturbation_directions, robustness_levels)
-    from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, optimize
-    from dejaview.backends import as_problem, make_problem
-    from dejaview.inference.problem import objective_to_loss
-    from dejaview.inference.solve import SolveResult, default_gradient
-    from dejaview.scene import HeatmapSettings, Scene
+    from dejaview.heatmap.weighting import deduplicate
 
     t_start = time.perf_counter()
+    run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
+                    radii, directions)
+    run = _with_problem(run, problem, backend, engine, gradient, lr)
+    gen = torch.Generator().manual_seed(int(run.seed))
+    guesses = _first_guesses(run, gen)
+    results, history, state = _optimise_chunks(run, guesses, engine, callback, should_stop, t_start)
+    cand = _candidates(run, guesses, results)
+    keep = deduplicate(cand.cell, cand.loss, cand.start, velocity_tol=velocity_tol, spin_tol=spin_tol,
+                       position_tol=position_tol)
+    tick = _robustness_ticks(run, callback, state["best"], state["iteration"], t_start)
+    level = _robustness(run, cand, keep, gen, should_stop, tick)
+    p, solutions = _weigh(run, cand, keep, level)
+    settings = {"optimizer": run.optimizer, "gradient": run.gradient, "iterations": run.iterations,
+                "seed": run.seed, "backend": run.problem.backend, "sigma": run.sigma, "samples": run.samples,
+                "cells": [run.nx, run.ny], "radii": list(run.radii), "directions": run.directions,
+                "batch_size": run.batch_size, "velocity_tol": velocity_tol, "spin_tol": spin_tol,
+                "position_tol": position_tol}
+    best = _best_solution(run, cand, history, settings)
+    layout = run.layout
+    lo2 = (float(layout.lo[0]), float(layout.lo[1]))
+    hi2 = (float(layout.hi[0]), float(layout.hi[1]))
+    return HeatmapResult(scene=run.scene, lo=lo2, hi=hi2, cells=(run.nx, run.ny),
+                         probability=p.reshape(run.ny, run.nx).numpy(), solutions=solutions,
+                         candidates=int(cand.cell.numel()), best=best, settings=settings,
+                         seconds=time.perf_counter() - t_start)
+
+
+@dataclass
+class _Run:
+    """The resolved settings of one ``compute_heatmap`` run, and (``_with_problem``) its problem."""
+
+    scene: object
+    nx: int
+    ny: int
+    samples: int
+    sigma: float
+    iterations: int
+    optimizer: str
+    seed: int
+    batch_size: int
+    workers: int
+    radii: tuple[float, ...]
+    directions: int
+    chunks: list[list[int]]
+    problem: object = None
+    gradient: str | None = None
+    lr: float | None = None
+
+    @property
+    def num_cells(self) -> int:
+        return self.nx * self.ny
+
+    @property
+    def layout(self):
+        return self.problem.layout
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.problem.dtype
+
+
+@dataclass
+class _Candidates:
+    """Every candidate's outcome, all chunks in order: cell (N,), parameters x (N, P), loss (N,),
+    its cell box lo, hi (N, 3) and the decoded start state (name -> (N, ...))."""
+
+    cell: torch.Tensor
+    x: torch.Tensor
+    loss: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    start: dict
+
+
+def _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
+              radii, directions) -> _Run:
+    """The scene (read from a path) and ``compute_heatmap``'s settings with the scene's defaults,
+    checked (one-line ``InferenceError`` naming the first bad one)."""
+    from dejaview.inference.optimize import OPTIMIZERS
+    from dejaview.scene import HeatmapSettings, Scene
+
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
     inf = scene.inference
@@ -256,33 +336,47 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         raise InferenceError(f"robustness radii must be positive and ascending, got {radii!r}")
     if inf.start_area is None:
         raise InferenceError("a heatmap needs <start-area> in <inference>: the cells cover its x-y extent")
+    return _Run(scene=scene, nx=nx, ny=ny, samples=samples, sigma=sigma, iterations=iterations,
+                optimizer=optimizer, seed=seed, batch_size=batch_size, workers=workers, radii=radii,
+                directions=directions, chunks=split_cells(nx * ny, samples, batch_size, workers))
+
+
+def _with_problem(run: _Run, problem, backend: str, engine: str, gradient: str | None,
+                  lr: float | None) -> _Run:
+    """``run`` with its problem (``problem`` reused, or built), gradient mode and learning rate, checked."""
+    from dejaview.backends import as_problem, make_problem
+    from dejaview.inference.solve import default_gradient
+
     problem = (as_problem(problem) if problem is not None
-               else make_problem(scene, backend, **_engine_option(backend, engine)))
+               else make_problem(run.scene, backend, **_engine_option(backend, engine)))
     layout = problem.layout
     if not layout.free["position"] or 0 not in layout.position_axes or 1 not in layout.position_axes:
         raise InferenceError("a heatmap needs the start position free with x and y extent in <start-area> "
                              "(min < max in x and in y, and <optimize position='true'>)")
-    gradient = gradient or inf.gradient or default_gradient(problem.num_params)
-    if lr is None and optimizer == "adam":
+    gradient = gradient or run.scene.inference.gradient or default_gradient(problem.num_params)
+    if lr is None and run.optimizer == "adam":
         lr = DEFAULT_ADAM_LR
     if gradient not in ("forward", "reverse"):
         raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
     if gradient not in problem.gradient_modes:
         raise InferenceError(f"the {problem.backend} backend offers {' and '.join(problem.gradient_modes)}"
                              f"-mode gradients only, not {gradient} mode")
-    dtype = problem.dtype
-    gen = torch.Generator().manual_seed(int(seed))
+    return replace(run, problem=problem, gradient=gradient, lr=lr)
 
-    cell_lo, cell_hi = cell_boxes(layout.lo, layout.hi, nx, ny)
-    num_cells = nx * ny
-    chunks = split_cells(num_cells, samples, batch_size, workers)
+
+def _first_guesses(run: _Run, gen: torch.Generator) -> list[tuple[torch.Tensor, object, torch.Tensor]]:
+    """Per chunk: (cell of each candidate (K,), the chunk's layout (per-candidate cell boxes),
+    first guesses x0 (K, P)). Sample 0 of a cell starts at its centre with the scene's own guess
+    of orientation and velocities, the others at random."""
+    layout, dtype, samples = run.layout, run.dtype, run.samples
+    cell_lo, cell_hi = cell_boxes(layout.lo, layout.hi, run.nx, run.ny)
     # the scene's own guess of orientation and velocities, at the cell centre (logit 0)
     given = layout.encode().to(dtype)
     n_pos = len(layout.position_axes)
     given[:, :n_pos] = 0.0
     # every chunk's first guesses drawn here, in order, so results do not depend on the workers
     guesses = []
-    for chunk in chunks:
+    for chunk in run.chunks:
         idx = torch.tensor(chunk, dtype=torch.long).repeat_interleave(samples)
         k = idx.numel()
         chunk_layout = replace(layout, lo=cell_lo[idx], hi=cell_hi[idx])
@@ -290,7 +384,20 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         first = torch.arange(k) % samples == 0
         x0[first] = given.expand(int(first.sum()), -1)
         guesses.append((idx, chunk_layout, x0))
+    return guesses
 
+
+def _optimise_chunks(run: _Run, guesses: list, engine: str, callback, should_stop,
+                     t_start: float) -> tuple[list, list, dict]:
+    """Optimise every chunk (in this process or in ``run.workers`` processes), reporting progress.
+
+    Returns:
+        (per chunk (candidate_x (K, P), candidate_loss (K,), stopped), history (one ``Progress``
+        per iteration over all chunks), {"iteration": iterations run, "best": best loss, ...}).
+    Raises:
+        InferenceError: ``should_stop`` ended the run.
+    """
+    chunks, num_cells = run.chunks, run.num_cells
     history = []
     state = {"iteration": 0, "best": math.inf, "cells_done": 0}
 
@@ -304,10 +411,12 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         if callback is not None:
             callback(hp)
 
-    opts = dict(optimizer=optimizer, iterations=iterations, gradient=gradient, lr=lr, seed=seed)
-    if workers > 1 and len(chunks) > 1:
-        results = _chunks_in_processes(scene, problem.backend, getattr(problem, "engine", engine),
-                                       guesses, opts, workers, progress, should_stop,
+    opts = dict(optimizer=run.optimizer, iterations=run.iterations, gradient=run.gradient, lr=run.lr,
+                seed=run.seed)
+    problem = run.problem
+    if run.workers > 1 and len(chunks) > 1:
+        results = _chunks_in_processes(run.scene, problem.backend, getattr(problem, "engine", engine),
+                                       guesses, opts, run.workers, progress, should_stop,
                                        state, chunks)
     else:
         results = []
@@ -319,86 +428,117 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
             state["cells_done"] += len(chunks[ci])
     if any(stopped for _, _, stopped in results) or len(results) < len(chunks):
         raise InferenceError(f"heatmap stopped after {state['cells_done']} of {num_cells} cells")
+    return results, history, state
+
+
+def _candidates(run: _Run, guesses: list, results: list) -> _Candidates:
+    """All chunks' outcomes as one batch, their start states decoded; raises ``InferenceError``
+    when no loss is finite."""
     outcomes = [(g[0], r[0], r[1], g[1].lo, g[1].hi) for g, r in zip(guesses, results)]
     all_cell, all_x, all_loss, all_lo, all_hi = (list(v) for v in zip(*outcomes))
-    best_loss = state["best"]
-    iteration = state["iteration"]
-
     cell = torch.cat(all_cell)
     xs = torch.cat(all_x)
-    loss = torch.cat(all_loss).to(dtype)
+    loss = torch.cat(all_loss).to(run.dtype)
     lo_all, hi_all = torch.cat(all_lo), torch.cat(all_hi)
     if not torch.isfinite(loss).any():
         raise InferenceError("every heatmap candidate gave a non-finite loss: check the scene's numbers")
-    full_layout = replace(layout, lo=lo_all, hi=hi_all)
+    full_layout = replace(run.layout, lo=lo_all, hi=hi_all)
     with torch.no_grad():
         start = {k_: v.detach() for k_, v in full_layout.decode(xs).items()}
-    keep = deduplicate(cell, loss, start, velocity_tol=velocity_tol, spin_tol=spin_tol,
-                       position_tol=position_tol)
+    return _Candidates(cell=cell, x=xs, loss=loss, lo=lo_all, hi=hi_all, start=start)
 
-    # robustness: perturbed rollouts of the kept solutions that the Gaussian does not already rule out
+
+def _robustness_ticks(run: _Run, callback, best_loss: float, iteration: int, t_start: float):
+    """A function reporting one robustness batch to ``callback`` (iterations counted on from
+    ``iteration``), or None without a callback."""
+    if callback is None:
+        return None
+    count = [iteration]
+    chunks = len(run.chunks)
+
+    def tick():
+        callback(HeatmapProgress(iteration=count[0], loss=math.nan, best_loss=best_loss,
+                                 elapsed_s=time.perf_counter() - t_start,
+                                 cells_done=run.num_cells, cells_total=run.num_cells,
+                                 chunk=chunks - 1, chunks=chunks, phase="robustness"))
+        count[0] += 1
+
+    return tick
+
+
+def _robustness(run: _Run, cand: _Candidates, keep: torch.Tensor, gen: torch.Generator, should_stop,
+                tick) -> torch.Tensor:
+    """Robustness levels (len(keep),) long of the kept solutions: perturbed rollouts of those the
+    Gaussian does not already rule out (loss <= 3 sigma; level 0 for the others). ``tick``: called
+    after every batch of rollouts (or None)."""
+    from dejaview.heatmap.weighting import perturbation_directions, robustness_levels
+
+    layout, dtype, radii, directions, sigma = run.layout, run.dtype, run.radii, run.directions, run.sigma
+    loss = cand.loss
     level = torch.zeros(keep.numel(), dtype=torch.long)
     worth = (loss[keep] <= 3.0 * sigma).nonzero().flatten()
-    if worth.numel():
-        spin = layout.free["angular_velocity"]
-        sel = keep[worth]
-        dirs = perturbation_directions(sel.numel(), directions, spin, gen, dtype)  # (M, D, 6)
-        rad = torch.tensor(radii, dtype=dtype)
-        off = rad[None, :, None, None] * dirs[:, None]  # (M, R, D, 6): m/s, then rad/s per SPIN_PER_SPEED
-        m, r, d = sel.numel(), len(radii), directions
-        rows = m * r * d
-        rep = lambda t: t[sel].repeat_interleave(r * d, 0)  # noqa: E731
-        rob_layout = replace(layout, free={**layout.free, "linear_velocity": True, "angular_velocity": True},
-                             lo=rep(lo_all), hi=rep(hi_all))
-        x_rob = state_parameters(rob_layout, rep(xs), layout,
-                                 rep(start["linear_velocity"]) + off[..., :3].reshape(rows, 3),
-                                 rep(start["angular_velocity"]) + SPIN_PER_SPEED * off[..., 3:].reshape(rows, 3))
-        perturbed = torch.empty(rows, dtype=dtype)
-        step = max(batch_size, 1) * 4
-        with torch.no_grad():
-            for a in range(0, rows, step):
-                if should_stop is not None and should_stop():
-                    raise InferenceError("heatmap stopped while measuring basins")
-                part = with_layout(problem, replace(rob_layout, lo=rob_layout.lo[a:a + step],
+    if not worth.numel():
+        return level
+    spin = layout.free["angular_velocity"]
+    sel = keep[worth]
+    dirs = perturbation_directions(sel.numel(), directions, spin, gen, dtype)  # (M, D, 6)
+    rad = torch.tensor(radii, dtype=dtype)
+    off = rad[None, :, None, None] * dirs[:, None]  # (M, R, D, 6): m/s, then rad/s per SPIN_PER_SPEED
+    m, r, d = sel.numel(), len(radii), directions
+    rows = m * r * d
+    rep = lambda t: t[sel].repeat_interleave(r * d, 0)  # noqa: E731
+    rob_layout = replace(layout, free={**layout.free, "linear_velocity": True, "angular_velocity": True},
+                         lo=rep(cand.lo), hi=rep(cand.hi))
+    x_rob = state_parameters(rob_layout, rep(cand.x), layout,
+                             rep(cand.start["linear_velocity"]) + off[..., :3].reshape(rows, 3),
+                             rep(cand.start["angular_velocity"]) + SPIN_PER_SPEED * off[..., 3:].reshape(rows, 3))
+    perturbed = torch.empty(rows, dtype=dtype)
+    step = max(run.batch_size, 1) * 4
+    with torch.no_grad():
+        for a in range(0, rows, step):
+            if should_stop is not None and should_stop():
+                raise InferenceError("heatmap stopped while measuring basins")
+            part = with_layout(run.problem, replace(rob_layout, lo=rob_layout.lo[a:a + step],
                                                     hi=rob_layout.hi[a:a + step]))
-                perturbed[a:a + step] = part.loss(x_rob[a:a + step])
-                if callback is not None:
-                    callback(HeatmapProgress(iteration=iteration, loss=math.nan, best_loss=best_loss,
-                                             elapsed_s=time.perf_counter() - t_start,
-                                             cells_done=num_cells, cells_total=num_cells,
-                                             chunk=len(chunks) - 1, chunks=len(chunks), phase="robustness"))
-                    iteration += 1
-        level[worth] = robustness_levels(loss[sel], perturbed.reshape(m, r, d), sigma)
-    logw = log_weights(loss[keep], level, len(radii), sigma)
-    p = cell_probability(cell[keep], logw, num_cells)
-    weight = torch.exp(logw - torch.logsumexp(logw, 0))
+            perturbed[a:a + step] = part.loss(x_rob[a:a + step])
+            if tick is not None:
+                tick()
+    level[worth] = robustness_levels(loss[sel], perturbed.reshape(m, r, d), sigma)
+    return level
 
+
+def _weigh(run: _Run, cand: _Candidates, keep: torch.Tensor, level: torch.Tensor) -> tuple[torch.Tensor, list]:
+    """(cell probabilities (C,), one dict per kept solution) from the kept solutions' losses and
+    robustness levels (``dejaview.heatmap.weighting``)."""
+    from dejaview.heatmap.weighting import cell_probability, log_weights
+
+    cell, loss = cand.cell, cand.loss
+    logw = log_weights(loss[keep], level, len(run.radii), run.sigma)
+    p = cell_probability(cell[keep], logw, run.num_cells)
+    weight = torch.exp(logw - torch.logsumexp(logw, 0))
     solutions = []
     for n, i in enumerate(keep.tolist()):
         c = int(cell[i])
-        solutions.append({"cell": [c % nx, c // nx], "loss": float(loss[i]), "level": int(level[n]),
+        solutions.append({"cell": [c % run.nx, c // run.nx], "loss": float(loss[i]), "level": int(level[n]),
                           "weight": float(weight[n]),
-                          "initial_state": {k_: v[i].tolist() for k_, v in start.items()}})
+                          "initial_state": {k_: v[i].tolist() for k_, v in cand.start.items()}})
+    return p, solutions
 
-    # the best solution overall, re-simulated, as a solve result
+
+def _best_solution(run: _Run, cand: _Candidates, history: list, settings: dict):
+    """The best candidate overall, re-simulated, as a ``SolveResult``."""
+    from dejaview.inference.optimize import OptimizationResult
+    from dejaview.inference.solve import SolveResult
+
+    loss, xs = cand.loss, cand.x
     b = int(torch.argmin(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))))
-    best_problem = with_layout(problem, replace(layout, lo=lo_all[b:b + 1], hi=hi_all[b:b + 1]))
+    best_problem = with_layout(run.problem, replace(run.layout, lo=cand.lo[b:b + 1], hi=cand.hi[b:b + 1]))
     with torch.no_grad():
-        traj = best_problem.simulate(xs[b:b + 1], steps=problem.duration_steps, record_every=1)
+        traj = best_problem.simulate(xs[b:b + 1], steps=run.problem.duration_steps, record_every=1)
     optres = OptimizationResult(x=xs[b], loss=float(loss[b]), history=history, best_index=b)
-    settings = {"optimizer": optimizer, "gradient": gradient, "iterations": iterations, "seed": seed,
-                "backend": problem.backend, "sigma": sigma, "samples": samples, "cells": [nx, ny],
-                "radii": list(radii), "directions": directions, "batch_size": batch_size,
-                "velocity_tol": velocity_tol, "spin_tol": spin_tol, "position_tol": position_tol}
-    best = SolveResult(scene=scene, problem=best_problem, optimization=optres,
-                       initial_state={k_: v[b].tolist() for k_, v in start.items()}, loss=float(loss[b]),
+    return SolveResult(scene=run.scene, problem=best_problem, optimization=optres,
+                       initial_state={k_: v[b].tolist() for k_, v in cand.start.items()}, loss=float(loss[b]),
                        trajectory=traj, settings=settings)
-    lo2 = (float(layout.lo[0]), float(layout.lo[1]))
-    hi2 = (float(layout.hi[0]), float(layout.hi[1]))
-    return HeatmapResult(scene=scene, lo=lo2, hi=hi2, cells=(nx, ny),
-                         probability=p.reshape(ny, nx).numpy(), solutions=solutions,
-                         candidates=int(cell.numel()), best=best, settings=settings,
-                         seconds=time.perf_counter() - t_start)
 
 
 def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, should_stop):

@@ -142,6 +142,10 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
              report: Callable[[float], float] | None = None) -> OptimizationResult:
     """Minimise a batched loss.
 
+    Each iteration is a fixed sequence of named steps of ``_Run``: the optimiser step, the
+    reset of failed line searches, the replacement of non-finite points, the stall
+    bookkeeping, the epsilon-greedy restarts and the progress report.
+
     Args:
         value_and_grad: (x (K, P), mode) -> (losses (K,), gradients (K, P)).
         x0: (K, P) initial guesses (K >= 1 candidates run as one batch).
@@ -160,6 +164,33 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
     Returns:
         OptimizationResult with the best parameters over the whole run.
     """
+    _check_settings(optimizer, gradient, iterations, epsilon, sample)
+    run = _Run(value_and_grad, x0, optimizer=optimizer, gradient=gradient, lr=lr, patience=patience,
+               sample=sample, seed=seed, report=report)
+    stopped = False
+    for it in range(int(iterations)):
+        if should_stop is not None and should_stop():
+            stopped = True
+            break
+        t0 = time.perf_counter()
+        before, x_before = run.cand_best.clone(), run.points().clone()
+        calls = run.step()
+        run.reset_failed_line_searches(x_before)
+        run.replace_non_finite()
+        run.update_stalls(before, calls)
+        restarted = epsilon > 0 and run.restart_stalled(epsilon * (1.0 - it / iterations))
+        run.share_points()
+        prog = run.report(it, t0, restarted)
+        if callback is not None:
+            callback(prog)
+        if tolerance is not None and prog.best_loss <= tolerance:
+            break
+    return run.result(stopped)
+
+
+def _check_settings(optimizer: str, gradient: str, iterations: int, epsilon: float,
+                    sample: Callable | None) -> None:
+    """Raise ``InferenceError`` naming the first setting of ``optimize`` that is out of range."""
     if optimizer not in OPTIMIZERS:
         raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if gradient not in ("forward", "reverse"):
@@ -168,145 +199,184 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         raise InferenceError(f"iterations must be a positive integer, got {iterations!r}")
     if epsilon > 0 and sample is None:
         raise InferenceError("restarts (epsilon > 0) need a way to sample fresh guesses")
-    gen = torch.Generator().manual_seed(int(seed))
-    x = torch.nn.Parameter(x0.detach().clone())
-    k, p = x.shape
-    # one L-BFGS per candidate of a batch (see the module docstring); one optimiser otherwise
-    each = optimizer in ("lbfgs", "bfgs") and k > 1
-    xs = [torch.nn.Parameter(x.detach()[i:i + 1].clone()) for i in range(k)] if each else [x]
-    opts = [make_optimizer(optimizer, [xi], p, lr) for xi in xs]
-    best_x = x.detach()[0].clone()
-    best_loss = math.inf
-    best_index = 0
-    cand_best = torch.full((k,), math.inf, dtype=x.dtype)
-    since_improved = torch.zeros(k, dtype=torch.long)
-    keep_loss = torch.full((k,), math.inf, dtype=x.dtype)  # per candidate, never reset
-    keep_x = x.detach().clone()
-    history: list[Progress] = []
-    start = time.perf_counter()
-    evaluations = 0
 
-    cache = {}
-    shown = report or (lambda v: v)
 
-    def evaluate(xv):
+class _Run:
+    """The state of one ``optimize`` run and the steps of its iterations.
+
+    Attributes:
+        x: (K, P) parameter of the whole batch (the one optimiser's parameter unless ``each``).
+        each: one L-BFGS per candidate (``xs[i]`` (1, P) their parameters) instead of one optimiser.
+        opts: the optimisers (one, or K with ``each``).
+        best_x, best_loss, best_index: best point over every evaluation (objective units).
+        cand_best: (K,) each candidate's best objective since its last restart.
+        since_improved: (K,) iterations since each candidate last improved (``STALL_RATIO``).
+        failed_before: (K,) whether each candidate's line search failed in the previous iteration.
+        keep_x, keep_loss: (K, P), (K,) each candidate's best point over the whole run (never reset).
+        evaluations: batched evaluations so far.
+        last: (K,) safe losses of the latest evaluation (None before the first).
+        history: one ``Progress`` per iteration.
+    """
+
+    def __init__(self, value_and_grad, x0: torch.Tensor, *, optimizer: str, gradient: str,
+                 lr: float | None, patience: int, sample, seed: int, report) -> None:
+        self.value_and_grad = value_and_grad
+        self.optimizer = optimizer
+        self.gradient = gradient
+        self.lr = lr
+        self.patience = patience
+        self.sample = sample
+        self.shown = report or (lambda v: v)
+        self.gen = torch.Generator().manual_seed(int(seed))
+        self.x = x = torch.nn.Parameter(x0.detach().clone())
+        self.k, self.p = k, p = x.shape
+        # one L-BFGS per candidate of a batch (see the module docstring); one optimiser otherwise
+        self.each = optimizer in ("lbfgs", "bfgs") and k > 1
+        self.xs = ([torch.nn.Parameter(x.detach()[i:i + 1].clone()) for i in range(k)]
+                   if self.each else [x])
+        self.opts = [make_optimizer(optimizer, [xi], p, lr) for xi in self.xs]
+        self.best_x = x.detach()[0].clone()
+        self.best_loss = math.inf
+        self.best_index = 0
+        self.cand_best = torch.full((k,), math.inf, dtype=x.dtype)
+        self.since_improved = torch.zeros(k, dtype=torch.long)
+        self.failed_before = torch.zeros(k, dtype=torch.bool)
+        self.keep_loss = torch.full((k,), math.inf, dtype=x.dtype)
+        self.keep_x = x.detach().clone()
+        self.history: list[Progress] = []
+        self.start = time.perf_counter()
+        self.evaluations = 0
+        self.last: torch.Tensor | None = None
+        self._cache: dict = {}
+
+    def points(self) -> torch.Tensor:
+        """(K, P) the candidates' current points."""
+        return torch.cat([xi.detach() for xi in self.xs]) if self.each else self.x.detach()
+
+    def _evaluate(self, xv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # L-BFGS re-evaluates the point its line search ended on: reuse that result
-        if "x" in cache and torch.equal(cache["x"], xv):
-            return cache["value"]
-        value = value_and_grad(xv, gradient)
-        cache.update(x=xv.clone(), value=value)
+        if "x" in self._cache and torch.equal(self._cache["x"], xv):
+            return self._cache["value"]
+        value = self.value_and_grad(xv, self.gradient)
+        self._cache.update(x=xv.clone(), value=value)
         return value
 
-    def record(xv):
+    def record(self, xv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Evaluate the batch xv (K, P) and book it: -> (safe losses (K,), gradients (K, P))."""
-        nonlocal best_loss, best_x, best_index, evaluations
-        losses, grad = evaluate(xv)
-        evaluations += 1
+        losses, grad = self._evaluate(xv)
+        self.evaluations += 1
         finite = torch.isfinite(losses) & torch.isfinite(grad).all(-1)
         # a NaN candidate must not poison the optimiser: zero its gradient, count it as +inf
-        grad = torch.where(finite[:, None], grad, torch.zeros_like(grad)).to(x.dtype)
+        grad = torch.where(finite[:, None], grad, torch.zeros_like(grad)).to(self.x.dtype)
         safe = torch.where(finite, losses, torch.full_like(losses, 1e6))
         i = int(torch.argmin(safe))
-        if finite[i] and safe[i].item() < best_loss:
-            best_loss = safe[i].item()
-            best_x = xv[i].clone()
-            best_index = i
-        improved = safe < cand_best
-        cand_best.copy_(torch.where(improved, safe, cand_best))
-        kept = finite & (safe < keep_loss)
-        keep_loss.copy_(torch.where(kept, safe, keep_loss))
-        keep_x.copy_(torch.where(kept[:, None], xv, keep_x))
-        record.last = safe
+        if finite[i] and safe[i].item() < self.best_loss:
+            self.best_loss = safe[i].item()
+            self.best_x = xv[i].clone()
+            self.best_index = i
+        improved = safe < self.cand_best
+        self.cand_best.copy_(torch.where(improved, safe, self.cand_best))
+        kept = finite & (safe < self.keep_loss)
+        self.keep_loss.copy_(torch.where(kept, safe, self.keep_loss))
+        self.keep_x.copy_(torch.where(kept[:, None], xv, self.keep_x))
+        self.last = safe
         return safe, grad
 
-    record.last = None
-
-    def closure():
-        safe, grad = record(x.detach())
-        x.grad = grad
+    def _closure(self) -> torch.Tensor:
+        safe, grad = self.record(self.x.detach())
+        self.x.grad = grad
         return safe.sum()
 
-    def points() -> torch.Tensor:
-        return torch.cat([xi.detach() for xi in xs]) if each else x.detach()
-
-    stopped = False
-    failed_before = torch.zeros(k, dtype=torch.bool)
-    for it in range(int(iterations)):
-        if should_stop is not None and should_stop():
-            stopped = True
-            break
-        t0 = time.perf_counter()
-        before = cand_best.clone()
-        x_before = points().clone()
-        evals_before = evaluations
-        if each:
-            calls = _step_each(opts, xs, record)
+    def step(self) -> torch.Tensor:
+        """One step of the optimiser(s) -> (K,) long: closure calls per candidate."""
+        if self.each:
+            calls = _step_each(self.opts, self.xs, self.record)
             with torch.no_grad():
-                x.copy_(points())
-        else:
-            opts[0].step(closure)
-            calls = torch.full((k,), evaluations - evals_before)
-        if optimizer in ("lbfgs", "bfgs"):
-            # a failed line search leaves x where it was and would fail the same way again:
-            # drop the curvature history so the next step starts from steepest descent
-            for i in range(len(opts)):
-                if torch.equal(xs[i].detach(), x_before[i:i + 1] if each else x_before):
-                    opts[i] = make_optimizer(optimizer, [xs[i]], p, lr)
+                self.x.copy_(self.points())
+            return calls
+        evals_before = self.evaluations
+        self.opts[0].step(self._closure)
+        return torch.full((self.k,), self.evaluations - evals_before)
+
+    def reset_failed_line_searches(self, x_before: torch.Tensor) -> None:
+        """Fresh L-BFGS/BFGS for the candidates that did not move from ``x_before`` (K, P)."""
+        if self.optimizer not in ("lbfgs", "bfgs"):
+            return
+        # a failed line search leaves x where it was and would fail the same way again:
+        # drop the curvature history so the next step starts from steepest descent
+        for i in range(len(self.opts)):
+            if torch.equal(self.xs[i].detach(), x_before[i:i + 1] if self.each else x_before):
+                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], self.p, self.lr)
+
+    def replace_non_finite(self) -> None:
+        """Restart the candidates whose parameters are not finite from a fresh draw."""
         with torch.no_grad():
             # keep parameters finite (a diverging GD step): restart those from a fresh draw
-            bad = ~torch.isfinite(x).all(-1)
-            if bad.any() and sample is not None:
-                x[bad] = sample(int(bad.sum()), gen).to(x.dtype)
-        improved = cand_best < before * (1.0 - STALL_RATIO)
-        since_improved = torch.where(improved, torch.zeros_like(since_improved), since_improved + 1)
+            bad = ~torch.isfinite(self.x).all(-1)
+            if bad.any() and self.sample is not None:
+                self.x[bad] = self.sample(int(bad.sum()), self.gen).to(self.x.dtype)
+
+    def update_stalls(self, before: torch.Tensor, calls: torch.Tensor) -> None:
+        """Count iterations without improvement; ``before``: (K,) ``cand_best`` before the step."""
+        improved = self.cand_best < before * (1.0 - STALL_RATIO)
+        since = torch.where(improved, torch.zeros_like(self.since_improved), self.since_improved + 1)
         # a line search that spent its whole budget without improving anything failed (torch's
         # strong Wolfe search may still nudge x by a hair, so "x did not move" misses most);
         # a shared one fails for all candidates, one of a candidate's own for that candidate
-        failed = ((calls >= LINE_SEARCH_EVALS) & ~(improved if each else improved.any())
-                  if optimizer in ("lbfgs", "bfgs") else torch.zeros(k, dtype=torch.bool))
+        failed = ((calls >= LINE_SEARCH_EVALS) & ~(improved if self.each else improved.any())
+                  if self.optimizer in ("lbfgs", "bfgs") else torch.zeros(self.k, dtype=torch.bool))
         # two in a row: a kink of the loss (a contact that starts or ends) where more line
         # searches only burn evaluations; the candidate is stalled now
-        since_improved = torch.where(failed & failed_before, since_improved.clamp(min=patience),
-                                     since_improved)
-        failed_before = failed
-        restarted = False
-        if epsilon > 0:
-            eps_t = epsilon * (1.0 - it / iterations)
-            stale = since_improved >= patience
-            fresh = stale & (torch.rand(k, generator=gen) < eps_t)
-            if stale.any():
-                lo, hi = (math.log(v) for v in HOP_SCALE)
-                sigma = torch.exp(lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=x.dtype))
-                hop = keep_x + sigma * torch.randn(k, p, generator=gen, dtype=x.dtype)
-                with torch.no_grad():
-                    x.copy_(torch.where((stale & ~fresh)[:, None], hop, x))
-                    if fresh.any():
-                        x[fresh] = sample(int(fresh.sum()), gen).to(x.dtype)
-                since_improved = torch.where(stale, torch.zeros_like(since_improved), since_improved)
-                cand_best = torch.where(stale, torch.full_like(cand_best, math.inf), cand_best)
-                # a restarted candidate starts a fresh optimiser (the shared one: all of them)
-                for i in range(len(opts)):
-                    if not each or stale[i]:
-                        opts[i] = make_optimizer(optimizer, [xs[i]], p, lr)
-                restarted = True
-        if each:
+        self.since_improved = torch.where(failed & self.failed_before,
+                                          since.clamp(min=self.patience), since)
+        self.failed_before = failed
+
+    def restart_stalled(self, eps_t: float) -> bool:
+        """Restart or hop the stalled candidates (epsilon-greedy with ``eps_t``) -> any restarted."""
+        k, p, dtype, gen = self.k, self.p, self.x.dtype, self.gen
+        stale = self.since_improved >= self.patience
+        fresh = stale & (torch.rand(k, generator=gen) < eps_t)
+        if not stale.any():
+            return False
+        lo, hi = (math.log(v) for v in HOP_SCALE)
+        sigma = torch.exp(lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=dtype))
+        hop = self.keep_x + sigma * torch.randn(k, p, generator=gen, dtype=dtype)
+        with torch.no_grad():
+            self.x.copy_(torch.where((stale & ~fresh)[:, None], hop, self.x))
+            if fresh.any():
+                self.x[fresh] = self.sample(int(fresh.sum()), gen).to(dtype)
+        self.since_improved = torch.where(stale, torch.zeros_like(self.since_improved),
+                                          self.since_improved)
+        self.cand_best = torch.where(stale, torch.full_like(self.cand_best, math.inf), self.cand_best)
+        # a restarted candidate starts a fresh optimiser (the shared one: all of them)
+        for i in range(len(self.opts)):
+            if not self.each or stale[i]:
+                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], p, self.lr)
+        return True
+
+    def share_points(self) -> None:
+        """Copy the batch parameter's rows (replaced or restarted ones) into each candidate's own."""
+        if self.each:
             with torch.no_grad():
-                for i in range(k):
-                    xs[i].copy_(x[i:i + 1])
-        last = record.last
-        current = float(last.min()) if last is not None else math.nan
-        prog = Progress(iteration=it, loss=shown(current), best_loss=shown(best_loss),
-                        duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - start,
-                        restarted=restarted, evaluations=evaluations)
-        history.append(prog)
-        if callback is not None:
-            callback(prog)
-        if tolerance is not None and prog.best_loss <= tolerance:
-            break
-    return OptimizationResult(x=best_x, loss=shown(best_loss), history=history,
-                              best_index=best_index, stopped=stopped, candidate_x=keep_x,
-                              candidate_loss=torch.tensor([shown(float(v)) for v in keep_loss],
-                                                          dtype=keep_loss.dtype))
+                for i in range(self.k):
+                    self.xs[i].copy_(self.x[i:i + 1])
+
+    def report(self, it: int, t0: float, restarted: bool) -> Progress:
+        """Book and return the ``Progress`` of iteration ``it`` (begun at ``t0``)."""
+        current = float(self.last.min()) if self.last is not None else math.nan
+        prog = Progress(iteration=it, loss=self.shown(current), best_loss=self.shown(self.best_loss),
+                        duration_s=time.perf_counter() - t0, elapsed_s=time.perf_counter() - self.start,
+                        restarted=restarted, evaluations=self.evaluations)
+        self.history.append(prog)
+        return prog
+
+    def result(self, stopped: bool) -> OptimizationResult:
+        """The ``OptimizationResult`` of the run so far."""
+        shown = self.shown
+        return OptimizationResult(x=self.best_x, loss=shown(self.best_loss), history=self.history,
+                                  best_index=self.best_index, stopped=stopped, candidate_x=self.keep_x,
+                                  candidate_loss=torch.tensor([shown(float(v)) for v in self.keep_loss],
+                                                              dtype=self.keep_loss.dtype))
 
 
 def _step_each(opts: list, xs: list[torch.Tensor],
