@@ -255,8 +255,8 @@ class SolveResult:
             "loss_kind": self.problem.loss_kind,
             "evaluate": self.problem.evaluate,
             "seed": self.settings.get("seed", 0),
-            "multistart": self.settings.get("multistart", 1),
-            "screened": self.settings.get("screened", 0),
+            # the local optimisers' own settings; the default search has none of them
+            **{k: self.settings[k] for k in ("multistart", "screened") if k in self.settings},
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
