@@ -1,4 +1,7 @@
-"""MuJoCo round trips (dejaview.io.mjcf, dejaview export-mjcf / import-mjcf), checked in MuJoCo itself."""
+"""MuJoCo round trips (dejaview.io.mjcf, dejaview export-mjcf / import-mjcf), checked in MuJoCo itself.
+
+Skipped only where the ``mujoco`` package is missing: it is a test extra (``.[test]``), installed by
+``scripts/setup`` and so in CI, like ``tests/sim/test_mujoco_crosscheck.py``'s cross-checks."""
 
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ from dejaview.cli import cli
 from dejaview.io.mjcf import damping_ratio, export_mjcf, import_mjcf, restitution_of
 from dejaview.scene import Scene
 
-mujoco = pytest.importorskip("mujoco")
+mujoco = pytest.importorskip("mujoco", reason="the mujoco test extra is not installed: pip install '.[test]'")
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENES = sorted((ROOT / "examples" / "scenes").glob("*.xml"))
