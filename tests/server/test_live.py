@@ -97,7 +97,7 @@ def test_a_client_that_disconnects_fetches_the_result_over_rest(live_server):
 
 
 def test_cancel_stops_a_running_solve(live_server):
-    outcome = run_job(live_server.ws_url, "solve", scene_path="solve_long.xml", timeout=120,
+    outcome = run_job(live_server.ws_url, "solve", scene_path="solve_endless.xml", timeout=120,
                       cancel_when=lambda m: m["type"] == "progress")
     assert outcome.state == "cancelled"
     progress = outcome.of_type("progress")

@@ -89,7 +89,7 @@ def test_ping_pong_and_cancel(make_client):
     with client.websocket_connect("/ws") as ws:
         ws.send_text(json.dumps({"type": "ping", "request_id": "p1"}))
         assert receive(ws) == {"type": "pong", "request_id": "p1"}
-        submit(ws, kind="solve", scene_path="solve_long.xml", request_id="long")
+        submit(ws, kind="solve", scene_path="solve_endless.xml", request_id="long")
         accepted = receive(ws)
         job_id = accepted["job_id"]
         while (msg := receive(ws))["type"] != "progress":
@@ -222,7 +222,7 @@ def test_message_rate_limit(make_client):
 def test_too_many_jobs_per_connection(make_client):
     client = make_client(workers=1, max_jobs_per_connection=1)
     with client.websocket_connect("/ws") as ws:
-        submit(ws, kind="solve", scene_path="solve_long.xml")
+        submit(ws, kind="solve", scene_path="solve_endless.xml")
         job_id = receive(ws)["job_id"]
         submit(ws, kind="simulate", scene_path="ball.xml", request_id="second")
         while (msg := receive(ws))["type"] == "progress":
@@ -237,7 +237,7 @@ def test_too_many_jobs_per_connection(make_client):
 def test_queue_full_over_websocket(make_client):
     client = make_client(workers=1, queue_size=1)
     with client.websocket_connect("/ws") as ws:
-        submit(ws, kind="solve", scene_path="solve_long.xml", request_id="a")
+        submit(ws, kind="solve", scene_path="solve_endless.xml", request_id="a")
         submit(ws, kind="simulate", scene_path="drop.xml", request_id="b")
         submit(ws, kind="simulate", scene_path="drop.xml", request_id="c")
         got = {}
