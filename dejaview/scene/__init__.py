@@ -10,10 +10,12 @@ from dejaview.scene.model import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    ModelUncertainty,
     Observation,
     Optimize,
     Penalty,
     Pose,
+    PosteriorSamples,
     Prior,
     Scene,
     SceneObject,
@@ -25,7 +27,7 @@ from dejaview.scene.model import (
 
 __all__ = [
     "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
-    "Exploration", "HeatmapSettings", "InferenceSettings", "Observation", "Optimize", "Penalty",
-    "Pose", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
+    "Exploration", "HeatmapSettings", "InferenceSettings", "ModelUncertainty", "Observation", "Optimize", "Penalty",
+    "Pose", "PosteriorSamples", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
     "Target", "Velocity",
 ]

@@ -59,6 +59,10 @@ MAX_HEATMAP_CELLS = 1024
 """Most heatmap cells along one axis."""
 MAX_HEATMAP_SAMPLES = 1024
 """Most initial guesses per heatmap cell."""
+MAX_POSTERIOR_SAMPLES = 1_000_000
+"""Most posterior samples a solve may draw."""
+MAX_RELATIVE_UNCERTAINTY = 1.0
+"""Largest relative standard deviation of a physics parameter in ``<model-uncertainty>`` (100 %)."""
 MAX_SEED = 2 ** 63 - 1
 """Largest random seed (torch takes 64-bit seeds)."""
 

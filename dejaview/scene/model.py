@@ -178,6 +178,24 @@ class Observation:
 
 
 @dataclass(frozen=True)
+class ModelUncertainty:
+    """``<model-uncertainty friction restitution>``: relative standard deviations (0.1 = 10 %) of the
+    physics parameters that the likelihood averages over (``dejaview.inference.posterior``). None: the
+    parameter is taken as exact."""
+
+    friction: float | None = None
+    restitution: float | None = None
+
+
+@dataclass(frozen=True)
+class PosteriorSamples:
+    """``<posterior samples>``: how many samples of the posterior a solve draws (0: the most probable
+    start alone)."""
+
+    samples: int = 0
+
+
+@dataclass(frozen=True)
 class InferenceSettings:
     """``<inference>``: what to infer and how."""
 
@@ -196,6 +214,8 @@ class InferenceSettings:
     heatmap: HeatmapSettings | None = None
     prior: Prior | None = None
     observation: Observation | None = None
+    model_uncertainty: ModelUncertainty | None = None
+    posterior: PosteriorSamples | None = None
 
 
 @dataclass(frozen=True)

@@ -430,6 +430,12 @@ class _Checker:
             for attr, name in (("sigma", "sigma"), ("angle-sigma", "angle_sigma")):
                 self.number(("observation",), attr, getattr(inf.observation, name), positive=True,
                             optional=True)
+        if inf.model_uncertainty is not None:
+            for name in ("friction", "restitution"):
+                self.number(("model-uncertainty",), name, getattr(inf.model_uncertainty, name),
+                            nonnegative=True, optional=True, limit=B.MAX_RELATIVE_UNCERTAINTY)
+        if inf.posterior is not None:
+            self.integer(("posterior",), "samples", inf.posterior.samples, 0, B.MAX_POSTERIOR_SAMPLES)
 
     def heatmap(self, area) -> None:
         h, key = self.scene.inference.heatmap, ("heatmap",)

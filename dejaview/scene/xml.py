@@ -35,7 +35,9 @@ from dejaview.scene.model import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    ModelUncertainty,
     Observation,
+    PosteriorSamples,
     Optimize,
     Penalty,
     Pose,
@@ -69,7 +71,8 @@ SCENE_VERSION = "1"
 # Counts that XML Schema 1.0 cannot express together with free element order.
 _AT_MOST_ONCE = {
     "scene": ("simulation", "inference"),
-    "inference": ("target", "optimize", "start-area", "exploration", "heatmap", "prior", "observation"),
+    "inference": ("target", "optimize", "start-area", "exploration", "heatmap", "prior", "observation",
+                  "model-uncertainty", "posterior"),
 }
 _REQUIRED_CHILDREN = {"inference": ("target",)}
 
@@ -639,6 +642,18 @@ class _SceneReader:
             self.lines[("observation",)] = ob.sourceline
             observation = Observation(sigma=self.float_attr(ob, "sigma"),
                                       angle_sigma=self.float_attr(ob, "angle-sigma"))
+        model_uncertainty = None
+        if "model-uncertainty" in groups:
+            mu = groups["model-uncertainty"][0]
+            self.lines[("model-uncertainty",)] = mu.sourceline
+            model_uncertainty = ModelUncertainty(friction=self.float_attr(mu, "friction"),
+                                                 restitution=self.float_attr(mu, "restitution"))
+        posterior = None
+        if "posterior" in groups:
+            po = groups["posterior"][0]
+            self.lines[("posterior",)] = po.sourceline
+            posterior = PosteriorSamples(
+                samples=self.int_attr(po, "samples", _default(PosteriorSamples, "samples")))
         return InferenceSettings(
             source=el.get("source"),
             target=target,
@@ -655,6 +670,8 @@ class _SceneReader:
             heatmap=heatmap,
             prior=prior,
             observation=observation,
+            model_uncertainty=model_uncertainty,
+            posterior=posterior,
         )
 
 
@@ -781,10 +798,14 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
         h.set("sigma", _f(inf.heatmap.sigma))
     for tag, value, attrs in (("prior", inf.prior, (("speed", "speed"), ("spin", "spin"), ("tilt", "tilt"))),
                               ("observation", inf.observation,
-                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma")))):
+                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma"))),
+                              ("model-uncertainty", inf.model_uncertainty,
+                               (("friction", "friction"), ("restitution", "restitution")))):
         if value is not None:
             e = etree.SubElement(el, tag)
             for attr, name in attrs:
                 if getattr(value, name) is not None:
                     e.set(attr, _f(getattr(value, name)))
+    if inf.posterior is not None:
+        etree.SubElement(el, "posterior").set("samples", str(int(inf.posterior.samples)))
     return el

@@ -13,9 +13,13 @@ from dejaview.scene import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    ModelUncertainty,
+    Observation,
     Optimize,
     Penalty,
     Pose,
+    PosteriorSamples,
+    Prior,
     Scene,
     SceneObject,
     SimulationSettings,
@@ -123,6 +127,9 @@ def programmatic_scene() -> Scene:
             exploration=Exploration(epsilon=0.0, patience=1),
             penalties=(Penalty(("box-1", "can"), 0.5), Penalty(("cube", "floor"))),
             heatmap=HeatmapSettings(cells=(1, 7), samples=1, sigma=1e-3),
+            prior=Prior(speed=1.5, tilt=0.25), observation=Observation(sigma=0.004),
+            model_uncertainty=ModelUncertainty(friction=0.1, restitution=0.0),
+            posterior=PosteriorSamples(samples=500),
         ),
     )
 
@@ -350,3 +357,19 @@ def test_wrong_root_is_named_as_written(doc, shown):
 def test_scene_error_format():
     err = reason_of(ball_scene(object_attrs='mass="-1"'), filename="a/b.xml")
     assert str(err) == "a/b.xml:2: <object> 'mass' must be positive, got -1.0"
+
+
+@pytest.mark.parametrize("element, fragment", [
+    ('<posterior samples="-1"/>', "<posterior> 'samples' must be >= 0"),
+    ('<posterior samples="2.5"/>', "samples"),
+    ('<model-uncertainty friction="-0.1"/>', "<model-uncertainty> 'friction' must be >= 0"),
+    ('<model-uncertainty restitution="nan"/>', "restitution"),
+    ('<model-uncertainty friction="3"/>', "beyond the limit"),
+    ('<posterior samples="1"/><posterior samples="2"/>', "posterior"),
+])
+def test_posterior_and_model_uncertainty_are_checked(element, fragment):
+    text = ball_scene(extra=f'  <inference source="ball"><target position="1 0 0"/>{element}</inference>\n')
+    with pytest.raises(SceneError) as info:
+        Scene.from_string(text).validate()
+    assert fragment in str(info.value)
+    assert len(str(info.value).splitlines()) == 1
