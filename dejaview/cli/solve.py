@@ -20,17 +20,19 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--screen", type=click.IntRange(min=0), default=None,
               help="with --optimizer gd|adam|lbfgs|bfgs: rank this many random guesses by loss first")
 @click.option("--lr", type=float, default=None, help="with a local optimiser: learning rate")
+@click.option("--samples", type=int, default=None,
+              help="draw N samples of the posterior (posterior.csv; default: <posterior samples>, else 0)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
 @click.option("--compile", "use_compile", is_flag=True,
               help="torch.compile the torch engine's rollouts (the native engine needs no compile)")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @common_options
-def command(scene, out_dir, budget, multistart, screen, lr, plot, use_compile, tolerance, backend,
+def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_compile, tolerance, backend,
             engine, iterations, optimizer, gradient, seed, quiet):
     """Infer the most probable initial state of SCENE's source object (its <prior> and
     <observation>); write result.json, iterations.csv and trajectory.csv (the answer
-    re-simulated) to DIR."""
+    re-simulated) to DIR, and posterior.csv with --samples N."""
     from tqdm import tqdm
 
     from dejaview.inference import solve
@@ -44,11 +46,15 @@ def command(scene, out_dir, budget, multistart, screen, lr, plot, use_compile, t
     bar = tqdm(total=total, desc="solve", unit="it", disable=not show_progress(quiet))
 
     def progress(p):
+        if p.phase == "sample":
+            bar.set_description("sample")
+            bar.set_postfix(done=f"{100 * p.fraction:.0f}%", refresh=True)
+            return
         bar.update(1)
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
-                   lr=lr, multistart=multistart, screen=screen, budget=budget,
+                   lr=lr, multistart=multistart, screen=screen, budget=budget, samples=samples,
                    callback=progress, tolerance=tolerance,
                    compile=use_compile, backend=backend,
                    engine=None if engine == "auto" and backend != "spheres" else engine)
@@ -73,4 +79,14 @@ def command(scene, out_dir, budget, multistart, screen, lr, plot, use_compile, t
             click.echo(f"  meets the target at t = {m['time']:.3f} s: {m['position_error'] * 1000:.2f} mm, "
                        f"{m['angle_error_deg']:.2f} deg off (position {fmt(m['position'])} m)")
         click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")
+        post = result.settings.get("posterior")
+        if post is not None:
+            sampler = post["sampler"]
+            click.echo(f"  posterior: {post['samples']} samples ({sampler['unique_samples']} distinct, "
+                       f"{sampler['stages']} tempering steps, {sampler['rollouts']} rollouts, "
+                       f"{sampler['seconds']:.1f} s); modes by probability: "
+                       + ", ".join(f"{m['probability']:.2f}" for m in post["modes"]))
+            for name, iv in post["intervals"].items():
+                lo, hi = iv["90%"]
+                click.echo(f"    {name:20s} median {iv['median']:8.3f}   90% [{lo:8.3f}, {hi:8.3f}]")
         click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))

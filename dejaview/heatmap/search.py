@@ -190,8 +190,15 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
                     callback=None, should_stop=None, problem=None, backend: str = "spheres",
-                    engine: str = "auto") -> HeatmapResult:
-    """Start-position heatmap of a scene's source (module docstring).
+                    engine: str = "auto", method: str | None = None) -> HeatmapResult:
+    """Start-position heatmap of a scene's source.
+
+    ``method="posterior"`` (the default where the spheres backend runs and no local optimiser is
+    named; ``dejaview.heatmap.posterior.choose_method``) samples the posterior and histograms the
+    samples' start positions (``dejaview.heatmap.posterior``): the cells' probabilities are the
+    posterior's marginal. Of the arguments below it takes cells, samples (per cell), sigma (the
+    observation's), iterations and seed (the search's), callback, should_stop, problem, engine.
+    ``method="basins"`` runs the per-cell optimisations of this module's docstring.
 
     The steps: the settings (``_settings``), the problem (``_with_problem``), every chunk's
     first guesses (``_first_guesses``), the batched optimisations (``_optimise_chunks``), the
@@ -223,13 +230,23 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         backend: ``spheres`` | ``warp`` (``dejaview.backends.make_problem``); ignored with ``problem``.
         engine: the spheres backend's simulation engine (``InferenceProblem.engine``); ignored
             with ``problem``.
+        method: ``posterior`` | ``basins`` | None (above).
     Returns:
         HeatmapResult.
     Raises:
         InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite.
     """
+    from dejaview.heatmap.posterior import choose_method, posterior_heatmap
     from dejaview.heatmap.weighting import deduplicate
 
+    if choose_method(method, optimizer, backend if problem is None else problem.backend) == "posterior":
+        for name, value in (("lr", lr), ("gradient", gradient)):
+            if value is not None:
+                raise InferenceError(f"{name} applies to the basins heatmap (per-cell optimisations), "
+                                     f"not to the posterior's")
+        return posterior_heatmap(scene, cells=cells, samples=samples, sigma=sigma, iterations=iterations,
+                                 seed=seed, callback=callback, should_stop=should_stop, problem=problem,
+                                 engine=engine)
     t_start = time.perf_counter()
     run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
                     radii, directions)

@@ -97,7 +97,11 @@ def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: f
 
 @dataclass
 class Progress:
-    """What the progress callback receives after every iteration."""
+    """What the progress callback receives after every iteration.
+
+    ``phase`` names the stage of a solve: ``search`` (screening, CMA-ES, a local optimiser),
+    ``refine`` (Levenberg-Marquardt) or ``sample`` (the posterior sampler); ``fraction`` is how far
+    the sampler is (0 to 1; None in the other phases)."""
 
     iteration: int
     loss: float
@@ -106,6 +110,8 @@ class Progress:
     elapsed_s: float
     restarted: bool
     evaluations: int
+    phase: str = "search"
+    fraction: float | None = None
 
 
 @dataclass

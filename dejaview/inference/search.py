@@ -156,12 +156,12 @@ class _Search:
             self.best = Mode(x[i].detach().clone(), float(cost[i]), float(chi2[i]), float(loss[i]))
         return float(cost[i])
 
-    def tick(self, value: float, restarted: bool = False) -> None:
+    def tick(self, value: float, restarted: bool = False, phase: str = "search") -> None:
         """One iteration: record progress, call back, poll for a stop."""
         now = time.perf_counter()
         p = Progress(iteration=len(self.history), loss=value, best_loss=self.best.cost,
                      duration_s=now - self.last, elapsed_s=now - self.t0, restarted=restarted,
-                     evaluations=self.spent())
+                     evaluations=self.spent(), phase=phase)
         self.last = now
         self.history.append(p)
         if self.callback is not None:
@@ -270,7 +270,7 @@ class _Search:
             # converged: no relative gain left, or the damping says there is no descent nearby
             active = active & ~((better & ((rel < 1e-10) | (cost < 1e-12))) | (lam > 1e8))
             value = self.consider(x, cost, chi2, loss)
-            self.tick(value)
+            self.tick(value, phase="refine")
             if it + 1 < iterations and not self.out_of_budget():
                 idx = (better & active).nonzero().flatten()
                 if idx.numel():

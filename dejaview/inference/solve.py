@@ -182,6 +182,7 @@ class SolveResult:
         loss: best loss.
         trajectory: the best solution re-simulated (record every step), batch of 1.
         settings: optimizer, gradient, iterations, seed, backend.
+        posterior: ``PosteriorSamples`` where samples were drawn (``write``: posterior.csv), else None.
     """
 
     scene: object
@@ -191,6 +192,7 @@ class SolveResult:
     loss: float
     trajectory: Trajectory
     settings: dict = field(default_factory=dict)
+    posterior: object = None
 
     @property
     def iterations(self) -> list[Progress]:
@@ -260,7 +262,8 @@ class SolveResult:
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
-            **{k: self.settings[k] for k in ("prior", "observation", "search") if k in self.settings},
+            **{k: self.settings[k] for k in ("prior", "observation", "search", "posterior")
+               if k in self.settings},
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}
                            for p in self.iterations],
@@ -280,6 +283,10 @@ class SolveResult:
                 writer.writerow([p.iteration, f"{p.loss:.9g}", f"{p.best_loss:.9g}",
                                  f"{p.duration_s:.6f}", int(p.restarted)])
         self.problem.write_trajectory(paths["trajectory"], self.trajectory)
+        if self.posterior is not None:
+            from dejaview.inference.posterior_report import write_csv
+
+            paths["posterior"] = write_csv(out / "posterior.csv", self.posterior, self.problem.layout)
         if plot:
             quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
             paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)
@@ -345,6 +352,7 @@ class SolveSettings:
         gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
             optimisers' settings (``optimize``).
         posterior: ``PosteriorSettings`` (prior and observation noise).
+        samples: posterior samples to draw after the search (0: the most probable start alone).
     """
 
     optimizer: str
@@ -361,15 +369,17 @@ class SolveSettings:
     epsilon: float = 0.0
     patience: int = 25
     posterior: object = None
+    samples: int = 0
 
     @staticmethod
     def resolve(scene, *, optimizer: str | None = None, iterations: int | None = None,
                 seed: int | None = None, tolerance: float | None = None, budget: int | None = None,
-                **local) -> "SolveSettings":
+                samples: int | None = None, **local) -> "SolveSettings":
         """Settings from the scene's ``<inference>`` and overrides (None: the scene's / default).
 
         Args:
             scene: a Scene with an ``<inference>`` section.
+            samples: posterior samples (None: the scene's ``<posterior samples>``, else 0).
             local: ``LOCAL_ONLY`` overrides (None: unset).
         Raises:
             InferenceError: one line naming a bad value, or a local optimiser's setting given with
@@ -395,6 +405,12 @@ class SolveSettings:
                                           and tolerance >= 0):
             raise InferenceError(f"tolerance must be a non-negative number, got {tolerance!r}")
         given = {k: v for k, v in local.items() if v is not None}
+        if samples is None:
+            samples = inf.posterior.samples if inf.posterior is not None else 0
+        _check_count(samples, "samples", 0)
+        if samples and optimizer != "auto":
+            raise InferenceError("posterior samples need the default search (optimizer auto): the "
+                                 "sampler starts from the modes it finds")
         if optimizer == "auto":
             if given:
                 name = sorted(given)[0]
@@ -404,7 +420,7 @@ class SolveSettings:
                 _check_count(budget, "budget", 1)
             return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed,
                                  tolerance=tolerance, budget=budget, gradient="reverse",
-                                 posterior=PosteriorSettings.from_scene(scene))
+                                 posterior=PosteriorSettings.from_scene(scene), samples=samples)
         if budget is not None:
             raise InferenceError("budget applies to the default search (optimizer auto)")
         exploration = inf.exploration
@@ -435,7 +451,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
           compile: bool = False, backend: str | None = None, engine: str | None = None,
           screen: int | None = None, screen_rounds: int | None = None,
-          screen_near: float | None = None, budget: int | None = None) -> SolveResult:
+          screen_near: float | None = None, budget: int | None = None,
+          samples: int | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object: its most probable past.
 
     The default (``optimizer="auto"``, what a scene without ``optimizer`` asks for) maximises the
@@ -448,6 +465,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         scene: a Scene (or a path to a scene file) with an ``<inference>`` section.
         iterations, optimizer, seed, tolerance: override the scene's settings (``SolveSettings``).
         budget: rollouts of the ``auto`` search.
+        samples: posterior samples drawn around the search's modes (``dejaview.inference.sampling``;
+            None: the scene's ``<posterior samples>``, else none); the result's ``posterior``.
         gradient, lr, multistart, epsilon, patience, screen, screen_rounds, screen_near, x0: the
             local optimisers' settings (see ``optimize`` and ``screen_rounds_ranked``):
             multistart K guesses as one batch, ``screen`` random guesses ranked by loss first.
@@ -476,9 +495,15 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     if (optimizer or scene.inference.optimizer) == "auto" and problem.backend != "spheres":
         optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
     settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
-                                     tolerance=tolerance, budget=budget, **local)
+                                     tolerance=tolerance, budget=budget, samples=samples, **local)
+    samples_drawn = None
     if settings.optimizer == "auto":
-        opt, extra = _search(scene, problem, settings, callback, should_stop)
+        opt, extra, post = _search(scene, problem, settings, callback, should_stop)
+        if settings.samples and not opt.stopped and math.isfinite(opt.loss):
+            samples_drawn = _sample(post, opt, settings, callback, should_stop)
+            from dejaview.inference.posterior_report import summary
+
+            extra["posterior"] = summary(samples_drawn, problem.layout, opt.modes)
     else:
         opt, extra = _optimize_locally(problem, settings, x0, callback, should_stop)
     if not math.isfinite(opt.loss):
@@ -492,7 +517,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     info = {"optimizer": settings.optimizer, "gradient": settings.gradient, "iterations": settings.iterations,
             "seed": settings.seed, "backend": problem.backend, **extra}
     return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
-                       loss=opt.loss, trajectory=traj, settings=info)
+                       loss=opt.loss, trajectory=traj, settings=info, posterior=samples_drawn)
 
 
 def _make_problem(scene, problem, world, backend, compile, engine):
@@ -532,7 +557,23 @@ def _search(scene, problem, settings: SolveSettings, callback, should_stop):
                    "initial_state": {k: v[0].tolist() for k, v in
                                      problem.layout.decode(m.x.unsqueeze(0).to(problem.dtype)).items()}}
                   for m in opt.modes]}}
-    return opt, extra
+    return opt, extra, post
+
+
+def _sample(post, opt, settings: SolveSettings, callback, should_stop):
+    """Posterior samples around the search's modes, reporting progress as phase ``sample``."""
+    from dejaview.inference.sampling import sample_posterior
+
+    last = opt.history[-1] if opt.history else None
+    it = last.iteration if last is not None else 0
+
+    def report(d):
+        if callback is not None:
+            callback(Progress(iteration=it, loss=opt.cost, best_loss=opt.cost, duration_s=0.0,
+                              elapsed_s=(last.elapsed_s if last else 0.0) + d["elapsed_s"], restarted=False,
+                              evaluations=post.rollouts, phase="sample", fraction=d["fraction"]))
+    return sample_posterior(post, opt.modes, settings.samples, seed=settings.seed, callback=report,
+                            should_stop=should_stop)
 
 
 def _optimize_locally(problem, settings: SolveSettings, x0, callback, should_stop):

@@ -1,0 +1,130 @@
+"""What a solve reports of the posterior samples: ``posterior.csv``, the summary in ``result.json``
+(modes with their probability mass, central intervals) and the start-position heatmap.
+
+Parameters are reported in physical units under the layout's names
+(``ParameterLayout.names``): ``position.x`` (m, object-frame origin),
+``orientation.rx`` (rad, rotation vector applied on top of the ``<pose>``
+orientation), ``linear_velocity.x`` (m/s), ``angular_velocity.x`` (rad/s).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import torch
+
+CSV_HEADER = ("sample", "weight", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
+"""``posterior.csv``'s header (scene-format spec, "Additions to version 1")."""
+INTERVALS = (0.5, 0.9)
+"""Central credible intervals reported for every free parameter."""
+MIN_MODE_MASS = 1e-3
+"""Modes holding less posterior mass than this are left out of the summary."""
+
+
+def physical(layout, x: torch.Tensor) -> torch.Tensor:
+    """The free parameters x (N, P) in physical units (N, P), in ``layout.names()`` order."""
+    with torch.no_grad():
+        dec = layout.decode(x.to(layout.base_position.dtype))
+    cols = []
+    if layout.free["position"]:
+        cols += [dec["position"][:, a] for a in layout.position_axes]
+    if layout.free["orientation"]:
+        r = layout.scale["orientation"] * x[:, layout.block_slice("orientation")]
+        cols += [r[:, i] for i in range(3)]
+    for block in ("linear_velocity", "angular_velocity"):
+        if layout.free[block]:
+            cols += [dec[block][:, i] for i in range(3)]
+    return torch.stack(cols, -1).to(torch.float64) if cols else x[:, :0].to(torch.float64)
+
+
+def weighted_quantiles(values: torch.Tensor, weights: torch.Tensor, qs) -> torch.Tensor:
+    """Quantiles (len(qs), P) of weighted samples values (N, P), weights (N,) summing to 1
+    (the inverse of the weighted empirical CDF, interpolated between midpoints)."""
+    out = []
+    for j in range(values.shape[1]):
+        v, order = torch.sort(values[:, j])
+        w = weights[order]
+        c = torch.cumsum(w, 0) - 0.5 * w
+        out.append(torch.tensor(np.interp(np.asarray(qs, dtype=float), c.numpy(), v.numpy()),
+                                dtype=torch.float64))
+    return torch.stack(out, -1) if out else torch.zeros(len(qs), 0, dtype=torch.float64)
+
+
+def summary(samples, layout, modes) -> dict:
+    """``result.json``'s ``posterior``: sampler statistics, the modes with their probability mass
+    (the share of samples each mode's reference component is most responsible for) and, per free
+    parameter, the median and the central 50 % and 90 % intervals in physical units.
+
+    Args:
+        samples: ``PosteriorSamples``; layout: ``ParameterLayout``; modes: the search's ``Mode`` list.
+    """
+    w = samples.weights
+    values = physical(layout, samples.x)
+    qs = [0.5]
+    for level in INTERVALS:
+        qs += [(1 - level) / 2, (1 + level) / 2]
+    quant = weighted_quantiles(values, w, qs)
+    intervals = {}
+    for j, name in enumerate(layout.names()):
+        intervals[name] = {"median": float(quant[0, j]),
+                           **{f"{int(level * 100)}%": [float(quant[1 + 2 * i, j]), float(quant[2 + 2 * i, j])]
+                              for i, level in enumerate(INTERVALS)}}
+    found = []
+    for k, index in enumerate(samples.mode_index):
+        mass = float(w[samples.component == k].sum())
+        if mass < MIN_MODE_MASS:
+            continue
+        mode = modes[index]
+        with torch.no_grad():
+            state = {key: v[0].tolist() for key, v in
+                     layout.decode(mode.x.unsqueeze(0).to(layout.base_position.dtype)).items()}
+        found.append({"probability": mass, "neg_log_posterior": mode.cost, "initial_state": state})
+    found.sort(key=lambda m: -m["probability"])
+    return {"samples": int(samples.x.shape[0]), "sampler": samples.stats, "modes": found,
+            "intervals": intervals}
+
+
+def write_csv(path, samples, layout) -> Path:
+    """``posterior.csv``: one row per sample, the source's initial state (spec header ``CSV_HEADER``)."""
+    with torch.no_grad():
+        dec = layout.decode(samples.x.to(layout.base_position.dtype))
+    rows = torch.cat([dec["position"], dec["orientation"], dec["linear_velocity"], dec["angular_velocity"]],
+                     -1).tolist()
+    path = Path(path)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(CSV_HEADER)
+        for i, (w, row) in enumerate(zip(samples.weights.tolist(), rows)):
+            writer.writerow([i, repr(float(w)), *(repr(float(v)) for v in row)])
+    return path
+
+
+def read_csv(path) -> tuple[np.ndarray, np.ndarray]:
+    """``posterior.csv`` back: weights (N,) and states (N, 13) in the header's column order."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.reader(fh)
+        header = tuple(next(reader))
+        if header != CSV_HEADER:
+            raise ValueError(f"{path}: not a posterior.csv header: {','.join(header)}")
+        data = np.array([[float(v) for v in row] for row in reader], dtype=float).reshape(-1, len(CSV_HEADER))
+    return data[:, 1], data[:, 2:]
+
+
+def position_histogram(positions: torch.Tensor, weights: torch.Tensor, lo, hi, cells) -> np.ndarray:
+    """The posterior's marginal over the start area's x-y cells: (ny, nx) probabilities,
+    ``[j][i]`` for column i (x) and row j (y, from -y up), summing to 1.
+
+    Args:
+        positions: (N, 3) start positions; weights: (N,); lo, hi: the area's (x, y) corners;
+        cells: (nx, ny).
+    """
+    nx, ny = int(cells[0]), int(cells[1])
+    fx = (positions[:, 0] - lo[0]) / (hi[0] - lo[0])
+    fy = (positions[:, 1] - lo[1]) / (hi[1] - lo[1])
+    i = (fx * nx).floor().clamp(0, nx - 1).long()
+    j = (fy * ny).floor().clamp(0, ny - 1).long()
+    grid = torch.zeros(ny * nx, dtype=torch.float64).index_add_(0, j * nx + i, weights.to(torch.float64))
+    total = float(grid.sum())
+    return (grid / total).reshape(ny, nx).numpy() if total > 0 else grid.reshape(ny, nx).numpy()

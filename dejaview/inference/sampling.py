@@ -1,0 +1,407 @@
+"""Posterior samples: every past that explains the end, weighted by its probability.
+
+``sample_posterior(post, modes, n)`` draws ``n`` samples of the free parameters
+x from the posterior of ``dejaview.inference.posterior`` (likelihood of the
+observed end times the prior), starting from the modes that the most-probable-
+past search (``dejaview.inference.search``) found.
+
+The target density over x (``log_density``) is ``-0.5 |R(x)|^2`` plus the log
+density of the parameterisation's base measure (``log_base_density``): the
+start position is uniform in the start area, which in the layout's logit
+coordinates is the logistic density; an orientation without ``<prior tilt>`` is
+uniform on SO(3), which in rotation-vector coordinates has density
+``(1 - cos t) / t^2`` for angles t up to pi. Infeasible starts
+(``Posterior.feasible``) and non-finite rollouts have density 0.
+
+The sampler is sequential Monte Carlo (Del Moral, Doucet and Jasra 2006) on a
+geometric bridge from a reference distribution q to the posterior p::
+
+    pi_beta(x) ~ q(x)^(1 - beta) p(x)^beta,     beta: 0 -> 1
+
+- q is a mixture of multivariate Student-t distributions (``DF`` degrees of
+  freedom) centred on the search's distinct modes, with the Laplace covariance
+  of each (``(J^T J + C)^-1`` from the exact residual Jacobian J and the
+  curvature C of the base measure and flat priors), weighted by its Laplace
+  evidence ``p(m) sqrt(det Sigma)``, so every mode the search found is covered
+  in proportion to its probability mass.
+- beta advances as far as keeps the effective sample size of the incremental
+  weights at ``ESS_FRACTION`` of the particles (bisection), then the particles
+  are resampled (systematic) and moved by Metropolis-Hastings kernels that
+  leave pi_beta invariant: one independence move proposing from q (jumps
+  between modes) and ``RW_MOVES`` random-walk moves with the weighted particle
+  covariance of the particle's mode (adapts to ridges and curved valleys; the
+  step scale adapts towards ``TARGET_ACCEPTANCE``).
+- At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
+
+Where q is close to the posterior, the first step reaches beta = 1 at once and
+the sampler is importance sampling with a few decorrelating moves; where it is
+not (a flat prior leaves a ridge of pasts that the Laplace approximation sees
+as a slab), it tempers in as many steps as it needs. Why this and not NUTS or
+plain importance sampling: see docs/inference.md ("The posterior"), measured
+with ``dejaview bench calibration``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from dejaview.errors import InferenceError
+
+DF = 5.0
+"""Degrees of freedom of the reference mixture's Student-t components (heavy tails: the Laplace
+approximation of a contact landscape is only local)."""
+SCALE_INFLATION = 1.5
+"""The reference components' scale over the Laplace standard deviation."""
+ESS_FRACTION = 0.5
+"""Effective sample size kept by each tempering step, as a fraction of the particles."""
+RW_MOVES = 3
+"""Random-walk Metropolis moves per tempering step (after one independence move)."""
+FINAL_MOVES = 12
+"""Moves (independence and random walk) run at beta = 1 before the samples are returned."""
+TARGET_ACCEPTANCE = 0.3
+"""Random-walk acceptance rate the step scale adapts towards."""
+MAX_STAGES = 200
+"""Most tempering steps (a safety net; each needs at least a 1e-6 increase of beta)."""
+MODE_MERGE = 3.0
+"""Modes closer than this Mahalanobis distance (under the better one's Laplace covariance) are
+one mode."""
+
+
+def log_base_density(post, x: torch.Tensor) -> torch.Tensor:
+    """Log density (B,) of the prior's base measure at parameters x (B, P), up to a constant
+    (module docstring): logistic for positions in a start area, Haar for a flat orientation
+    (``-inf`` beyond an angle of pi), 0 for the rest. The normal priors and the flat priors'
+    soft bounds are residuals of ``Posterior.prior_residuals``."""
+    lay = post.layout
+    out = torch.zeros(x.shape[0], dtype=x.dtype)
+    cols = lay.block_slice("position")
+    if cols.stop > cols.start and lay.lo is not None:
+        u = x[:, cols]
+        out = out - (torch.nn.functional.softplus(u) + torch.nn.functional.softplus(-u)).sum(-1)
+    cols = lay.block_slice("orientation")
+    if cols.stop > cols.start and post.settings.tilt is None:
+        t = lay.scale["orientation"] * x[:, cols].norm(dim=-1)
+        haar = torch.where(t < 1e-4, torch.full_like(t, 0.5) - t * t / 24,
+                           (1 - torch.cos(t)) / (t * t).clamp_min(1e-300))
+        out = out + torch.where(t <= math.pi, torch.log(haar.clamp_min(1e-300)), torch.full_like(t, -math.inf))
+    return out
+
+
+def log_density(post, x: torch.Tensor) -> torch.Tensor:
+    """Unnormalised log posterior density (B,) of parameters x (B, P): ``-cost + log base``,
+    ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates)."""
+    cost, _, _ = post.cost(x)
+    out = -cost + log_base_density(post, x)
+    return torch.where(torch.isfinite(out), out, torch.full_like(out, -math.inf))
+
+
+def _base_curvature(post, x: torch.Tensor) -> torch.Tensor:
+    """Diagonal (P,) added to J^T J at a mode x (P,): the curvature of ``-log_base_density``
+    and, for a flat velocity prior, one over the square of its bound (so the reference spreads
+    over the prior's range where the observation leaves a direction free)."""
+    lay, s = post.layout, post.settings
+    c = torch.zeros(lay.size, dtype=x.dtype)
+    cols = lay.block_slice("position")
+    if cols.stop > cols.start:
+        if lay.lo is not None:
+            sig = torch.sigmoid(x[cols])
+            c[cols] = 2 * sig * (1 - sig)
+        else:
+            c[cols] = 1e-4
+    cols = lay.block_slice("orientation")
+    if cols.stop > cols.start and s.tilt is None:
+        c[cols] = lay.scale["orientation"] ** 2 / 6 + (lay.scale["orientation"] / math.pi) ** 2
+    for block, sd, bound in (("linear_velocity", s.speed, s.speed_bound),
+                             ("angular_velocity", s.spin, s.spin_bound)):
+        cols = lay.block_slice(block)
+        if cols.stop > cols.start and sd is None:
+            c[cols] = (lay.scale[block] / bound) ** 2
+    return c
+
+
+@dataclass
+class Mixture:
+    """A mixture of multivariate Student-t distributions over x (P,).
+
+    Attributes:
+        means: (K, P); chol: (K, P, P) lower Cholesky factors of the scale matrices;
+        log_weights: (K,) normalised; df: degrees of freedom.
+    """
+
+    means: torch.Tensor
+    chol: torch.Tensor
+    log_weights: torch.Tensor
+    df: float = DF
+
+    def sample(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """n draws (n, P) and the component (n,) each came from."""
+        k = torch.multinomial(self.log_weights.exp(), n, replacement=True, generator=gen)
+        p = self.means.shape[1]
+        z = torch.randn(n, p, generator=gen, dtype=self.means.dtype)
+        chi2 = 2 * torch._standard_gamma(torch.full((n,), self.df / 2, dtype=self.means.dtype), generator=gen)
+        scale = torch.sqrt(self.df / chi2.clamp_min(1e-300))
+        x = self.means[k] + scale[:, None] * (self.chol[k] @ z.unsqueeze(-1)).squeeze(-1)
+        return x, k
+
+    def component_log_prob(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, K): log density of each component (weights included) at x (B, P)."""
+        p = self.means.shape[1]
+        d = x[:, None, :] - self.means[None]  # (B, K, P)
+        sol = torch.linalg.solve_triangular(self.chol[None].expand(x.shape[0], -1, -1, -1),
+                                            d.unsqueeze(-1), upper=False).squeeze(-1)
+        m = (sol * sol).sum(-1)  # (B, K) squared Mahalanobis distances
+        logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)  # (K,)
+        nu = self.df
+        c = (math.lgamma((nu + p) / 2) - math.lgamma(nu / 2) - 0.5 * p * math.log(nu * math.pi))
+        return self.log_weights + c - logdet - 0.5 * (nu + p) * torch.log1p(m / nu)
+
+    def log_prob(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) log density at x (B, P)."""
+        return torch.logsumexp(self.component_log_prob(x), -1)
+
+    def component(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) the most responsible component at x (B, P)."""
+        return self.component_log_prob(x).argmax(-1)
+
+
+def laplace_mixture(post, modes: list) -> tuple[Mixture, list[int]]:
+    """The reference mixture q of the module docstring at the search's modes.
+
+    Args:
+        post: ``Posterior``; modes: the search's ``Mode`` list (x (P,), cost), best first.
+    Returns:
+        the mixture and, per component, the index of the mode it came from.
+    """
+    finite = [i for i, m in enumerate(modes) if math.isfinite(m.cost)]
+    if not finite:
+        raise InferenceError("no mode with a finite posterior density to sample around")
+    xs = torch.stack([modes[i].x.to(torch.float64) for i in finite])
+    r, J = post.jacobian(xs)
+    p = xs.shape[1]
+    covs, logp, kept, means = [], [], [], []
+    lp = -0.5 * (r * r).sum(-1) + log_base_density(post, xs)
+    for i in range(xs.shape[0]):
+        H = J[i].T @ J[i] + torch.diag(_base_curvature(post, xs[i]))
+        H = 0.5 * (H + H.T) + 1e-9 * torch.eye(p, dtype=H.dtype) * float(torch.diagonal(H).mean().clamp_min(1e-12))
+        cov = torch.linalg.inv(H)
+        cov = 0.5 * (cov + cov.T)
+        dup = False
+        for j, mj in enumerate(means):
+            d = xs[i] - mj
+            if float(d @ torch.linalg.solve(covs[j], d)) < MODE_MERGE ** 2:
+                dup = True
+                break
+        if dup or not bool(torch.isfinite(lp[i])):
+            continue
+        means.append(xs[i])
+        covs.append(cov)
+        logp.append(float(lp[i]))
+        kept.append(finite[i])
+    chol = torch.linalg.cholesky(torch.stack(covs)) * SCALE_INFLATION
+    logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    lw = torch.tensor(logp, dtype=torch.float64) + logdet  # Laplace evidence
+    return Mixture(torch.stack(means), chol, lw - torch.logsumexp(lw, 0)), kept
+
+
+@dataclass
+class PosteriorSamples:
+    """Weighted samples of the posterior.
+
+    Attributes:
+        x: (N, P) parameters; weights: (N,) non-negative, summing to 1; log_density: (N,).
+        component: (N,) the reference component (mode) each sample belongs to.
+        mode_index: per component, the index of the search mode it is centred on.
+        stats: what the sampler did (stages, betas, acceptance, ESS, rollouts, seconds).
+    """
+
+    x: torch.Tensor
+    weights: torch.Tensor
+    log_density: torch.Tensor
+    component: torch.Tensor
+    mode_index: list
+    stats: dict = field(default_factory=dict)
+
+
+def _ess(logw: torch.Tensor) -> float:
+    w = torch.softmax(logw, 0)
+    return float(1.0 / (w * w).sum())
+
+
+def _systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Systematic resampling: (N,) indices."""
+    n = logw.shape[0]
+    w = torch.softmax(logw, 0)
+    u = (torch.rand(1, generator=gen, dtype=w.dtype) + torch.arange(n, dtype=w.dtype)) / n
+    return torch.searchsorted(torch.cumsum(w, 0), u).clamp_max(n - 1)
+
+
+class _SMC:
+    """State of one run of ``sample_posterior``; its methods are the named steps."""
+
+    def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop):
+        self.post, self.q, self.n = post, q, n
+        self.gen = torch.Generator().manual_seed(int(seed) * 104729 + 17)
+        self.callback, self.should_stop = callback, should_stop
+        self.beta = 0.0
+        self.scale = 2.38 / math.sqrt(max(post.layout.size, 1))
+        self.stages = 0
+        self.moves = 0
+        self.acceptance: list[float] = []
+        self.ess_steps: list[float] = []
+        self.t0 = time.perf_counter()
+
+    def start(self) -> None:
+        self.x, _ = self.q.sample(self.n, self.gen)
+        self.lq = self.q.log_prob(self.x)
+        self.lp = log_density(self.post, self.x)
+        if not bool(torch.isfinite(self.lp).any()):
+            raise InferenceError("no draw around the modes has a finite posterior density")
+
+    def stopped(self) -> bool:
+        return self.should_stop is not None and bool(self.should_stop())
+
+    def report(self) -> None:
+        if self.callback is not None:
+            self.callback({"beta": self.beta, "stage": self.stages, "moves": self.moves,
+                           "fraction": 1.0 if self.beta >= 1.0 else 0.9 * self.beta,
+                           "elapsed_s": time.perf_counter() - self.t0})
+
+    def temper(self) -> None:
+        """Advance beta as far as keeps ``ESS_FRACTION`` of the particles; resample."""
+        d = torch.where(torch.isfinite(self.lp), self.lp - self.lq, torch.full_like(self.lp, -math.inf))
+        target = ESS_FRACTION * self.n
+        if _ess((1.0 - self.beta) * d) >= target:
+            new = 1.0
+        else:
+            lo, hi = self.beta, 1.0
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                if _ess((mid - self.beta) * d) >= target:
+                    lo = mid
+                else:
+                    hi = mid
+            new = max(lo, self.beta + 1e-6)
+        logw = (new - self.beta) * d
+        self.ess_steps.append(_ess(logw))
+        self.beta = new
+        idx = _systematic(logw, self.gen)
+        self.x, self.lq, self.lp = self.x[idx], self.lq[idx], self.lp[idx]
+        self.stages += 1
+
+    def target(self, lq: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
+        out = (1.0 - self.beta) * lq + self.beta * lp if self.beta < 1 else lp.clone()
+        return torch.where(torch.isfinite(lp), out, torch.full_like(out, -math.inf))
+
+    def accept(self, y, lq_y, lp_y, log_ratio) -> float:
+        u = torch.rand(self.n, generator=self.gen, dtype=torch.float64)
+        ok = torch.isfinite(log_ratio) & (torch.log(u) < log_ratio)
+        self.x = torch.where(ok[:, None], y, self.x)
+        self.lq = torch.where(ok, lq_y, self.lq)
+        self.lp = torch.where(ok, lp_y, self.lp)
+        self.moves += 1
+        return float(ok.double().mean())
+
+    def independence_move(self) -> float:
+        y, _ = self.q.sample(self.n, self.gen)
+        lq_y = self.q.log_prob(y)
+        lp_y = log_density(self.post, y)
+        log_ratio = (self.target(lq_y, lp_y) - self.target(self.lq, self.lp)) + (self.lq - lq_y)
+        return self.accept(y, lq_y, lp_y, log_ratio)
+
+    def proposal_chol(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per component k, the Cholesky factor (K, P, P) of the covariance of the particles it is
+        most responsible for (the reference's own where it holds fewer than 2P + 2 particles);
+        and each particle's component (N,)."""
+        comp = self.q.component(self.x)
+        p = self.x.shape[1]
+        chols = []
+        for k in range(self.q.means.shape[0]):
+            ref = self.q.chol[k] / SCALE_INFLATION
+            sel = self.x[comp == k]
+            if sel.shape[0] >= 2 * p + 2:
+                c = torch.cov(sel.T).reshape(p, p) + 1e-6 * (ref @ ref.T)
+                try:
+                    chols.append(torch.linalg.cholesky(0.5 * (c + c.T)))
+                    continue
+                except RuntimeError:
+                    pass
+            chols.append(ref)
+        return torch.stack(chols), comp
+
+    def random_walk_move(self, chols: torch.Tensor, comp: torch.Tensor) -> float:
+        """y = x + scale * L_k(x) z; the Hastings ratio accounts for L_k(y) != L_k(x)."""
+        z = torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
+        y = self.x + self.scale * (chols[comp] @ z.unsqueeze(-1)).squeeze(-1)
+        comp_y = self.q.component(y)
+        back = torch.linalg.solve_triangular(chols[comp_y], (self.x - y).unsqueeze(-1) / self.scale,
+                                             upper=False).squeeze(-1)
+        logdet = torch.log(torch.diagonal(chols, dim1=-2, dim2=-1)).sum(-1)
+        log_q_back = -0.5 * (back * back).sum(-1) - logdet[comp_y]
+        log_q_fwd = -0.5 * (z * z).sum(-1) - logdet[comp]
+        lq_y = self.q.log_prob(y)
+        lp_y = log_density(self.post, y)
+        log_ratio = self.target(lq_y, lp_y) - self.target(self.lq, self.lp) + log_q_back - log_q_fwd
+        acc = self.accept(y, lq_y, lp_y, log_ratio)
+        self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
+        return acc
+
+    def move(self, count: int) -> None:
+        """One independence move, then random-walk moves, ``count`` in all."""
+        self.acceptance.append(self.independence_move())
+        chols, comp = self.proposal_chol()
+        for _ in range(count - 1):
+            if self.stopped():
+                return
+            self.acceptance.append(self.random_walk_move(chols, comp))
+            comp = self.q.component(self.x)
+
+    def run(self) -> None:
+        self.start()
+        self.report()
+        while self.beta < 1.0 and self.stages < MAX_STAGES:
+            if self.stopped():
+                raise InferenceError("stopped while sampling the posterior")
+            self.temper()
+            self.move(1 + RW_MOVES if self.beta < 1.0 else FINAL_MOVES)
+            self.report()
+        if self.beta < 1.0:
+            raise InferenceError(f"the posterior sampler did not reach the posterior in {MAX_STAGES} steps")
+
+
+def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
+                     should_stop=None) -> PosteriorSamples:
+    """Draw n weighted samples from the posterior ``post`` (module docstring).
+
+    Args:
+        post: a ``dejaview.inference.posterior.Posterior``.
+        modes: the search's modes (``SearchResult.modes``: ``Mode`` with x (P,) and cost), best first.
+        n: number of samples (>= 1).
+        seed: seeds the sampler.
+        callback: called with a dict (``beta``, ``stage``, ``moves``, ``fraction`` (0 to 1: how
+            far the sampler is), ``elapsed_s``) after the start and every tempering step.
+        should_stop: polled between moves; True raises InferenceError (nothing half-sampled is
+            returned).
+    Returns:
+        PosteriorSamples; equal weights 1/n after the final moves.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise InferenceError(f"samples must be a positive integer, got {n!r}")
+    if post.layout.size == 0:
+        raise InferenceError("the posterior has no free parameter to sample: free one in <optimize>")
+    rollouts0 = post.rollouts
+    q, mode_index = laplace_mixture(post, modes)
+    smc = _SMC(post, q, n, seed, callback, should_stop)
+    smc.run()
+    weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
+    stats = {"method": "smc", "reference_components": int(q.means.shape[0]), "stages": smc.stages,
+             "moves": smc.moves, "mean_acceptance": sum(smc.acceptance) / max(len(smc.acceptance), 1),
+             "final_acceptance": smc.acceptance[-1] if smc.acceptance else None,
+             "first_step_ess": smc.ess_steps[0] if smc.ess_steps else None,
+             "unique_samples": int(torch.unique(smc.x, dim=0).shape[0]),
+             "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - smc.t0}
+    return PosteriorSamples(x=smc.x, weights=weights, log_density=smc.lp, component=q.component(smc.x),
+                            mode_index=mode_index, stats=stats)
