@@ -292,6 +292,31 @@ def search(scenes, seeds, pipelines, csv_path):
     _finish(rows, csv_path, False, [])
 
 
+@command.command("calibration")
+@click.option("--scenes", default="ball_off_table,box_thrown,ramp", show_default=True,
+              callback=_comma_list(("ball_off_table", "box_thrown", "ramp")), help="Calibration scenes.")
+@click.option("--truths", default=50, show_default=True, type=click.IntRange(min=1),
+              help="Truths drawn from each scene's prior.")
+@click.option("--samples", default=300, show_default=True, type=click.IntRange(min=1),
+              help="Posterior samples per truth.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the rank histograms as a PNG here.")
+@csv_option
+def calibration(scenes, truths, samples, plot_path, csv_path):
+    """Simulation-based calibration of the posterior samples (Talts et al. 2018).
+
+    Draws truths from each scene's prior, observes their ends with the stated noise, samples the
+    posterior with `solve(samples=N)` and prints the coverage of the central 50 % and 90 %
+    intervals, their sharpness and the rank histograms (targets 40-60 % and 85-97 %).
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("calibration").run(print_fn=click.echo, scenes=scenes, truths=truths,
+                                           samples=samples, plot=plot_path)
+    _finish(rows, csv_path, False, [])
+
+
 @command.command("load")
 @click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
               help="Concurrent WebSocket clients, one short simulate job each.")

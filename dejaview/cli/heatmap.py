@@ -28,9 +28,13 @@ def _cells(ctx, param, value):
               required=True, help="output folder (created)")
 @click.option("--cells", callback=_cells, default=None, help="grid NXxNY (overrides <heatmap cells>)")
 @click.option("--samples", type=click.IntRange(min=1), default=None,
-              help="optimisations per cell (overrides <heatmap samples>)")
+              help="posterior samples (basins: optimisations) per cell (overrides <heatmap samples>)")
 @click.option("--sigma", type=click.FloatRange(min=0.0, min_open=True), default=None,
-              help="simulation-error scale in metres of loss (overrides <heatmap sigma>)")
+              help="the observation's position sigma in metres (overrides <observation sigma> and "
+                   "<heatmap sigma>)")
+@click.option("--method", type=click.Choice(["posterior", "basins"]), default=None,
+              help="posterior: the posterior's marginal (default); basins: per-cell optimisations "
+                   "(default with a local --optimizer or --backend warp)")
 @click.option("--lr", type=float, default=None, help="learning rate (default per optimiser)")
 @click.option("--batch-size", type=click.IntRange(min=1), default=1024, show_default=True,
               help="candidates per batched optimisation")
@@ -38,7 +42,7 @@ def _cells(ctx, param, value):
               help="processes optimising chunks at once (default: the CPU count, at most 2)")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
-def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_plot, backend, engine,
+def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, no_plot, backend, engine,
             iterations, optimizer, gradient, seed, quiet):
     """Which cells of SCENE's start area could its source have started from? Writes
     heatmap.ppm, heatmap.png, heatmap.json, result.json and trajectory.csv (best solution) to DIR."""
@@ -64,7 +68,7 @@ def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_p
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
                              batch_size=batch_size, workers=workers, callback=progress, backend=backend,
-                             engine=engine)
+                             engine=engine, method=method)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)
@@ -73,8 +77,15 @@ def command(scene, out_dir, cells, samples, sigma, lr, batch_size, workers, no_p
         cx = result.lo[0] + (i + 0.5) * (result.hi[0] - result.lo[0]) / nx
         cy = result.lo[1] + (j + 0.5) * (result.hi[1] - result.lo[1]) / ny
         start = result.best.initial_state["position"]
-        click.echo(f"{result.candidates} optimisations over {nx} x {ny} cells in {result.seconds:.1f} s; "
-                   f"{len(result.solutions)} distinct solutions")
+        if result.settings.get("method") == "posterior":
+            from dejaview.heatmap.posterior import credible_area
+
+            click.echo(f"{result.candidates} posterior samples over {nx} x {ny} cells in {result.seconds:.1f} s; "
+                       f"{len(result.solutions)} mode(s); the 90 % credible region covers "
+                       f"{100 * credible_area(result.probability):.1f} % of the start area")
+        else:
+            click.echo(f"{result.candidates} optimisations over {nx} x {ny} cells in {result.seconds:.1f} s; "
+                       f"{len(result.solutions)} distinct solutions")
         click.echo(f"  most probable cell ({i}, {j}) around ({cx:.3f}, {cy:.3f}) m: "
                    f"p = {result.probability[j, i]:.3f}; entropy {result.entropy_bits():.2f} bits "
                    f"(uniform {__import__('math').log2(nx * ny):.2f})")

@@ -41,6 +41,10 @@ def choose_method(method: str | None, optimizer: str | None, backend: str | None
     Raises:
         InferenceError: an unknown method, or a local optimiser named with ``posterior``.
     """
+    from dejaview.scene.model import OPTIMIZERS
+
+    if optimizer is not None and optimizer not in OPTIMIZERS:
+        raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if method is None:
         local = optimizer in LOCAL_OPTIMIZERS or (backend not in (None, "spheres"))
         return "basins" if local else "posterior"

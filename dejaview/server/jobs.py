@@ -173,6 +173,10 @@ def _optimiser_progress(total: int, progress):
         for key in ("cells_done", "cells_total"):
             if getattr(p, key, None) is not None:
                 data[key] = int(getattr(p, key))
+        if getattr(p, "phase", None) is not None:
+            data["phase"] = str(p.phase)
+        if getattr(p, "fraction", None) is not None:
+            data["fraction"] = float(p.fraction)
         progress(data, last=total is not None and data["iteration"] == total)
     return report
 
@@ -182,7 +186,8 @@ def _solve(scene, overrides, out_dir, progress, stop):
 
     total = overrides.get("iterations", scene.inference.iterations)
     kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "budget", "gradient", "seed", "lr",
-                                        "tolerance", "backend", "multistart", "screen", "screen_rounds")
+                                        "tolerance", "backend", "multistart", "screen", "screen_rounds",
+                                        "samples")
               if k in overrides}
     result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
     if stop.reason is not None:
@@ -193,6 +198,10 @@ def _solve(scene, overrides, out_dir, progress, stop):
                "initial_state": result.initial_state,
                "final_pose": {"position": end_pos, "orientation": end_q},
                "optimizer": result.settings.get("optimizer"), "gradient": result.settings.get("gradient")}
+    if "posterior" in result.settings:
+        post = result.settings["posterior"]
+        summary["posterior"] = {"samples": post["samples"], "modes": post["modes"],
+                                "intervals": post["intervals"]}
     return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
 
 

@@ -76,9 +76,10 @@ class Overrides(_Strict):
     """Settings that override the scene's for one job (all optional).
 
     simulate: ``steps``, ``record_every``; solve: ``iterations``,
-    ``optimizer``, ``budget`` (the default search's), ``seed``, ``tolerance``, and the local
+    ``optimizer``, ``budget`` (the default search's), ``seed``, ``tolerance``, ``samples``
+    (posterior samples: posterior.csv), and the local
     optimisers' ``gradient``, ``lr``, ``multistart``, ``screen``, ``screen_rounds``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
-    ``seed``, ``cells``, ``samples``, ``sigma``; ``backend`` to all three.
+    ``seed``, ``cells``, ``samples`` (per cell), ``sigma``; ``backend`` to all three.
     """
 
     backend: Literal["spheres", "warp"] | None = None
@@ -96,7 +97,7 @@ class Overrides(_Strict):
     record_every: Annotated[int, Field(ge=1)] | None = None
     cells: Annotated[list[Annotated[int, Field(ge=1)]],
                      Field(min_length=2, max_length=2, description="[nx, ny]")] | None = None
-    samples: Annotated[int, Field(ge=1)] | None = None
+    samples: Annotated[int, Field(ge=0, le=100_000)] | None = None
     sigma: Annotated[float, Field(gt=0)] | None = None
 
     def given(self) -> dict[str, Any]:
@@ -107,7 +108,7 @@ class Overrides(_Strict):
 OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
     "simulate": frozenset({"backend", "steps", "record_every"}),
     "solve": frozenset({"backend", "iterations", "optimizer", "budget", "gradient", "seed", "lr",
-                        "multistart", "screen", "screen_rounds", "tolerance"}),
+                        "multistart", "screen", "screen_rounds", "tolerance", "samples"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",
                           "sigma"}),
 }
@@ -183,7 +184,9 @@ class AcceptedMessage(_JobMessage):
 
 class Progress(BaseModel):
     """Where a running job is. ``iteration`` counts optimiser iterations (solve, heatmap) or
-    steps (simulate); ``total`` is their number; losses are absent for simulate jobs."""
+    steps (simulate); ``total`` is their number; losses are absent for simulate jobs. ``phase``
+    says which stage of a solve or heatmap runs (``search``, ``refine``, ``sample``; the basins
+    heatmap's ``optimize``, ``robustness``) and ``fraction`` how far the sampler is (0 to 1)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -195,6 +198,8 @@ class Progress(BaseModel):
     evaluations: int | None = None
     cells_done: int | None = None
     cells_total: int | None = None
+    phase: str | None = None
+    fraction: float | None = None
 
 
 class ProgressMessage(_JobMessage, Progress):

@@ -1,5 +1,8 @@
 """compute_heatmap on bundled scenes with a known start, the written files, settings errors, the CLI.
 
+The per-cell optimisation heatmap (``method="basins"``) is tested here; the posterior's marginal
+(the default) in ``test_posterior.py``.
+
 The ramp scenes are built for this: the source is let go at rest (velocities known,
 only the start position free), so the observed end pins the start and the heatmap
 must find it. Scenes whose velocities are free (ball_off_table) are explained from
@@ -40,7 +43,8 @@ def check_peak(result, name):
 def ball_heatmap():
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
     progress = []
-    result = compute_heatmap(scene, cells=(4, 5), samples=1, iterations=30, callback=progress.append)
+    result = compute_heatmap(scene, cells=(4, 5), samples=1, iterations=30, callback=progress.append,
+                             method="basins")
     return result, progress
 
 
@@ -105,7 +109,7 @@ def test_a_heatmap_needs_a_start_area_with_extent():
 def test_bad_settings_fail_with_one_line(kw, match):
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
     with pytest.raises(InferenceError, match=match) as err:
-        compute_heatmap(scene, **kw)
+        compute_heatmap(scene, method="basins", **kw)
     assert "\n" not in str(err.value)
 
 
@@ -122,7 +126,7 @@ def test_cli_heatmap_writes_the_files(tmp_path):
     out = tmp_path / "hm"
     proc = subprocess.run([sys.executable, "-m", "dejaview", "heatmap", SCENES / "ball_down_ramp.xml",
                            "-o", out, "--cells", "2x2", "--samples", "1", "--iterations", "2",
-                           "--workers", "1"], capture_output=True, text=True, timeout=600)
+                           "--workers", "1", "--method", "basins"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     for name in ("heatmap.ppm", "heatmap.png", "heatmap.json", "result.json", "trajectory.csv"):
         assert (out / name).is_file(), name
@@ -135,9 +139,9 @@ def test_cli_heatmap_writes_the_files(tmp_path):
 def test_worker_processes_give_the_same_heatmap_as_one_process():
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
     kw = dict(cells=(2, 2), samples=2, iterations=2, radii=(0.01, 0.05), directions=2)
-    one = compute_heatmap(scene, workers=1, **kw)
+    one = compute_heatmap(scene, workers=1, method="basins", **kw)
     progress = []
-    two = compute_heatmap(scene, workers=2, callback=progress.append, **kw)
+    two = compute_heatmap(scene, workers=2, callback=progress.append, method="basins", **kw)
     np.testing.assert_allclose(two.probability, one.probability, rtol=1e-9, atol=1e-12)
     assert two.best.loss == pytest.approx(one.best.loss, rel=1e-9)
     assert progress[-1].cells_done == 4 and {p.chunk for p in progress} == {0, 1}

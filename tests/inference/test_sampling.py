@@ -1,0 +1,208 @@
+"""The posterior sampler (``dejaview.inference.sampling``): exact on posteriors known in closed form,
+every mode weighted by its mass, and wired through solve, the CLI and result files."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dejaview.errors import InferenceError
+from dejaview.inference import solve
+from dejaview.inference.posterior import PosteriorSettings
+from dejaview.inference.posterior_report import CSV_HEADER, read_csv, weighted_quantiles
+from dejaview.inference.sampling import Mixture, log_base_density, sample_posterior
+from dejaview.inference.search import Mode
+from dejaview.scene import Optimize, PosteriorSamples, Scene
+
+SCENES = Path(__file__).resolve().parents[2] / "examples" / "scenes"
+
+
+@dataclass
+class FakeLayout:
+    """P free parameters, all in the ``linear_velocity`` block (no base-measure terms)."""
+
+    size: int
+    lo: object = None
+    free: dict = field(default_factory=lambda: {"position": False, "orientation": False,
+                                                "linear_velocity": True, "angular_velocity": False})
+    scale: dict = field(default_factory=lambda: {"position": 0.1, "orientation": 0.5,
+                                                 "linear_velocity": 1.0, "angular_velocity": 5.0})
+
+    def block_slice(self, block):
+        return slice(0, self.size) if block == "linear_velocity" else slice(0, 0)
+
+
+class FakePosterior:
+    """A posterior given by ``neg_log(x) (B,)`` and a residual function for the Laplace step."""
+
+    def __init__(self, size, neg_log, residuals):
+        self.layout = FakeLayout(size)
+        self.settings = PosteriorSettings(speed=1.0)
+        self.neg_log, self.res = neg_log, residuals
+        self.rollouts = 0
+
+    def cost(self, x):
+        self.rollouts += x.shape[0]
+        c = self.neg_log(x)
+        return c, c, c
+
+    def jacobian(self, x):
+        x = x.detach().clone().requires_grad_(True)
+        r = self.res(x)
+        rows = [torch.autograd.grad(r[:, i].sum(), x, retain_graph=True)[0] for i in range(r.shape[1])]
+        return r.detach(), torch.stack(rows, 1)
+
+
+def test_a_linear_gaussian_posterior_is_sampled_exactly():
+    """R(x) = A x - b: the posterior is N(A^+ b, (A^T A)^-1); mean and covariance within Monte Carlo
+    error of 2000 samples, and the 90 % intervals where the normal's are."""
+    torch.manual_seed(0)
+    A = torch.tensor([[2.0, 0.5, 0.0], [0.0, 1.0, 0.3], [0.4, 0.0, 3.0], [0.1, 0.2, 0.1]], dtype=torch.float64)
+    b = torch.tensor([1.0, -0.5, 0.7, 0.2], dtype=torch.float64)
+
+    def res(x):
+        return x @ A.T - b
+
+    post = FakePosterior(3, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
+    cov = torch.linalg.inv(A.T @ A)
+    mean = cov @ A.T @ b
+    off = Mode(mean + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64), 0.0, 0.0, 0.0)  # a rough mode
+    smp = sample_posterior(post, [off], 2000, seed=1)
+    assert torch.allclose(smp.weights.sum(), torch.tensor(1.0, dtype=torch.float64))
+    x = smp.x
+    sd = torch.sqrt(torch.diagonal(cov))
+    assert torch.all((x.mean(0) - mean).abs() < 4 * sd / math.sqrt(2000 / 10)), (x.mean(0), mean)
+    emp = torch.cov(x.T)
+    assert torch.allclose(torch.sqrt(torch.diagonal(emp)), sd, rtol=0.12), (torch.diagonal(emp), sd ** 2)
+    q = weighted_quantiles(x, smp.weights, [0.05, 0.95])
+    assert torch.allclose(q[1] - q[0], 2 * 1.6449 * sd, rtol=0.15)
+
+
+def test_every_mode_is_covered_in_proportion_to_its_mass():
+    """Two separated normal modes holding 0.7 and 0.3 of the mass (different widths, so their
+    densities at the peaks differ from their masses): the samples split 0.7 / 0.3."""
+    m = torch.tensor([-1.0, 1.5], dtype=torch.float64)
+    s = torch.tensor([0.05, 0.2], dtype=torch.float64)
+    w = torch.tensor([0.7, 0.3], dtype=torch.float64)
+
+    def neg_log(x):
+        z = (x[:, :1] - m) / s
+        return -torch.logsumexp(torch.log(w / s) - 0.5 * z * z, -1)
+
+    def res(x):
+        k = ((x[:, :1] - m).abs() / s).argmin(-1)
+        return (x[:, :1] - m[k, None]) / s[k, None]
+
+    post = FakePosterior(1, neg_log, res)
+    modes = [Mode(m[i:i + 1].clone(), float(neg_log(m[i:i + 1, None])), 0.0, 0.0) for i in range(2)]
+    smp = sample_posterior(post, modes, 3000, seed=2)
+    share = float(smp.weights[smp.x[:, 0] < 0.25].sum())
+    assert share == pytest.approx(0.7, abs=0.04)
+    assert float(smp.x[smp.x[:, 0] > 0.25, 0].std()) == pytest.approx(0.2, rel=0.15)
+
+
+def test_mixture_density_integrates_to_one():
+    chol = torch.linalg.cholesky(torch.tensor([[[0.5, 0.1], [0.1, 0.3]], [[0.2, 0.0], [0.0, 0.8]]],
+                                              dtype=torch.float64))
+    q = Mixture(torch.tensor([[0.0, 0.0], [2.0, -1.0]], dtype=torch.float64), chol,
+                torch.log(torch.tensor([0.4, 0.6], dtype=torch.float64)))
+    g = torch.linspace(-12, 14, 561, dtype=torch.float64)
+    xx, yy = torch.meshgrid(g, g, indexing="ij")
+    pts = torch.stack([xx.reshape(-1), yy.reshape(-1)], -1)
+    total = float(q.log_prob(pts).exp().sum()) * float(g[1] - g[0]) ** 2
+    assert total == pytest.approx(1.0, abs=0.02)  # Student-t tails beyond the grid hold the rest
+    x, k = q.sample(20000, torch.Generator().manual_seed(0))
+    assert float((k == 1).double().mean()) == pytest.approx(0.6, abs=0.02)
+
+
+def test_flat_orientation_has_the_haar_density_up_to_pi():
+    from dejaview.inference.params import layout_from_scene
+    from dejaview.inference.posterior import Posterior
+
+    scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
+    scene = replace(scene, inference=replace(scene.inference, optimize=Optimize(
+        position=False, orientation=True, linear_velocity=False, angular_velocity=False)))
+
+    class P:  # what log_base_density reads
+        layout = layout_from_scene(scene)
+        settings = PosteriorSettings()
+
+    s = P.layout.scale["orientation"]
+    angles = torch.tensor([0.0, 1.0, 3.0, 3.2], dtype=torch.float64)
+    x = torch.zeros(4, 3, dtype=torch.float64)
+    x[:, 2] = angles / s
+    d = log_base_density(P, x)
+    assert float(d[0]) == pytest.approx(math.log(0.5))
+    assert float(d[1]) == pytest.approx(math.log(1 - math.cos(1.0)))
+    assert float(d[2]) == pytest.approx(math.log((1 - math.cos(3.0)) / 9))
+    assert d[3] == -math.inf
+    assert isinstance(Posterior, type)
+
+
+def ramp_scene(samples: int | None = None) -> Scene:
+    scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
+    post = None if samples is None else PosteriorSamples(samples=samples)
+    return replace(scene, inference=replace(scene.inference, posterior=post))
+
+
+def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
+    result = solve(ramp_scene(samples=200))
+    assert result.posterior is not None and result.posterior.x.shape == (200, 2)
+    paths = result.write(tmp_path)
+    weights, states = read_csv(paths["posterior"])
+    assert (tmp_path / "posterior.csv").read_text().splitlines()[0] == ",".join(CSV_HEADER)
+    assert len(weights) == 200 and weights.min() >= 0 and weights.sum() == pytest.approx(1.0)
+    assert np.allclose(states[:, 2], 0.55) and np.allclose(np.linalg.norm(states[:, 3:7], axis=1), 1.0)
+    data = json.loads(paths["result"].read_text())
+    post = data["posterior"]
+    assert post["samples"] == 200 and sum(m["probability"] for m in post["modes"]) == pytest.approx(1.0, abs=1e-3)
+    start = data["initial_state"]["position"]
+    for axis, name in ((0, "position.x"), (1, "position.y")):
+        iv = post["intervals"][name]
+        assert iv["90%"][0] <= iv["50%"][0] <= iv["median"] <= iv["50%"][1] <= iv["90%"][1]
+        assert iv["90%"][0] - 0.02 <= start[axis] <= iv["90%"][1] + 0.02  # the MAP sits in the bulk
+
+
+def test_samples_override_the_scene_and_zero_draws_none():
+    assert solve(ramp_scene(samples=50), samples=0).posterior is None
+
+
+@pytest.mark.parametrize("kwargs, fragment", [
+    ({"samples": -1}, "samples must be a non-negative integer"),
+    ({"samples": 2.5}, "samples must be a non-negative integer"),
+    ({"samples": 10, "optimizer": "lbfgs"}, "posterior samples need the default search"),
+])
+def test_bad_sample_settings_are_one_line_errors(kwargs, fragment):
+    with pytest.raises(InferenceError) as info:
+        solve(ramp_scene(), **kwargs)
+    assert fragment in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_posterior_with_no_free_parameter_is_refused():
+    scene = ramp_scene(samples=10)
+    scene = replace(scene, inference=replace(scene.inference, optimize=Optimize(
+        position=False, orientation=False, linear_velocity=False, angular_velocity=False)))
+    with pytest.raises(InferenceError) as info:
+        solve(scene)
+    assert "\n" not in str(info.value)
+
+
+def test_cli_samples_flag(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "dejaview", "solve", str(SCENES / "ball_down_ramp.xml"), "-o",
+                          str(tmp_path), "--samples", "100", "--quiet"], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    weights, _ = read_csv(tmp_path / "posterior.csv")
+    assert len(weights) == 100
+    bad = subprocess.run([sys.executable, "-m", "dejaview", "solve", str(SCENES / "ball_down_ramp.xml"), "-o",
+                          str(tmp_path / "bad"), "--samples", "-3", "--quiet"], capture_output=True, text=True,
+                         timeout=600)
+    assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "samples" in bad.stderr
