@@ -120,7 +120,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
                                  elapsed_s=time.perf_counter() - t0, cells_done=int(share * cells_total),
                                  cells_total=cells_total, chunk=0, chunks=1, phase=p.phase))
 
-    result = solve(scene, iterations=iterations, seed=seed, samples=n, callback=progress,
+    result = solve(scene, optimizer="auto", iterations=iterations, seed=seed, samples=n, callback=progress,
                    should_stop=should_stop, problem=problem, engine=None if problem is not None else engine)
     if result.posterior is None:
         raise InferenceError("stopped before the posterior was sampled: no heatmap to report")

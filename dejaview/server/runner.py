@@ -71,6 +71,7 @@ ARTEFACTS = {
     "heatmap.png": "image/png",
     "heatmap.json": "application/json",
     "iterations.csv": "text/csv; charset=utf-8",
+    "posterior.csv": "text/csv; charset=utf-8",
 }
 
 

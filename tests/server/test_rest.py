@@ -97,6 +97,39 @@ def test_solve_job_from_xml_text_with_overrides(client):
     assert client.get(f"/jobs/{job_id}/iterations.csv").text.startswith("iteration,loss")
 
 
+def test_solve_job_with_posterior_samples(client):
+    """Issue 20: the override ``samples`` draws the posterior; posterior.csv is an artefact and the
+    summary carries the modes and intervals; the progress went through search and sample."""
+    job_id = submit(client, kind="solve", scene_path="ball.xml",
+                    overrides={"optimizer": "auto", "iterations": 40, "samples": 64})
+    status = wait_state(client, job_id, timeout=120)
+    assert status["state"] == "done", status
+    assert "posterior.csv" in status["artefacts"]
+    rows = client.get(f"/jobs/{job_id}/posterior.csv").text.splitlines()
+    assert rows[0] == "sample,weight,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz" and len(rows) == 65
+    post = status["summary"]["posterior"]
+    assert post["samples"] == 64 and set(post["intervals"]) == {"position.x", "position.y", "linear_velocity.x",
+                                                                 "linear_velocity.y", "linear_velocity.z"}
+    assert status["progress"]["phase"] == "sample" and status["progress"]["fraction"] == 1.0
+
+
+@pytest.mark.parametrize("overrides, status_code, code, fragment", [
+    ({"samples": -1}, 422, "invalid_message", "samples"),
+    ({"samples": 10**6}, 422, "invalid_message", "samples"),
+])
+def test_bad_sample_overrides_are_refused(client, overrides, status_code, code, fragment):
+    response = client.post("/jobs", json={"kind": "solve", "scene_path": "ball.xml", "overrides": overrides})
+    assert response.status_code == status_code and response.json()["code"] == code
+    assert fragment in response.json()["message"]
+
+
+def test_samples_with_a_local_optimiser_fail_the_job_with_one_line(client):
+    job_id = submit(client, kind="solve", scene_path="ball.xml", overrides={"samples": 5})  # scene: adam
+    status = wait_state(client, job_id)
+    assert status["state"] == "failed" and "default search" in status["error"]["message"]
+    assert "\n" not in status["error"]["message"]
+
+
 @needs_heatmap
 def test_heatmap_job(client):
     job_id = submit(client, kind="heatmap", scene_path="ball.xml", overrides={"iterations": 1})
