@@ -42,16 +42,15 @@ class InferenceProblem:
         points: (M, 3) model points (object frame) for the ADD loss, or None.
         checkpoint_every: reverse-mode checkpoint chunk (None: no checkpointing).
         compile: run the rollouts of gradient evaluations through ``torch.compile``
-            (``rollout(compile=True)``): measured ~11x faster per loss + gradient on
-            ``mug_off_counter`` (0.4 s vs 4.5 s), after a first compile of ~100 s;
-            not combined with checkpointing. Rollouts without autograd (screening,
+            (``rollout(compile=True)``): faster per loss + gradient than eager torch
+            after a first compile of minutes (``docs/benchmarks.md``); not combined
+            with checkpointing. Rollouts without autograd (screening,
             the final re-simulation) stay on ``engine``: they are few, and each grad
             mode would need its own compile.
         engine: simulation engine of the rollouts (``dejaview.sim.native.ENGINES``):
             ``auto`` (default) runs the native C++ simulator where it applies (float64
-            on the CPU), the same model with exact forward- and reverse-mode gradients
-            (reference scene, one reverse-mode loss + gradient at B = 1: 23 ms against
-            15.8 s eager and 1.68 s compiled torch); ``torch`` runs
+            on the CPU), the same model with exact forward- and reverse-mode gradients,
+            the fastest by far (``docs/benchmarks.md``, "Simulator"); ``torch`` runs
             ``dejaview.sim.integrate``. ``compile`` implies ``torch`` for the rollouts
             it compiles.
     """

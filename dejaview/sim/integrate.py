@@ -16,19 +16,19 @@ of steps (``checkpoint_every``).
 
 ``rollout(..., engine="native")`` runs the same model in C++
 (``dejaview.sim.native``): states equal to round-off, exact forward- and
-reverse-mode gradients through a custom autograd Function (reference scene:
-a rollout 860x and a reverse-mode loss + gradient 690x faster than eager,
-``bench/sim.py``); ``engine="auto"`` picks it wherever it
+reverse-mode gradients through a custom autograd Function, orders of
+magnitude faster than eager (``docs/benchmarks.md``, "Simulator");
+``engine="auto"`` picks it wherever it
 applies (float64 on the CPU). ``rollout`` itself defaults to this module
 (``engine="torch"``), the reference the native code is tested against;
 ``InferenceProblem``, ``simulate`` and the CLI default to ``auto``.
 
 ``rollout(..., compile=True)`` runs chunks of steps through ``torch.compile``
 (one graph per World, chunk length, batch shape and grad mode, kept for the
-life of the process; inductor also caches generated code on disk). Measured:
-a compiled 5-step chunk runs 7x faster than eager, but its first compile
-takes minutes on 2 cores, so eager stays the default; compile pays off for
-long optimisations, heatmaps and benchmarks.
+life of the process; inductor also caches generated code on disk). A
+compiled chunk runs several times faster than eager, but its first compile
+takes minutes (``docs/benchmarks.md``), so eager stays the default; compile
+pays off for long optimisations, heatmaps and benchmarks.
 """
 
 from __future__ import annotations
