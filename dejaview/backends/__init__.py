@@ -28,7 +28,7 @@ use only this surface:
 Backends:
 
 - ``spheres``: DejaView's sphere-packing simulator on PyTorch
-  (``dejaview.inference.InferenceProblem``, wrapped by ``SpheresProblem``);
+  (``dejaview.backends.problem.InferenceProblem``, wrapped by ``SpheresProblem``);
 - ``warp``: NVIDIA Warp's ``warp.sim`` (XPBD or semi-implicit), reverse mode
   through ``wp.Tape`` (``dejaview.backends.warp``; needs the ``warp`` extra).
 """
@@ -108,7 +108,7 @@ def as_problem(problem):
     """A problem with this module's interface: a bare ``InferenceProblem`` is wrapped
     (``SpheresProblem``, sharing its state), anything else is returned as it is."""
     from dejaview.backends.spheres import SpheresProblem
-    from dejaview.inference.problem import InferenceProblem
+    from dejaview.backends.problem import InferenceProblem
 
     if isinstance(problem, InferenceProblem):
         return SpheresProblem(problem)

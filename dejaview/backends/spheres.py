@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from dejaview.inference.problem import InferenceProblem
+from dejaview.backends.problem import InferenceProblem
 
 
 class SpheresProblem:

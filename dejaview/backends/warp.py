@@ -702,8 +702,8 @@ class WarpProblem:
         Raises:
             InferenceError: as ``InferenceProblem.from_scene``, plus ``<penalty>`` terms.
         """
-        from dejaview.inference.params import layout_from_scene
-        from dejaview.inference.problem import check_inference
+        from dejaview.backends.params import layout_from_scene
+        from dejaview.backends.problem import check_inference
         from dejaview.losses.pose import DEFAULT_ORIENTATION_WEIGHT, SMOOTH_EPS
         from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
 
@@ -727,7 +727,7 @@ class WarpProblem:
                       DEFAULT_VELOCITY_WEIGHT, None, max_envs)
         points = np.zeros((1, 3), dtype=np.float32)
         if inf.loss == "add":
-            from dejaview.inference.problem import model_points
+            from dejaview.backends.problem import model_points
 
             points = model_points(scene, scene.object(inf.source)).numpy().astype(np.float32)
         problem._points = wp.array(points, dtype=wp.vec3, device=sim.device)

@@ -34,7 +34,6 @@ pays off for long optimisations, heatmaps and benchmarks.
 from __future__ import annotations
 
 import types
-from dataclasses import dataclass
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -43,7 +42,7 @@ from dejaview.errors import SimulationError
 from dejaview.scene import bounds
 from dejaview.sim import contacts
 from dejaview.sim.rotation import integrate_quat, quat_to_matrix, small_matmul
-from dejaview.sim.state import State
+from dejaview.sim.state import State, Trajectory  # noqa: F401  (Trajectory re-exported)
 from dejaview.sim.world import World
 
 
@@ -113,34 +112,6 @@ def step(world: World, state: State, broadphase: bool | None = None) -> State:
     for _ in range(world.substeps):
         state = substep(world, state, h, broadphase)
     return state
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """Recorded states of a rollout.
-
-    Attributes:
-        states: State whose tensors have a leading time dimension, (T, B, N, ...).
-        steps: (T,) step index of each record (0 is the initial state).
-        dt: step length, so the time of record t is ``steps[t] * dt``.
-    """
-
-    states: State
-    steps: torch.Tensor
-    dt: float
-
-    @property
-    def times(self) -> torch.Tensor:
-        """(T,) times in seconds."""
-        return self.steps.to(self.states.position.dtype) * self.dt
-
-    @property
-    def final(self) -> State:
-        """The last recorded State (B, N, ...)."""
-        return State(*(t[-1] for t in self.states.tensors()))
-
-    def __len__(self) -> int:
-        return self.steps.shape[0]
 
 
 _COMPILED: dict = {}
