@@ -1,43 +1,30 @@
-"""Physics backends behind one inference interface.
+"""Physics backends behind one protocol (``dejaview.backends.base``).
 
-A backend turns a scene's ``<inference>`` into a *problem*: parameters of the
-source's initial state (``ParameterLayout``, shared by every backend) ->
-simulated trajectory -> loss, with gradients. The inference loop
-(``dejaview.solve``), the heatmap, the CLI (``--backend``) and the service
-use only this surface:
+A backend (``Backend``) builds a *problem* from a scene's ``<inference>`` and runs scenes forward.
+Every problem derives from ``Problem``: parameters of the source's initial state
+(``ParameterLayout``, shared by every backend) -> simulated trajectory -> loss, with gradients. The
+base owns the loss (``dejaview.losses``), the objective, the gradients, the final pose and the
+trajectory CSV; a backend supplies the rollout. The inference loop (``dejaview.solve``), the
+heatmap, the CLI (``--backend``) and the service reach backends through this module only:
 
-- ``backend``: its name; ``gradient_modes``: the gradient modes it offers;
-- ``layout`` (ParameterLayout, may be replaced, e.g. per-candidate boxes),
-  ``num_params`` (P), ``dtype``, ``source`` (index of the source among the
-  movable bodies), ``body_names`` (N,), ``loss_kind``, ``evaluate``,
-  ``steps`` (rollout length of the loss), ``duration_steps`` (the scene's
-  whole duration), ``dt``, ``evaluations`` (loss evaluations so far);
-- ``loss(x) -> (K,)`` and ``value_and_grad(x, mode) -> ((K,), (K, P))`` of
-  parameters ``x`` (K, P); ``objective_and_grad(x, mode)``: what the
-  optimisers minimise, ``0.5 * loss^2`` and its gradient;
-- ``simulate(x, steps=None, record_every=None) -> Trajectory``
-  (``dejaview.sim.integrate.Trajectory``: states (T, K, N, ...) of the
-  movable bodies with centre-of-mass positions, w x y z quaternions, world
-  velocities, as the sphere simulator records them);
-- ``final_pose(traj, index=0)``: object-frame position and orientation of
-  the source at the last record; ``trajectory_csv(traj, index=0)`` and
-  ``write_trajectory(path, traj, index=0)``: the trajectory CSV of every
-  movable object (scene-format spec, "Outputs");
-- ``simulation_settings() -> dict``: what result.json reports.
+- ``get_backend(name)``: the registered ``Backend`` (``BACKENDS``: the names);
+- ``make_problem(scene, backend, **options)``: its problem;
+- ``simulate(scene, backend, ...)``: the scene forward, a ``SimulationRun``.
 
 Backends:
 
-- ``spheres``: DejaView's sphere-packing simulator on PyTorch
-  (``dejaview.inference.InferenceProblem``, wrapped by ``SpheresProblem``);
-- ``warp``: NVIDIA Warp's ``warp.sim`` (XPBD or semi-implicit), reverse mode
-  through ``wp.Tape`` (``dejaview.backends.warp``; needs the ``warp`` extra).
+- ``spheres``: DejaView's sphere-packing simulator, torch or native engine
+  (``dejaview.backends.spheres``);
+- ``warp``: NVIDIA Warp's ``warp.sim`` (XPBD or semi-implicit), reverse mode through ``wp.Tape``
+  (``dejaview.backends.warp``; needs the ``warp`` extra, imported only when used).
 """
 
 from __future__ import annotations
 
-from dejaview.errors import InferenceError
+from dejaview.backends.base import Backend, Problem
+from dejaview.backends.spheres import SpheresBackend
+from dejaview.errors import DejaViewError, InferenceError
 
-BACKENDS = ("spheres", "warp")
 WARP_MISSING = "the warp backend needs the extra: pip install 'dejaview[warp]'"
 
 
@@ -50,40 +37,91 @@ def warp_available() -> bool:
     return True
 
 
-def simulate_warp(scene, out_dir, steps: int | None = None, record_every: int = 1):
-    """Run a scene forward in Warp and write ``out_dir/trajectory.csv`` (``dejaview simulate
-    --backend warp`` and the service's simulate jobs).
+class WarpBackend:
+    """The ``warp`` backend (``Backend``); ``dejaview.backends.warp`` is imported on first use."""
 
-    Returns:
-        (path of trajectory.csv, Trajectory with states (T, 1, N, ...), body names (N,)).
+    name = "warp"
+    gradient_modes = ("reverse",)
+    simulate_options = frozenset({"max_steps", "device", "integrator", "substeps", "iterations", "restitution"})
+
+    def available(self) -> str | None:
+        return None if warp_available() else WARP_MISSING
+
+    def make_problem(self, scene, **options) -> Problem:
+        """``WarpProblem.from_scene(scene, **options)`` (``integrator``, ``device``, ``substeps``, ...)."""
+        from dejaview.backends.warp import WarpProblem
+
+        return WarpProblem.from_scene(scene, **options)
+
+    def simulate(self, scene, *, steps=None, record_every=1, callback=None, should_stop=None, **options):
+        """One Warp run (options: ``max_steps``, the step budget; ``device``, ``integrator``,
+        ``substeps``, ``iterations``, ``restitution``); ``should_stop`` is polled before it,
+        ``callback`` called after it."""
+        import time
+
+        from dejaview.backends.warp import simulate_scene, warp_settings
+        from dejaview.errors import SimulationError
+        from dejaview.scene import bounds
+        from dejaview.sim.simulate import SimulationRun, SimulationStopped
+
+        check_options(self, options, SimulationError)
+        max_steps = bounds.max_steps(options.pop("max_steps", None))
+        substeps = warp_settings(scene, **{k: v for k, v in options.items() if k != "device"})["substeps"]
+        reason = bounds.budget_problem(scene.simulation.steps if steps is None else int(steps), substeps,
+                                       max_steps, "the simulation")
+        if reason:
+            raise SimulationError(reason)
+        if should_stop is not None and should_stop():
+            raise SimulationStopped("stopped before the first step")
+        start = time.perf_counter()
+        frames, traj = simulate_scene(scene, steps=steps, record_every=record_every, **options)
+        n = int(traj.steps[-1])
+        if callback is not None:
+            callback(n, n)
+        return SimulationRun(world=frames, trajectory=traj, steps=n, elapsed_s=time.perf_counter() - start,
+                             backend="warp")
+
+
+REGISTRY: dict[str, Backend] = {b.name: b for b in (SpheresBackend(), WarpBackend())}
+"""Every backend by name: the one place a backend is registered."""
+BACKENDS = tuple(REGISTRY)
+
+
+def check_options(backend: Backend, options, error: type[DejaViewError] = InferenceError) -> None:
+    """Raise ``error`` naming the first of ``options`` that ``backend.simulate`` does not take (and
+    which backends do take it)."""
+    unknown = sorted(set(options) - backend.simulate_options)
+    if unknown:
+        owners = [b.name for b in REGISTRY.values() if unknown[0] in b.simulate_options]
+        where = f"an option of the {' and '.join(owners)} backend" if owners else "no backend's option"
+        raise error(f"{unknown[0].replace('_', '-')} is {where}, not of {backend.name}")
+
+
+def get_backend(name: str, error: type[DejaViewError] = InferenceError) -> Backend:
+    """The backend called ``name``, ready to run.
+
     Raises:
-        SimulationError: Warp is not installed.
+        ``error`` (InferenceError by default): unknown name, or a backend that cannot run here
+        (one line saying what to install).
     """
-    from pathlib import Path
-
-    from dejaview.errors import SimulationError
-    from dejaview.io.trajectory import write_trajectory_csv
-
-    if not warp_available():
-        raise SimulationError(WARP_MISSING)
-    from dejaview.backends.warp import simulate_scene
-
-    frames, traj = simulate_scene(scene, steps=steps, record_every=record_every)
-    return write_trajectory_csv(Path(out_dir) / "trajectory.csv", frames, traj), traj, frames.names
+    if name not in REGISTRY:
+        raise error(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    backend = REGISTRY[name]
+    missing = backend.available()
+    if missing:
+        raise error(missing)
+    return backend
 
 
-def make_problem(scene, backend: str = "spheres", **options):
+def make_problem(scene, backend: str = "spheres", **options) -> Problem:
     """The inference problem of a scene's ``<inference>`` on one backend.
 
     Args:
         scene: a ``Scene`` or a path to a scene file.
-        backend: ``"spheres"`` | ``"warp"``.
-        options: backend options: for ``spheres`` those of
-            ``InferenceProblem.from_scene`` (``world``, ``dtype``,
-            ``checkpoint_every``, ...); for ``warp`` those of
-            ``WarpProblem.from_scene`` (``integrator``, ``device``, ``substeps``, ...).
-    Returns:
-        a problem with the interface of this module's docstring.
+        backend: a name of ``BACKENDS``.
+        options: the backend's own (``SpheresProblem.from_scene``: ``world``, ``dtype``,
+            ``checkpoint_every``, ``engine``, ...; ``WarpProblem.from_scene``: ``integrator``,
+            ``device``, ``substeps``, ...).
     Raises:
         InferenceError: unknown backend, warp not installed, or the scene cannot be solved.
     """
@@ -91,28 +129,31 @@ def make_problem(scene, backend: str = "spheres", **options):
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
-    if backend == "spheres":
-        from dejaview.backends.spheres import SpheresProblem
-
-        return SpheresProblem.from_scene(scene, **options)
-    if backend == "warp":
-        if not warp_available():
-            raise InferenceError(WARP_MISSING)
-        from dejaview.backends.warp import WarpProblem
-
-        return WarpProblem.from_scene(scene, **options)
-    raise InferenceError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    return get_backend(backend).make_problem(scene, **options)
 
 
-def as_problem(problem):
-    """A problem with this module's interface: a bare ``InferenceProblem`` is wrapped
-    (``SpheresProblem``, sharing its state), anything else is returned as it is."""
-    from dejaview.backends.spheres import SpheresProblem
-    from dejaview.inference.problem import InferenceProblem
+def simulate(scene, backend: str = "spheres", **options):
+    """Run a scene forward on one backend (``Backend.simulate``): a ``SimulationRun``.
 
-    if isinstance(problem, InferenceProblem):
-        return SpheresProblem(problem)
+    Raises:
+        SimulationError: unknown backend, warp not installed, or the scene cannot be simulated.
+    """
+    from dejaview.errors import SimulationError
+
+    return get_backend(backend, SimulationError).simulate(scene, **options)
+
+
+def as_problem(problem) -> Problem:
+    """``problem`` itself: every backend's problem is a ``Problem`` (the spheres backend's
+    ``InferenceProblem`` included; it used to need a wrapper).
+
+    Raises:
+        InferenceError: something that is not a ``Problem``.
+    """
+    if not isinstance(problem, Problem):
+        raise InferenceError(f"not a backend problem: {type(problem).__name__}")
     return problem
 
 
-__all__ = ["BACKENDS", "WARP_MISSING", "as_problem", "make_problem", "warp_available"]
+__all__ = ["BACKENDS", "REGISTRY", "WARP_MISSING", "Backend", "Problem", "as_problem", "check_options", "get_backend", "make_problem",
+           "simulate", "warp_available"]

@@ -1,80 +1,190 @@
-"""The ``spheres`` backend: DejaView's sphere-packing simulator behind the backend interface.
+"""The ``spheres`` backend: DejaView's sphere-packing simulator behind the backend protocol.
 
-``SpheresProblem`` wraps an ``InferenceProblem`` and adds what the interface
-asks beyond it (final pose, trajectory CSV, settings). It holds no state of
-its own: every other attribute is read from and written to the wrapped
-problem, so ``problem.compile = True``, a replaced ``layout`` or the
-``evaluations`` counter act on the one ``InferenceProblem`` (``.inner``).
+``SpheresProblem`` (also known as ``InferenceProblem``, its name in ``dejaview.inference``) ties a
+World, the scene's other bodies' initial states, the source's ``ParameterLayout``, the target and
+the loss settings together. It supplies the rollout; ``Problem`` the loss, gradients and I/O.
+``loss(x)`` maps parameters (B, P) to losses (B,) and is free of data-dependent Python branches, so
+it runs under ``torch.func`` transforms (forward mode) as well as autograd (reverse mode).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import torch
 
-from dejaview.inference.problem import InferenceProblem
+from dejaview.backends.base import (DEFAULT_ORIENTATION_WEIGHT, GRADIENT_MODES, Problem, check_inference,
+                                    loss_steps, model_points)
+from dejaview.backends.params import ParameterLayout, layout_from_scene
+from dejaview.errors import InferenceError
+from dejaview.sim.integrate import rollout
+from dejaview.sim.rotation import normalize_quat, quat_rotate
+from dejaview.sim.state import State, Trajectory
+from dejaview.sim.world import World
 
 
-class SpheresProblem:
-    """An ``InferenceProblem`` with the backend interface (see ``dejaview.backends``)."""
+@dataclass
+class SpheresProblem(Problem):
+    """The ``spheres`` backend's problem: DejaView's sphere-packing simulator (``dejaview.sim``),
+    torch or native engine, both gradient modes (the rest: ``Problem``).
 
-    __slots__ = ("inner",)
+    Attributes:
+        world: the World.
+        layout: ParameterLayout of the source.
+        source: index of the source body in the world.
+        base: State (1, N, ...) of every body as given in the scene.
+        target: the scene's Target.
+        loss_kind: ``pose`` | ``add`` | ``position``.
+        evaluate: ``best`` | ``final``.
+        steps: rollout length (up to the target time when it is pinned).
+        penalties: ((body_a, body_b, weight), ...).
+        orientation_weight: metres per radian in the pose loss.
+        points: (M, 3) model points (object frame) for the ADD loss, or None.
+        checkpoint_every: reverse-mode checkpoint chunk (None: no checkpointing).
+        compile: run the rollouts of gradient evaluations through ``torch.compile``
+            (``rollout(compile=True)``): faster per loss + gradient than eager torch
+            after a first compile of minutes (``docs/benchmarks.md``); not combined
+            with checkpointing. Rollouts without autograd (screening,
+            the final re-simulation) stay on ``engine``: they are few, and each grad
+            mode would need its own compile.
+        engine: simulation engine of the rollouts (``dejaview.sim.native.ENGINES``):
+            ``auto`` (default) runs the native C++ simulator where it applies (float64
+            on the CPU), the same model with exact forward- and reverse-mode gradients,
+            the fastest by far (``docs/benchmarks.md``, "Simulator"); ``torch`` runs
+            ``dejaview.sim.integrate``. ``compile`` implies ``torch`` for the rollouts
+            it compiles.
+    """
+
+    world: World
+    layout: ParameterLayout
+    source: int
+    base: State
+    target: object
+    loss_kind: str = "pose"
+    evaluate: str = "best"
+    steps: int = 0
+    penalties: tuple = ()
+    orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT
+    points: torch.Tensor | None = None
+    checkpoint_every: int | None = None
+    record_every: int = 1
+    compile: bool = False
+    engine: str = "auto"
+    evaluations: int = field(default=0, init=False)
+
+    @staticmethod
+    def from_scene(scene, world: World | None = None, *, dtype=torch.float64,
+                   orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
+                   checkpoint_every: int | None = None, max_speed: float = 3.0,
+                   max_spin: float = 10.0, engine: str = "auto") -> "SpheresProblem":
+        """Build the problem of a scene's ``<inference>``.
+
+        Raises:
+            InferenceError: no inference section, nothing free, fixed/unknown source or target.
+        """
+        from dejaview.sim.build import initial_state
+
+        inf = check_inference(scene)
+        world = world if world is not None else World.from_scene(scene, dtype=dtype)
+        try:
+            src = world.body_index(inf.source)
+        except Exception:
+            raise InferenceError(f"source {inf.source!r} is not a movable object") from None
+        for p in inf.penalties:
+            for name in p.between:
+                known = name in world.names or any(s.name == name for s in world.statics)
+                if not known:
+                    raise InferenceError(f"penalty names unknown object {name!r}")
+        layout = layout_from_scene(scene, dtype=world.dtype, max_speed=max_speed, max_spin=max_spin)
+        if layout.size == 0:
+            raise InferenceError("no free parameter: the start area pins the position and nothing "
+                                 "else is free")
+        steps = loss_steps(scene, world.dt, world.steps)
+        points = None
+        if inf.loss == "add":
+            points = model_points(scene, scene.object(inf.source), world.dtype)
+        return SpheresProblem(
+            world=world, layout=layout, source=src, base=initial_state(world, scene),
+            target=inf.target, loss_kind=inf.loss, evaluate=inf.evaluate, steps=steps,
+            penalties=tuple((p.between[0], p.between[1], p.weight) for p in inf.penalties),
+            orientation_weight=orientation_weight, points=points, checkpoint_every=checkpoint_every,
+            engine=engine)
+
+    # ----------------------------------------------------------------- rollout
+    def initial_state(self, x: torch.Tensor) -> State:
+        """State (B, N, ...) with the source's initial state from parameters x (B, P)."""
+        s = self.layout.decode(x)
+        b = x.shape[0]
+        # the source alone (World.state wants every body): object-frame origin -> centre of mass
+        q = normalize_quat(s["orientation"])
+        com = quat_rotate(q, self.world.com[self.source].expand_as(s["position"]))
+        src = (s["position"] + com, q, s["linear_velocity"], s["angular_velocity"])
+        base = self.base.index(slice(0, 1))
+        out = []
+        for field_name, value in zip(("position", "orientation", "linear_velocity", "angular_velocity"),
+                                     (t[:, None] for t in src)):
+            full = getattr(base, field_name).expand(b, *getattr(base, field_name).shape[1:])
+            parts = [full[:, i:i + 1] for i in range(self.world.num_bodies)]
+            parts[self.source] = value
+            out.append(torch.cat(parts, 1))
+        return State(*out)
+
+    def simulate(self, x: torch.Tensor, steps: int | None = None, record_every: int | None = None,
+                 checkpoint: bool = False) -> Trajectory:
+        """Rollout from parameters x (B, P)."""
+        compiled = self.compile and torch.is_grad_enabled()
+        return rollout(self.world, self.initial_state(x), steps=self.steps if steps is None else steps,
+                       record_every=record_every or self.record_every,
+                       checkpoint_every=self.checkpoint_every if checkpoint and not compiled else None,
+                       compile=compiled, engine="torch" if compiled else self.engine)
+
+    # ------------------------------------------------------------ backend surface
     backend = "spheres"
-    gradient_modes = ("forward", "reverse")
+    gradient_modes = GRADIENT_MODES
 
-    def __init__(self, inner: InferenceProblem):
-        object.__setattr__(self, "inner", inner)
-
-    @classmethod
-    def from_scene(cls, scene, **options) -> "SpheresProblem":
-        """``InferenceProblem.from_scene(scene, **options)``, wrapped."""
-        return cls(InferenceProblem.from_scene(scene, **options))
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def __setattr__(self, name, value):
-        setattr(self.inner, name, value)
-
-    def __repr__(self) -> str:
-        return f"SpheresProblem({self.inner.world.names}, source={self.inner.source}, P={self.inner.num_params})"
-
-    # ------------------------------------------------------------ interface
     @property
-    def dtype(self) -> torch.dtype:
-        return self.inner.world.dtype
+    def frames(self) -> World:
+        return self.world
 
     @property
     def dt(self) -> float:
-        return self.inner.world.dt
-
-    @property
-    def body_names(self) -> tuple[str, ...]:
-        return tuple(self.inner.world.names)
+        return self.world.dt
 
     @property
     def duration_steps(self) -> int:
-        return self.inner.world.steps
-
-    def final_pose(self, traj, index: int = 0) -> tuple[list[float], list[float]]:
-        """Object-frame position (3) and orientation (4, w x y z) of the source at the last record."""
-        final = traj.final
-        world = self.inner.world
-        pos = world.object_position(final)[index, self.inner.source]
-        return pos.tolist(), final.orientation[index, self.inner.source].tolist()
-
-    def trajectory_csv(self, traj, index: int = 0) -> str:
-        """Trajectory CSV text of candidate ``index`` (every movable object)."""
-        from dejaview.io.trajectory import trajectory_csv
-
-        return trajectory_csv(self.inner.world, traj, index)
-
-    def write_trajectory(self, path, traj, index: int = 0):
-        """Write the trajectory CSV of candidate ``index``; returns the path."""
-        from dejaview.io.trajectory import write_trajectory_csv
-
-        return write_trajectory_csv(path, self.inner.world, traj, index)
+        return self.world.steps
 
     def simulation_settings(self) -> dict:
         """Simulation numbers for result.json."""
-        w = self.inner.world
-        return {"dt": w.dt, "substeps": w.substeps, "steps": self.inner.steps}
+        return {"dt": self.world.dt, "substeps": self.world.substeps, "steps": self.steps}
+
+    def __repr__(self) -> str:
+        return f"SpheresProblem({self.world.names}, source={self.source}, P={self.num_params})"
+
+
+InferenceProblem = SpheresProblem
+
+
+class SpheresBackend:
+    """The ``spheres`` backend (``dejaview.backends.base.Backend``)."""
+
+    name = "spheres"
+    gradient_modes = GRADIENT_MODES
+    simulate_options = frozenset({"dtype", "engine", "world", "max_steps"})
+
+    def available(self) -> str | None:
+        return None
+
+    def make_problem(self, scene, **options) -> SpheresProblem:
+        """``SpheresProblem.from_scene(scene, **options)`` (``world``, ``dtype``, ``engine``, ...)."""
+        return SpheresProblem.from_scene(scene, **options)
+
+    def simulate(self, scene, *, steps=None, record_every=1, callback=None, should_stop=None, **options):
+        """``dejaview.sim.simulate.simulate`` (options: ``dtype``, ``engine``, ``world``, ``max_steps``)."""
+        from dejaview.backends import check_options
+        from dejaview.errors import SimulationError
+        from dejaview.sim.simulate import simulate
+
+        check_options(self, options, SimulationError)
+        return simulate(scene, steps=steps, record_every=record_every, callback=callback,
+                        should_stop=should_stop, **options)

@@ -42,7 +42,7 @@ def configure_torch() -> None:
     """Set torch's intra-op threads from ``DEJAVIEW_THREADS`` (default 1).
 
     A rollout is thousands of small ops: one thread avoids OpenMP hand-offs
-    that cost more than the work (10x slower measured on 2 busy cores).
+    that cost more than the work (``docs/benchmarks.md``).
     Large batches (heatmaps) may profit from more: set DEJAVIEW_THREADS=2.
     """
     import os

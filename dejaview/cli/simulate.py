@@ -25,8 +25,9 @@ def command(scene, out_dir, steps, record_every, float32, max_steps, backend, en
     import torch
     from tqdm import tqdm
 
+    from dejaview.backends import check_options, get_backend, simulate
+    from dejaview.errors import DejaViewError, SimulationError
     from dejaview.scene import Scene, bounds
-    from dejaview.sim.simulate import simulate
 
     configure_torch()
     if record_every < 1:
@@ -39,40 +40,31 @@ def command(scene, out_dir, steps, record_every, float32, max_steps, backend, en
     if steps is not None and steps > max_steps:
         raise click.BadParameter(f"{steps} steps is over the step budget of {max_steps} (--max-steps)",
                                  param_hint="--steps")
-    if backend != "spheres" and engine != "auto":
-        raise click.BadParameter(f"the engine is an option of the spheres backend, not of {backend}",
-                                 param_hint="--engine")
     sc = Scene.from_xml(scene, max_steps=max_steps)
-    if backend == "warp":
-        _simulate_warp(sc, out_dir, steps, record_every, quiet)
-        return
+    if float32 and engine == "native":
+        raise click.BadParameter("the native engine runs in float64; drop --float32 or use --engine torch",
+                                 param_hint="--engine")
     bar = tqdm(desc="simulate", unit="step", disable=not show_progress(quiet))
 
     def progress(done, total):
         bar.total = total
         bar.update(done - bar.n)
 
-    if float32 and engine == "native":
-        raise click.BadParameter("the native engine runs in float64; drop --float32 or use --engine torch",
-                                 param_hint="--engine")
-    run = simulate(sc, steps=steps, record_every=record_every,
-                   dtype=torch.float32 if float32 else torch.float64,
-                   callback=None if bar.disable else progress, engine=engine, max_steps=max_steps)
+    # the spheres backend's options, passed only where given: another backend refuses them by name
+    options = {"max_steps": max_steps}
+    if engine != "auto":
+        options["engine"] = engine
+    if float32:
+        options["dtype"] = torch.float32
+    chosen = get_backend(backend, SimulationError)
+    try:
+        check_options(chosen, options)
+    except DejaViewError as exc:
+        raise click.BadParameter(str(exc)) from None
+    run = simulate(sc, backend, steps=steps, record_every=record_every,
+                   callback=None if bar.disable else progress, **options)
     bar.close()
     path = run.write(out_dir)["trajectory"]
     if not quiet:
-        click.echo(f"simulated {run.steps} steps ({run.steps * run.world.dt:.3f} s) of "
-                   f"{len(run.world.names)} bodies in {run.elapsed_s:.2f} s -> {path}")
-
-
-def _simulate_warp(scene, out_dir, steps, record_every, quiet) -> None:
-    """``--backend warp``: the scene forward in NVIDIA Warp (``dejaview.backends.simulate_warp``)."""
-    import time
-
-    from dejaview.backends import simulate_warp
-
-    start = time.perf_counter()
-    path, traj, _ = simulate_warp(scene, out_dir, steps=steps, record_every=record_every)
-    if not quiet:
-        n = int(traj.steps[-1])
-        click.echo(f"simulated {n} steps in Warp in {time.perf_counter() - start:.2f} s -> {path}")
+        click.echo(f"simulated {run.steps} steps ({run.steps * run.dt:.3f} s) of {len(run.names)} bodies "
+                   f"({run.backend}) in {run.elapsed_s:.2f} s -> {path}")

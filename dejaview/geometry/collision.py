@@ -37,9 +37,7 @@ up to ``REFINE_LIMIT`` deep takes the smaller of the pieces' depth and the
 deepest exact contact. For non-convex meshes the depth is thus a close
 estimate; the yes/no answer is exact.
 
-Speed (one core, 300 random poses of the bundled scenes' sources): 20-40 ms
-where few overlap, 190-490 ms where most of the mug is buried in the counter
-(29 mug pieces, each overlap measured).
+Speed: ``docs/benchmarks.md``, "Physics measurements".
 
 Resting contact is not a penetration: a pair counts only where its depth
 exceeds ``margin`` (and ``TOUCHING``, fcl's numerical noise).

@@ -129,40 +129,25 @@ def _sync(path: Path) -> None:
 
 
 def _simulate(scene, overrides, out_dir, progress, stop):
-    from dejaview.sim.simulate import SimulationStopped, simulate
+    from dejaview.backends import simulate
+    from dejaview.sim.simulate import SimulationStopped
 
     start = time.perf_counter()
-    if overrides.get("backend") == "warp":
-        return _simulate_warp(scene, overrides, out_dir, progress, start)
 
     def step_done(step, total):
         progress({"iteration": step, "total": total, "elapsed_s": time.perf_counter() - start},
                  last=step == total)
 
     try:
-        run = simulate(scene, steps=overrides.get("steps"), record_every=overrides.get("record_every", 1),
-                       callback=step_done, should_stop=stop)
+        run = simulate(scene, overrides.get("backend") or "spheres", steps=overrides.get("steps"),
+                       record_every=overrides.get("record_every", 1), callback=step_done, should_stop=stop)
     except SimulationStopped:
         raise JobStopped(stop.reason or "cancelled") from None
     paths = run.write(out_dir)
-    summary = {"steps": run.steps, "dt": run.world.dt, "duration_s": run.steps * run.world.dt,
-               "bodies": list(run.world.names), "records": len(run.trajectory),
-               "elapsed_s": run.elapsed_s, "backend": "spheres"}
+    summary = {"steps": run.steps, "dt": run.dt, "duration_s": run.steps * run.dt,
+               "bodies": list(run.names), "records": len(run.trajectory),
+               "elapsed_s": run.elapsed_s, "backend": run.backend}
     return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
-
-
-def _simulate_warp(scene, overrides, out_dir, progress, start):
-    """A simulate job on the Warp backend: one run (no per-step progress; a stop request
-    takes effect when the run returns, as ``run_job`` checks it then)."""
-    from dejaview.backends import simulate_warp
-
-    path, traj, names = simulate_warp(scene, out_dir, steps=overrides.get("steps"),
-                                      record_every=overrides.get("record_every", 1))
-    steps = int(traj.steps[-1])
-    progress({"iteration": steps, "total": steps, "elapsed_s": time.perf_counter() - start}, last=True)
-    summary = {"steps": steps, "dt": traj.dt, "duration_s": steps * traj.dt, "bodies": list(names),
-               "records": len(traj), "elapsed_s": time.perf_counter() - start, "backend": "warp"}
-    return {"summary": summary, "artefacts": [path.name]}
 
 
 def _optimiser_progress(total: int, progress):

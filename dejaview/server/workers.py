@@ -1,7 +1,7 @@
 """Worker pools that run jobs away from the event loop: processes (default) or threads.
 
 Why processes by default: a rollout is thousands of tiny torch ops, each
-paying Python and dispatcher overhead under the GIL (README, "Benchmarks"),
+paying Python and dispatcher overhead under the GIL (docs/benchmarks.md, "Service"),
 so worker *threads* mostly take turns on one core, and every one of them
 competes with the event loop for the GIL. Measured on the 2-core machine
 (while two other benchmarks kept it busy): two jobs of 3 x 300-step rollouts

@@ -16,25 +16,24 @@ of steps (``checkpoint_every``).
 
 ``rollout(..., engine="native")`` runs the same model in C++
 (``dejaview.sim.native``): states equal to round-off, exact forward- and
-reverse-mode gradients through a custom autograd Function (reference scene:
-a rollout 860x and a reverse-mode loss + gradient 690x faster than eager,
-``bench/sim.py``); ``engine="auto"`` picks it wherever it
+reverse-mode gradients through a custom autograd Function, orders of
+magnitude faster than eager (``docs/benchmarks.md``, "Simulator");
+``engine="auto"`` picks it wherever it
 applies (float64 on the CPU). ``rollout`` itself defaults to this module
 (``engine="torch"``), the reference the native code is tested against;
 ``InferenceProblem``, ``simulate`` and the CLI default to ``auto``.
 
 ``rollout(..., compile=True)`` runs chunks of steps through ``torch.compile``
 (one graph per World, chunk length, batch shape and grad mode, kept for the
-life of the process; inductor also caches generated code on disk). Measured:
-a compiled 5-step chunk runs 7x faster than eager, but its first compile
-takes minutes on 2 cores, so eager stays the default; compile pays off for
-long optimisations, heatmaps and benchmarks.
+life of the process; inductor also caches generated code on disk). A
+compiled chunk runs several times faster than eager, but its first compile
+takes minutes (``docs/benchmarks.md``), so eager stays the default; compile
+pays off for long optimisations, heatmaps and benchmarks.
 """
 
 from __future__ import annotations
 
 import types
-from dataclasses import dataclass
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -43,7 +42,7 @@ from dejaview.errors import SimulationError
 from dejaview.scene import bounds
 from dejaview.sim import contacts
 from dejaview.sim.rotation import integrate_quat, quat_to_matrix, small_matmul
-from dejaview.sim.state import State
+from dejaview.sim.state import State, Trajectory  # noqa: F401  (Trajectory re-exported)
 from dejaview.sim.world import World
 
 
@@ -113,34 +112,6 @@ def step(world: World, state: State, broadphase: bool | None = None) -> State:
     for _ in range(world.substeps):
         state = substep(world, state, h, broadphase)
     return state
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """Recorded states of a rollout.
-
-    Attributes:
-        states: State whose tensors have a leading time dimension, (T, B, N, ...).
-        steps: (T,) step index of each record (0 is the initial state).
-        dt: step length, so the time of record t is ``steps[t] * dt``.
-    """
-
-    states: State
-    steps: torch.Tensor
-    dt: float
-
-    @property
-    def times(self) -> torch.Tensor:
-        """(T,) times in seconds."""
-        return self.steps.to(self.states.position.dtype) * self.dt
-
-    @property
-    def final(self) -> State:
-        """The last recorded State (B, N, ...)."""
-        return State(*(t[-1] for t in self.states.tensors()))
-
-    def __len__(self) -> int:
-        return self.steps.shape[0]
 
 
 _COMPILED: dict = {}

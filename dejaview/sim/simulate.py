@@ -56,16 +56,28 @@ class SimulationRun:
     """Outcome of ``simulate``.
 
     Attributes:
-        world: the World simulated.
+        world: the World simulated (another backend: what its trajectory writers read, e.g.
+            ``dejaview.backends.warp.BodyFrames``).
         trajectory: recorded states (T, 1, N, ...).
         steps: number of steps simulated.
         elapsed_s: wall time of the rollout (World building excluded).
+        backend: the backend that ran it.
     """
 
     world: World
     trajectory: Trajectory
     steps: int
     elapsed_s: float
+    backend: str = "spheres"
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """(N,) movable body ids."""
+        return tuple(self.world.names)
+
+    @property
+    def dt(self) -> float:
+        return self.trajectory.dt
 
     def csv(self) -> str:
         """The trajectory CSV (scene-format spec, "Outputs") as text."""

@@ -1,4 +1,5 @@
-"""The changing part of a simulation: an immutable, batched rigid-body state."""
+"""The changing part of a simulation: an immutable, batched rigid-body state, and the recorded
+states of a rollout (``Trajectory``, what both engines return)."""
 
 from __future__ import annotations
 
@@ -77,3 +78,31 @@ pytree.register_pytree_node(
     lambda children, _: State(*children),
     serialized_type_name="dejaview.sim.state.State",
 )
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Recorded states of a rollout.
+
+    Attributes:
+        states: State whose tensors have a leading time dimension, (T, B, N, ...).
+        steps: (T,) step index of each record (0 is the initial state).
+        dt: step length, so the time of record t is ``steps[t] * dt``.
+    """
+
+    states: State
+    steps: torch.Tensor
+    dt: float
+
+    @property
+    def times(self) -> torch.Tensor:
+        """(T,) times in seconds."""
+        return self.steps.to(self.states.position.dtype) * self.dt
+
+    @property
+    def final(self) -> State:
+        """The last recorded State (B, N, ...)."""
+        return State(*(t[-1] for t in self.states.tensors()))
+
+    def __len__(self) -> int:
+        return self.steps.shape[0]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dejaview.backends import BACKENDS, WARP_MISSING, as_problem, make_problem
+from dejaview.backends import BACKENDS, WARP_MISSING, Backend, Problem, as_problem, get_backend, make_problem
 from dejaview.cli import main
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem, solve
@@ -20,7 +20,7 @@ BALL = FIXTURES / "cli" / "ball.xml"
 BILLIARDS = FIXTURES / "inference" / "billiards.xml"
 
 
-def test_spheres_problem_has_the_interface_and_shares_the_wrapped_problem():
+def test_spheres_problem_has_the_interface():
     problem = make_problem(Scene.from_xml(BALL))
     assert problem.backend == "spheres" and "reverse" in problem.gradient_modes
     assert problem.num_params == problem.layout.size == 3
@@ -29,17 +29,49 @@ def test_spheres_problem_has_the_interface_and_shares_the_wrapped_problem():
     x = problem.layout.encode()
     values, grads = problem.objective_and_grad(x, "reverse")
     assert values.shape == (1,) and grads.shape == (1, 3)
-    # the wrapper holds no state: counters and settings live in the InferenceProblem
-    assert problem.evaluations == problem.inner.evaluations == 1
-    problem.compile = True
-    assert problem.inner.compile is True
-    problem.compile = False
+    assert problem.evaluations == 1
     traj = problem.simulate(x, record_every=10)
     pos, q = problem.final_pose(traj)
     assert len(pos) == 3 and len(q) == 4
     csv = problem.trajectory_csv(traj)
     assert csv.splitlines()[0] == "step,time,object,x,y,z,qw,qx,qy,qz"
-    assert as_problem(problem) is problem and as_problem(problem.inner).inner is problem.inner
+    # one class: the spheres backend's problem is dejaview.inference's InferenceProblem, no wrapper
+    assert isinstance(problem, InferenceProblem) and as_problem(problem) is problem
+    with pytest.raises(InferenceError, match="not a backend problem"):
+        as_problem(object())
+
+
+def _conforms(backend, problem):
+    """Both halves of the protocol: the Backend, and a Problem with what the inference reads."""
+    assert isinstance(backend, Backend) and isinstance(problem, Problem)
+    assert problem.backend == backend.name and problem.gradient_modes == backend.gradient_modes
+    # the shared parts are the base's, not copies: a backend supplies the rollout and its settings
+    for name in ("loss", "value_and_grad", "objective_and_grad", "final_pose", "trajectory_csv",
+                 "write_trajectory", "loss_of_trajectory"):
+        assert getattr(type(problem), name) is getattr(Problem, name), name
+    for name in ("simulate", "simulation_settings"):
+        assert getattr(type(problem), name) is not getattr(Problem, name), name
+
+
+@pytest.mark.parametrize("name", BACKENDS)
+def test_every_registered_backend_conforms_to_the_protocol(name, tmp_path):
+    """Each backend builds a Problem from the base (loss, gradients and I/O written once), runs a
+    scene forward into a SimulationRun, and its problem's loss is ``dejaview.losses``' loss of its
+    own trajectory."""
+    if name == "warp":
+        pytest.importorskip("warp", reason="the warp extra is not installed: pip install 'dejaview[warp]'")
+    backend = get_backend(name)
+    problem = backend.make_problem(Scene.from_xml(BALL))
+    _conforms(backend, problem)
+    x = problem.layout.encode()
+    values, grads = problem.value_and_grad(x, "reverse")
+    assert values.shape == (1,) and grads.shape == (1, 3) and torch.isfinite(grads).all()
+    traj = problem.simulate(x)
+    assert torch.allclose(values, problem.loss_of_trajectory(traj))
+    run = backend.simulate(Scene.from_xml(BALL), steps=10, record_every=5)
+    assert run.backend == name and run.steps == 10 and run.names == ("ball",)
+    rows = read_trajectory_csv(run.write(tmp_path)["trajectory"])
+    assert rows["ball"]["step"] == [0, 5, 10]
 
 
 def test_trajectory_csv_holds_every_movable_object(tmp_path):

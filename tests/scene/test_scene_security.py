@@ -12,7 +12,8 @@ from lxml import etree
 
 from dejaview.errors import SceneError
 from dejaview.scene import Scene
-from dejaview.scene.xml import DEFAULT_MAX_BYTES, _make_parser, read_scene_file, read_scene_string
+from dejaview.scene.parsing import _make_parser
+from dejaview.scene.xml import DEFAULT_MAX_BYTES, read_scene_file, read_scene_string
 
 BROKEN = Path(__file__).resolve().parents[1] / "fixtures" / "scenes" / "broken"
 

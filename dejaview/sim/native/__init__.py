@@ -306,7 +306,7 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
     Raises:
         SimulationError: with ``check_divergence``, naming the object, the step and the quantity.
     """
-    from dejaview.sim.integrate import Trajectory
+    from dejaview.sim.state import Trajectory
 
     packed = pack_world(world)
     if state.position.dtype != torch.float64 or state.position.device.type != "cpu":
