@@ -194,7 +194,8 @@ def verdict(s: dict) -> str:
     return "met" if ok else "missed"
 
 
-def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot=None) -> list[dict]:
+def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot=None,
+        verbose: bool = False) -> list[dict]:
     """Every scene x truth; prints a row per scene and the pooled verdict."""
     import torch
 
@@ -210,6 +211,10 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
             row = run_case(name, i, samples)
             mine.append(row)
             rows.append(row)
+            if verbose:
+                say(f"  {name} {i}: {row['seconds']:.1f} s, ranks "
+                    + " ".join(f"{r:.2f}" for r in row["ranks"])
+                    + f", {row['unique']} distinct, {row['stages']} steps")
         per_scene[name] = summarize(mine)
     say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram")
     for name, s in per_scene.items():
@@ -254,8 +259,10 @@ def main(argv=None) -> int:
     parser.add_argument("--samples", type=int, default=300, help="posterior samples per truth")
     parser.add_argument("--plot", type=Path, default=None, help="write the rank histograms as a PNG here")
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows as CSV here")
+    parser.add_argument("--verbose", action="store_true", help="a line per truth")
     args = parser.parse_args(argv)
-    rows = run(scenes=tuple(args.scenes.split(",")), truths=args.truths, samples=args.samples, plot=args.plot)
+    rows = run(scenes=tuple(args.scenes.split(",")), truths=args.truths, samples=args.samples, plot=args.plot,
+               verbose=args.verbose)
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

@@ -7,7 +7,8 @@ result.json, trajectory.csv).
 """
 
 from dejaview.heatmap.images import read_ppm, write_png, write_ppm
-from dejaview.heatmap.search import HeatmapProgress, HeatmapResult, cell_boxes, compute_heatmap
+from dejaview.heatmap.result import HeatmapProgress, HeatmapResult
+from dejaview.heatmap.search import cell_boxes, compute_heatmap
 
 __all__ = ["compute_heatmap", "HeatmapResult", "HeatmapProgress", "cell_boxes", "read_ppm",
            "write_ppm", "write_png"]

@@ -76,7 +76,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
     Returns:
         HeatmapResult (``best``: the solve, with its posterior samples).
     """
-    from dejaview.heatmap.search import HeatmapProgress, HeatmapResult
+    from dejaview.heatmap.result import HeatmapProgress, HeatmapResult
     from dejaview.inference import solve
     from dejaview.inference.posterior_report import position_histogram
     from dejaview.scene import HeatmapSettings, Observation, Scene
