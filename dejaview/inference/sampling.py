@@ -13,32 +13,34 @@ uniform on SO(3), which in rotation-vector coordinates has density
 ``(1 - cos t) / t^2`` for angles t up to pi. Infeasible starts
 (``Posterior.feasible``) and non-finite rollouts have density 0.
 
-The sampler is sequential Monte Carlo (Del Moral, Doucet and Jasra 2006) on a
-geometric bridge from a reference distribution q to the posterior p::
+The sampler is sequential Monte Carlo (Del Moral, Doucet and Jasra 2006) with
+likelihood tempering: particles drawn from the prior (``prior_draws``) are
+carried to the posterior through ``pi_beta(x) ~ prior(x) L(x)^beta``, beta from
+0 to 1 (where the prior is improper, a position free without a start area, the
+bridge starts from the mixture q below instead of the prior).
 
-    pi_beta(x) ~ q(x)^(1 - beta) p(x)^beta,     beta: 0 -> 1
-
-- q is a mixture of multivariate Student-t distributions (``DF`` degrees of
-  freedom) centred on the search's distinct modes, with the Laplace covariance
-  of each (``(J^T J + C)^-1`` from the exact residual Jacobian J and the
-  curvature C of the base measure and flat priors), weighted by its Laplace
-  evidence ``p(m) sqrt(det Sigma)``, so every mode the search found is covered
-  in proportion to its probability mass.
 - beta advances as far as keeps the effective sample size of the incremental
   weights at ``ESS_FRACTION`` of the particles (bisection), then the particles
   are resampled (systematic) and moved by Metropolis-Hastings kernels that
-  leave pi_beta invariant: one independence move proposing from q (jumps
-  between modes) and ``RW_MOVES`` random-walk moves with the weighted particle
-  covariance of the particle's mode (adapts to ridges and curved valleys; the
-  step scale adapts towards ``TARGET_ACCEPTANCE``).
+  leave pi_beta invariant:
+  - one independence move proposing from q, a mixture of multivariate
+    Student-t distributions (``DF`` degrees of freedom) centred on the MAP
+    search's distinct modes with the Laplace covariance of each
+    (``(J^T J + C)^-1`` from the exact residual Jacobian J and the curvature C
+    of the base measure and flat priors), weighted by its Laplace evidence
+    ``p(m) sqrt(det Sigma)``, plus the prior itself (``PRIOR_SHARE``): the
+    particles jump into every mode the search found, in proportion to its mass;
+  - ``RW_MOVES`` random-walk moves whose step covariance is that of the
+    particle's nearest neighbours in the population (it follows ridges, curved
+    valleys and separate modes alike; the step scale adapts towards
+    ``TARGET_ACCEPTANCE``).
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 
-Where q is close to the posterior, the first step reaches beta = 1 at once and
-the sampler is importance sampling with a few decorrelating moves; where it is
-not (a flat prior leaves a ridge of pasts that the Laplace approximation sees
-as a slab), it tempers in as many steps as it needs. Why this and not NUTS or
-plain importance sampling: see docs/inference.md ("The posterior"), measured
-with ``dejaview bench calibration``.
+Tempering from the prior reaches branches of the posterior the search did not
+find (a ball thrown up rather than rolled, both ending alike); the moves from
+q make the known modes cheap to reach. Why this and not NUTS or plain
+importance sampling around the modes: see docs/inference.md ("The
+posterior"), measured with ``dejaview bench calibration``.
 """
 
 from __future__ import annotations
@@ -69,6 +71,83 @@ MAX_STAGES = 200
 MODE_MERGE = 3.0
 """Modes closer than this Mahalanobis distance (under the better one's Laplace covariance) are
 one mode."""
+PRIOR_SHARE = 0.3
+"""Weight of the prior itself in the reference mixture (defensive importance sampling): branches
+of the posterior that the search did not find are reached by tempering from the prior."""
+NEIGHBOURS_PER_PARAMETER = 2
+"""A random-walk step's covariance is that of the particle's ``2 P + 2`` nearest neighbours."""
+DISTINCT_FRACTION = 0.9
+"""A tempering step's moves go on until this fraction of the particles are distinct ..."""
+MAX_MOVES = 10
+"""... or this many moves have run."""
+
+
+def prior_draws(post, n: int, gen: torch.Generator) -> torch.Tensor:
+    """n draws (n, P) from the prior of ``log_prior_density``: position uniform in the start
+    area (logistic in its logit coordinates), orientation normal with ``tilt`` or Haar-uniform,
+    velocities normal with ``speed`` / ``spin`` or uniform in the ball of their flat bound."""
+    lay, s = post.layout, post.settings
+    dt = torch.float64
+    parts = []
+    cols = lay.block_slice("position")
+    if cols.stop > cols.start:
+        u = torch.rand(n, cols.stop - cols.start, generator=gen, dtype=dt).clamp(1e-9, 1 - 1e-9)
+        parts.append(torch.logit(u) if lay.lo is not None else 2 * u - 1)
+    if lay.free["orientation"]:
+        if s.tilt is not None:
+            r = s.tilt * torch.randn(n, 3, generator=gen, dtype=dt)
+        else:  # uniform rotation (a random unit quaternion) as a rotation vector of angle <= pi
+            q = torch.randn(n, 4, generator=gen, dtype=dt)
+            q = q / q.norm(dim=-1, keepdim=True)
+            q = torch.where(q[:, :1] < 0, -q, q)
+            angle = 2 * torch.atan2(q[:, 1:].norm(dim=-1), q[:, 0])
+            axis = q[:, 1:] / q[:, 1:].norm(dim=-1, keepdim=True).clamp_min(1e-300)
+            r = axis * angle[:, None]
+        parts.append(r / lay.scale["orientation"])
+    for block, sd, bound in (("linear_velocity", s.speed, s.speed_bound),
+                             ("angular_velocity", s.spin, s.spin_bound)):
+        cols = lay.block_slice(block)
+        w = cols.stop - cols.start
+        if w:
+            if sd is not None:
+                v = sd * torch.randn(n, w, generator=gen, dtype=dt)
+            else:
+                d = torch.randn(n, w, generator=gen, dtype=dt)
+                d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+                v = d * bound * torch.rand(n, 1, generator=gen, dtype=dt) ** (1 / 3)
+            parts.append(v / lay.scale[block])
+    return torch.cat(parts, -1)
+
+
+def log_prior_density(post, x: torch.Tensor) -> torch.Tensor:
+    """Normalised log density (B,) of ``prior_draws`` at x (B, P) (``-inf`` outside a flat
+    velocity bound or beyond an orientation angle of pi)."""
+    lay, s = post.layout, post.settings
+    out = log_base_density(post, x)
+    cols = lay.block_slice("orientation")
+    if cols.stop > cols.start:
+        sc = lay.scale["orientation"]
+        if s.tilt is not None:
+            r = sc * x[:, cols]
+            out = out - 0.5 * (r * r).sum(-1) / s.tilt ** 2 - 3 * math.log(s.tilt * math.sqrt(2 * math.pi))
+        else:  # Haar: (1 - cos t) / (t^2 4 pi^2) per unit volume of rotation vectors
+            out = out - math.log(4 * math.pi ** 2)
+        out = out + 3 * math.log(sc)
+    for block, sd, bound in (("linear_velocity", s.speed, s.speed_bound),
+                             ("angular_velocity", s.spin, s.spin_bound)):
+        cols = lay.block_slice(block)
+        if cols.stop > cols.start:
+            sc = lay.scale[block]
+            v = sc * x[:, cols]
+            w = cols.stop - cols.start
+            if sd is not None:
+                out = out - 0.5 * (v * v).sum(-1) / sd ** 2 - w * math.log(sd * math.sqrt(2 * math.pi))
+            else:  # uniform in the ball of radius ``bound`` (w = 3)
+                inside = v.norm(dim=-1) <= bound
+                out = torch.where(inside, out - math.log(4 / 3 * math.pi * bound ** 3),
+                                  torch.full_like(out, -math.inf))
+            out = out + w * math.log(sc)
+    return out
 
 
 def log_base_density(post, x: torch.Tensor) -> torch.Tensor:
@@ -136,9 +215,23 @@ class Mixture:
     chol: torch.Tensor
     log_weights: torch.Tensor
     df: float = DF
+    prior: object = None
+    """Optional ``Posterior`` whose prior (``prior_draws``, ``log_prior_density``) is one more
+    component, with weight ``prior_share``; the t components share the rest."""
+    prior_share: float = 0.0
 
     def sample(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """n draws (n, P) and the component (n,) each came from."""
+        """n draws (n, P) and the component (n,) each came from (K for the prior)."""
+        x, k = self._sample_t(n, gen)
+        if self.prior is not None and self.prior_share > 0:
+            use = torch.rand(n, generator=gen, dtype=torch.float64) < self.prior_share
+            m = int(use.sum())
+            if m:
+                x[use] = prior_draws(self.prior, m, gen)
+                k[use] = self.means.shape[0]
+        return x, k
+
+    def _sample_t(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         k = torch.multinomial(self.log_weights.exp(), n, replacement=True, generator=gen)
         p = self.means.shape[1]
         z = torch.randn(n, p, generator=gen, dtype=self.means.dtype)
@@ -148,7 +241,8 @@ class Mixture:
         return x, k
 
     def component_log_prob(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, K): log density of each component (weights included) at x (B, P)."""
+        """(B, K) or, with a prior component, (B, K + 1): log density of each component (weights
+        included) at x (B, P)."""
         p = self.means.shape[1]
         d = x[:, None, :] - self.means[None]  # (B, K, P)
         sol = torch.linalg.solve_triangular(self.chol[None].expand(x.shape[0], -1, -1, -1),
@@ -157,7 +251,11 @@ class Mixture:
         logdet = torch.log(torch.diagonal(self.chol, dim1=-2, dim2=-1)).sum(-1)  # (K,)
         nu = self.df
         c = (math.lgamma((nu + p) / 2) - math.lgamma(nu / 2) - 0.5 * p * math.log(nu * math.pi))
-        return self.log_weights + c - logdet - 0.5 * (nu + p) * torch.log1p(m / nu)
+        out = self.log_weights + c - logdet - 0.5 * (nu + p) * torch.log1p(m / nu)
+        if self.prior is None or self.prior_share <= 0:
+            return out
+        lp = math.log(self.prior_share) + log_prior_density(self.prior, x)
+        return torch.cat([out + math.log1p(-self.prior_share), lp[:, None]], -1)
 
     def log_prob(self, x: torch.Tensor) -> torch.Tensor:
         """(B,) log density at x (B, P)."""
@@ -213,7 +311,8 @@ class PosteriorSamples:
 
     Attributes:
         x: (N, P) parameters; weights: (N,) non-negative, summing to 1; log_density: (N,).
-        component: (N,) the reference component (mode) each sample belongs to.
+        component: (N,) the mode each sample belongs to: the search mode whose reference
+            component is the most responsible for it.
         mode_index: per component, the index of the search mode it is centred on.
         stats: what the sampler did (stages, betas, acceptance, ESS, rollouts, seconds).
     """
@@ -242,8 +341,9 @@ def _systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
 class _SMC:
     """State of one run of ``sample_posterior``; its methods are the named steps."""
 
-    def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop):
+    def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop, from_prior: bool):
         self.post, self.q, self.n = post, q, n
+        self.from_prior = from_prior
         self.gen = torch.Generator().manual_seed(int(seed) * 104729 + 17)
         self.callback, self.should_stop = callback, should_stop
         self.beta = 0.0
@@ -254,12 +354,20 @@ class _SMC:
         self.ess_steps: list[float] = []
         self.t0 = time.perf_counter()
 
+    def reference(self, x: torch.Tensor) -> torch.Tensor:
+        """Log density (B,) of the bridge's start: the prior, or the mixture q."""
+        return log_prior_density(self.post, x) if self.from_prior else self.q.log_prob(x)
+
     def start(self) -> None:
-        self.x, _ = self.q.sample(self.n, self.gen)
+        if self.from_prior:
+            self.x = prior_draws(self.post, self.n, self.gen)
+        else:
+            self.x, _ = self.q.sample(self.n, self.gen)
+        self.lr = self.reference(self.x)
         self.lq = self.q.log_prob(self.x)
         self.lp = log_density(self.post, self.x)
         if not bool(torch.isfinite(self.lp).any()):
-            raise InferenceError("no draw around the modes has a finite posterior density")
+            raise InferenceError("no draw from the prior or around the modes has a finite posterior density")
 
     def stopped(self) -> bool:
         return self.should_stop is not None and bool(self.should_stop())
@@ -272,7 +380,7 @@ class _SMC:
 
     def temper(self) -> None:
         """Advance beta as far as keeps ``ESS_FRACTION`` of the particles; resample."""
-        d = torch.where(torch.isfinite(self.lp), self.lp - self.lq, torch.full_like(self.lp, -math.inf))
+        d = torch.where(torch.isfinite(self.lp), self.lp - self.lr, torch.full_like(self.lp, -math.inf))
         target = ESS_FRACTION * self.n
         if _ess((1.0 - self.beta) * d) >= target:
             new = 1.0
@@ -289,75 +397,99 @@ class _SMC:
         self.ess_steps.append(_ess(logw))
         self.beta = new
         idx = _systematic(logw, self.gen)
-        self.x, self.lq, self.lp = self.x[idx], self.lq[idx], self.lp[idx]
+        self.x, self.lr, self.lq, self.lp = self.x[idx], self.lr[idx], self.lq[idx], self.lp[idx]
         self.stages += 1
 
-    def target(self, lq: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
-        out = (1.0 - self.beta) * lq + self.beta * lp if self.beta < 1 else lp.clone()
-        return torch.where(torch.isfinite(lp), out, torch.full_like(out, -math.inf))
+    def target(self, lr: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
+        """log pi_beta = (1 - beta) log r + beta log p (``-inf`` where p is 0)."""
+        out = (1.0 - self.beta) * lr + self.beta * lp if self.beta < 1 else lp.clone()
+        return torch.where(torch.isfinite(lp) & ~torch.isnan(out), out, torch.full_like(out, -math.inf))
 
-    def accept(self, y, lq_y, lp_y, log_ratio) -> float:
+    def evaluate(self, y: torch.Tensor):
+        """(log r, log q, log p) at proposals y (simulates them)."""
+        return self.reference(y), self.q.log_prob(y), log_density(self.post, y)
+
+    def accept(self, y, values, log_ratio) -> float:
+        lr_y, lq_y, lp_y = values
         u = torch.rand(self.n, generator=self.gen, dtype=torch.float64)
         ok = torch.isfinite(log_ratio) & (torch.log(u) < log_ratio)
         self.x = torch.where(ok[:, None], y, self.x)
+        self.lr = torch.where(ok, lr_y, self.lr)
         self.lq = torch.where(ok, lq_y, self.lq)
         self.lp = torch.where(ok, lp_y, self.lp)
         self.moves += 1
         return float(ok.double().mean())
 
     def independence_move(self) -> float:
+        """Propose from the mixture q (jumps between the search's modes)."""
         y, _ = self.q.sample(self.n, self.gen)
-        lq_y = self.q.log_prob(y)
-        lp_y = log_density(self.post, y)
-        log_ratio = (self.target(lq_y, lp_y) - self.target(self.lq, self.lp)) + (self.lq - lq_y)
-        return self.accept(y, lq_y, lp_y, log_ratio)
+        values = self.evaluate(y)
+        lr_y, lq_y, lp_y = values
+        log_ratio = (self.target(lr_y, lp_y) - self.target(self.lr, self.lp)) + (self.lq - lq_y)
+        return self.accept(y, values, log_ratio)
 
-    def proposal_chol(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per component k, the Cholesky factor (K, P, P) of the covariance of the particles it is
-        most responsible for (the reference's own where it holds fewer than 2P + 2 particles);
-        and each particle's component (N,)."""
-        comp = self.q.component(self.x)
-        p = self.x.shape[1]
-        chols = []
-        for k in range(self.q.means.shape[0]):
-            ref = self.q.chol[k] / SCALE_INFLATION
-            sel = self.x[comp == k]
-            if sel.shape[0] >= 2 * p + 2:
-                c = torch.cov(sel.T).reshape(p, p) + 1e-6 * (ref @ ref.T)
-                try:
-                    chols.append(torch.linalg.cholesky(0.5 * (c + c.T)))
-                    continue
-                except RuntimeError:
-                    pass
-            chols.append(ref)
-        return torch.stack(chols), comp
+    def local_chol(self, points: torch.Tensor, population: torch.Tensor, exclude: torch.Tensor) -> torch.Tensor:
+        """(N, P, P) Cholesky factors of the covariance of each point's ``2 P + 2`` nearest
+        neighbours among the population's distinct members (distances in units of the
+        population's spread), never counting the member ``exclude`` (N, P) (the particle's own
+        current state, and its copies from resampling). Where fewer distinct members are left,
+        the whole population's covariance."""
+        n, p = points.shape
+        k = NEIGHBOURS_PER_PARAMETER * p + 2
+        spread = population.std(0).clamp_min(1e-12)
+        if population.shape[0] <= k + 1:
+            c = torch.cov(population.T).reshape(p, p) if population.shape[0] > 1 else torch.eye(p, dtype=points.dtype)
+            c = c + 1e-9 * torch.eye(p, dtype=c.dtype) * float(torch.diagonal(c).mean().clamp_min(1e-12))
+            return torch.linalg.cholesky(c).expand(n, p, p).clone()
+        d = torch.cdist(points / spread, population / spread)
+        same = torch.cdist(exclude / spread, population / spread) < 1e-9
+        d = torch.where(same, torch.full_like(d, math.inf), d)
+        idx = d.topk(k, largest=False).indices  # (N, k)
+        nb = population[idx]  # (N, k, P)
+        c = nb - nb.mean(1, keepdim=True)
+        cov = c.transpose(1, 2) @ c / (k - 1)
+        jitter = 1e-6 * torch.diagonal(cov, dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
+        cov = cov + jitter[:, None, None] * torch.eye(p, dtype=cov.dtype)
+        chol, info = torch.linalg.cholesky_ex(cov)
+        bad = info != 0
+        if bool(bad.any()):
+            chol[bad] = torch.diag_embed(torch.sqrt(torch.diagonal(cov[bad], dim1=1, dim2=2)))
+        return chol
 
-    def random_walk_move(self, chols: torch.Tensor, comp: torch.Tensor) -> float:
-        """y = x + scale * L_k(x) z; the Hastings ratio accounts for L_k(y) != L_k(x)."""
+    def random_walk_move(self) -> float:
+        """y = x + scale * L(x) z, L(x) from x's nearest neighbours in the current population;
+        the Hastings ratio uses L(y) from y's neighbours in the same population."""
+        population = torch.unique(self.x, dim=0)
+        here = self.x.clone()
+        lx = self.local_chol(here, population, here)
         z = torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
-        y = self.x + self.scale * (chols[comp] @ z.unsqueeze(-1)).squeeze(-1)
-        comp_y = self.q.component(y)
-        back = torch.linalg.solve_triangular(chols[comp_y], (self.x - y).unsqueeze(-1) / self.scale,
+        y = self.x + self.scale * (lx @ z.unsqueeze(-1)).squeeze(-1)
+        ly = self.local_chol(y, population, here)
+        back = torch.linalg.solve_triangular(ly, (self.x - y).unsqueeze(-1) / self.scale,
                                              upper=False).squeeze(-1)
-        logdet = torch.log(torch.diagonal(chols, dim1=-2, dim2=-1)).sum(-1)
-        log_q_back = -0.5 * (back * back).sum(-1) - logdet[comp_y]
-        log_q_fwd = -0.5 * (z * z).sum(-1) - logdet[comp]
-        lq_y = self.q.log_prob(y)
-        lp_y = log_density(self.post, y)
-        log_ratio = self.target(lq_y, lp_y) - self.target(self.lq, self.lp) + log_q_back - log_q_fwd
-        acc = self.accept(y, lq_y, lp_y, log_ratio)
+        logdet_x = torch.log(torch.diagonal(lx, dim1=-2, dim2=-1)).sum(-1)
+        logdet_y = torch.log(torch.diagonal(ly, dim1=-2, dim2=-1)).sum(-1)
+        log_q_back = -0.5 * (back * back).sum(-1) - logdet_y
+        log_q_fwd = -0.5 * (z * z).sum(-1) - logdet_x
+        values = self.evaluate(y)
+        log_ratio = self.target(values[0], values[2]) - self.target(self.lr, self.lp) + log_q_back - log_q_fwd
+        acc = self.accept(y, values, log_ratio)
         self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
+    def distinct(self) -> float:
+        return torch.unique(self.x, dim=0).shape[0] / self.n
+
     def move(self, count: int) -> None:
-        """One independence move, then random-walk moves, ``count`` in all."""
+        """One independence move, then random-walk moves, ``count`` in all, and more (up to
+        ``MAX_MOVES``) while fewer than ``DISTINCT_FRACTION`` of the particles are distinct."""
         self.acceptance.append(self.independence_move())
-        chols, comp = self.proposal_chol()
-        for _ in range(count - 1):
+        done = 1
+        while done < count or (done < MAX_MOVES and self.distinct() < DISTINCT_FRACTION):
             if self.stopped():
                 return
-            self.acceptance.append(self.random_walk_move(chols, comp))
-            comp = self.q.component(self.x)
+            self.acceptance.append(self.random_walk_move())
+            done += 1
 
     def run(self) -> None:
         self.start()
@@ -394,7 +526,10 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
         raise InferenceError("the posterior has no free parameter to sample: free one in <optimize>")
     rollouts0 = post.rollouts
     q, mode_index = laplace_mixture(post, modes)
-    smc = _SMC(post, q, n, seed, callback, should_stop)
+    proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
+    if proper:  # the prior is a proper distribution: temper from it, propose from it too
+        q.prior, q.prior_share = post, PRIOR_SHARE
+    smc = _SMC(post, q, n, seed, callback, should_stop, from_prior=proper)
     smc.run()
     weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
     stats = {"method": "smc", "reference_components": int(q.means.shape[0]), "stages": smc.stages,
@@ -403,5 +538,6 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
              "first_step_ess": smc.ess_steps[0] if smc.ess_steps else None,
              "unique_samples": int(torch.unique(smc.x, dim=0).shape[0]),
              "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - smc.t0}
-    return PosteriorSamples(x=smc.x, weights=weights, log_density=smc.lp, component=q.component(smc.x),
+    nearest_mode = q.component_log_prob(smc.x)[:, :len(mode_index)].argmax(-1)
+    return PosteriorSamples(x=smc.x, weights=weights, log_density=smc.lp, component=nearest_mode,
                             mode_index=mode_index, stats=stats)
