@@ -517,15 +517,18 @@ def _make_problem(scene, problem, world, backend, compile, engine):
 
 def _search(scene, problem, settings: SolveSettings, callback, should_stop):
     """The default search: the most probable start under the scene's prior and observation noise."""
+    from dejaview.inference.model_uncertainty import ModelVariants
     from dejaview.inference.posterior import Posterior, feasibility_check
     from dejaview.inference.search import DEFAULT_BUDGET, map_search
 
     inner = getattr(problem, "inner", problem)
-    post = Posterior(inner, settings.posterior, feasible=feasibility_check(scene, inner))
+    model = ModelVariants.from_scene(scene, inner.world)
+    post = Posterior(inner, settings.posterior, feasible=feasibility_check(scene, inner), model=model)
     opt = map_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
                      should_stop=should_stop, tolerance=settings.tolerance,
                      budget=settings.budget or DEFAULT_BUDGET)
-    extra = {**settings.posterior.to_json(), "search": {
+    extra = {**settings.posterior.to_json(), **({"model_uncertainty": model.to_json()} if model else {}),
+             "search": {
         "neg_log_posterior": opt.cost, "observation_chi2": opt.chi2, "rollouts": opt.rollouts,
         "jacobians": opt.jacobians, "budget": settings.budget or DEFAULT_BUDGET,
         "modes": [{"neg_log_posterior": m.cost, "observation_chi2": m.chi2, "loss": m.loss,
