@@ -112,3 +112,62 @@ def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_error
         ModelVariants.from_world(world, friction=-0.1)
     with pytest.raises(InferenceError, match="at least 2 variants"):
         ModelVariants.from_world(world, friction=0.1, count=1)
+
+
+SLIDE = """<scene version="1" name="slide"><simulation dt="0.002" duration="0.4" friction="0.5" restitution="0.3"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.05" mass="0.4">
+    <pose position="0 0 0.05" orientation="1 0 0 0"/><velocity linear="1 0 0" angular="0 0 0"/></object>
+  <inference source="ball" loss="position" evaluate="final">
+    <target position="0.35 0.02 0.05" orientation="1 0 0 0"/>
+    <optimize position="false" orientation="false" linear-velocity="true" angular-velocity="false"/>
+    {element}
+  </inference></scene>"""
+
+
+def test_the_cli_reads_the_element_and_the_flag_and_records_it(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from dejaview.cli import cli
+
+    path = tmp_path / "slide.xml"
+    path.write_text(SLIDE.format(element='<model-uncertainty friction="0.2" restitution="0.1"/>'))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    mu = json.loads((out / "result.json").read_text())["model_uncertainty"]
+    assert (mu["friction"], mu["restitution"], mu["variants"]) == (0.2, 0.1, 4)
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
+                                      "--model-uncertainty", "0.05", "0"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "result.json").read_text())["model_uncertainty"]["friction"] == 0.05
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
+                                      "--model-uncertainty", "0", "0"])
+    assert "model_uncertainty" not in json.loads((out / "result.json").read_text())
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--optimizer", "lbfgs"])
+    assert result.exit_code != 0 and "<model-uncertainty> needs the default search" in str(result.exception)
+    bad = tmp_path / "bad.xml"
+    bad.write_text(SLIDE.format(element='<model-uncertainty friction="-0.1"/>'))
+    result = CliRunner().invoke(cli, ["solve", str(bad), "-o", str(out)])
+    assert result.exit_code != 0 and "'friction' must be >= 0" in str(result.exception)
+
+
+def test_a_service_solve_job_reads_the_element_from_its_scene(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from dejaview.server.app import create_app
+    from tests.server.test_rest import wait_state
+
+    root = tmp_path / "root"
+    root.mkdir()
+    with TestClient(create_app(scene_root=root, results_dir=tmp_path / "results", workers=1,
+                               executor="thread")) as client:
+        xml = SLIDE.format(element='<model-uncertainty friction="0.2" restitution="0.1"/>')
+        response = client.post("/jobs", json={"kind": "solve", "scene_xml": xml})
+        assert response.status_code == 202, response.text
+        status = wait_state(client, response.json()["job_id"])
+        assert status["state"] == "done", status
+        result = client.get(f"/jobs/{status['job_id']}/result.json").json()
+        assert result["model_uncertainty"]["friction"] == 0.2
