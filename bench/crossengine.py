@@ -251,7 +251,8 @@ def _cases() -> tuple[Case, ...]:
              floor(1.0, 0.6, 0.3, 0.5), orientation=True),
         Case("box-thrown", box("source", (0.8, -0.4, 0.5), (1.5, 0.2, 0.5), (0, 2.0, 0)),
              floor(0.8, -0.4, 0.4, 0.6), orientation=True),
-        Case("box-hits-box", box("source", (1.0, 0.0, BOX[2] / 2), (2.5, 0, 0)) + box("other", (1.5, 0.0, BOX[2] / 2)),
+        Case("box-hits-box", box("source", (1.0, 0.0, BOX[2] / 2), (2.5, 0, 0))
+             + box("other", (1.5, 0.0, BOX[2] / 2)),
              floor(1.0, 0.0, BOX[2] / 2, BOX[2] / 2), duration=1.0),
         Case("ball-hits-box", ball("source", (0.8, 0.0, BALL_R), (2.0, 0.0, 0), (0, 40.0, 0))
              + box("other", (1.3, 0.0, BOX[2] / 2)), floor(0.8, 0.0, BALL_R, BALL_R), duration=1.0),
