@@ -317,6 +317,42 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
     _finish(rows, csv_path, False, [])
 
 
+@command.command("crossengine")
+@click.option("--cases", default="", help="Comma-separated case names (default: all).")
+@click.option("--uncertainty", nargs=2, type=click.FloatRange(min=0.0, max=1.0), default=(0.2, 0.2),
+              show_default=True, metavar="FRICTION RESTITUTION",
+              help="Relative standard deviations of the runs with model uncertainty.")
+@click.option("--no-baseline", is_flag=True, help="Skip the solves without model uncertainty.")
+@click.option("--no-warp", is_flag=True, help="Do not re-simulate the answers in Warp.")
+@click.option("--no-fidelity", is_flag=True, help="Skip the fidelity table.")
+@click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
+@csv_option
+def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_only, csv_path):
+    """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
+
+    First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
+    distance after 0.5/1.0/1.5 s), then every case solved with `solve`'s defaults without and
+    with <model-uncertainty>, each answer re-simulated in MuJoCo (and Warp where it is
+    installed); success: within 3 cm of MuJoCo's observation. Needs the mujoco package.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    module = bench_module("crossengine")
+    names = tuple(c for c in cases.replace(" ", "").split(",") if c)
+    try:
+        if fidelity_only:
+            rows = module.fidelity(click.echo)
+        else:
+            rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
+                              with_fidelity=not no_fidelity, baseline=not no_baseline)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--cases") from None
+    except ImportError as exc:
+        raise click.ClickException(f"the crossengine bench needs MuJoCo: {exc}") from None
+    _finish(rows, csv_path, False, [])
+
+
 @command.command("load")
 @click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
               help="Concurrent WebSocket clients, one short simulate job each.")

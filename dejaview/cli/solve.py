@@ -27,9 +27,13 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
               help="torch.compile the torch engine's rollouts (the native engine needs no compile)")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
+@click.option("--model-uncertainty", "model_uncertainty", nargs=2, default=None,
+              type=click.FloatRange(min=0.0, max=1.0), metavar="FRICTION RESTITUTION",
+              help="relative standard deviations the likelihood averages over (overrides the scene's "
+                   "<model-uncertainty>; 0 0: none)")
 @common_options
-def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_compile, tolerance, backend,
-            engine, iterations, optimizer, gradient, seed, quiet):
+def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_compile, tolerance,
+            model_uncertainty, backend, engine, iterations, optimizer, gradient, seed, quiet):
     """Infer the most probable initial state of SCENE's source object (its <prior> and
     <observation>); write result.json, iterations.csv and trajectory.csv (the answer
     re-simulated) to DIR, and posterior.csv with --samples N."""
@@ -42,6 +46,12 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_c
     sc = Scene.from_xml(scene)
     if sc.inference is None:
         raise click.ClickException(f"{scene}: the scene has no <inference> section")
+    if model_uncertainty is not None:
+        from dataclasses import replace
+
+        from dejaview.scene import ModelUncertainty
+
+        sc = replace(sc, inference=replace(sc.inference, model_uncertainty=ModelUncertainty(*model_uncertainty)))
     total = iterations if iterations is not None else sc.inference.iterations
     bar = tqdm(total=total, desc="solve", unit="it", disable=not show_progress(quiet))
 
@@ -72,6 +82,10 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_c
             click.echo(f"  -log posterior {search['neg_log_posterior']:.4g} (end misfit chi2 "
                        f"{search['observation_chi2']:.3g}), {len(search['modes'])} mode(s) found, "
                        f"{search['rollouts']} rollouts")
+            mu = result.settings.get("model_uncertainty")
+            if mu is not None:
+                click.echo(f"  model uncertainty: friction {mu['friction']:g}, restitution "
+                           f"{mu['restitution']:g}, stiffness {mu['stiffness']:g} ({mu['variants']} variants)")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
         if result.problem.backend == "spheres":

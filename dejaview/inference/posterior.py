@@ -32,6 +32,10 @@ Feasibility: a start in which the source interpenetrates another object is not
 a past. ``Posterior.cost`` gives such candidates an infinite cost without
 simulating them, using ``feasible`` (``dejaview.geometry.collision`` with
 python-fcl on the exact meshes, where available).
+
+Model uncertainty (``<model-uncertainty>``, ``dejaview.inference.model_uncertainty``): the
+observation and penalty residuals of K physics variants, each over ``sqrt(K)``, replace the one
+simulator's: the mean over the variants of the log-likelihood.
 """
 
 from __future__ import annotations
@@ -129,12 +133,15 @@ class Posterior:
         settings: ``PosteriorSettings``.
         feasible: optional ``(position (B, 3), orientation (B, 4)) -> (B,) bool``: is the source's
             start, object-frame origin and orientation, free of interpenetration?
+        model: optional ``ModelVariants`` (``dejaview.inference.model_uncertainty``): the
+            likelihood averages over these physics variants.
     """
 
-    def __init__(self, problem, settings: PosteriorSettings, feasible=None):
+    def __init__(self, problem, settings: PosteriorSettings, feasible=None, model=None):
         self.problem = problem
         self.settings = settings
         self.feasible_fn = feasible
+        self.model = model
         self.rollouts = 0
         """Candidate rollouts simulated so far (a batch of B counts B)."""
         self.jacobians = 0
@@ -246,23 +253,36 @@ class Posterior:
             return x[:, :0]
         return torch.cat(parts, -1)
 
-    def residuals(self, x: torch.Tensor, traj=None) -> tuple[torch.Tensor, torch.Tensor]:
+    @property
+    def variants(self) -> int:
+        """Physics variants the likelihood averages over (1 without model uncertainty)."""
+        return 1 if self.model is None else self.model.count
+
+    def residuals(self, x: torch.Tensor, traj=None, checkpoint: bool = False
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
         """All residuals R (B, M) of parameters x (B, P), and the scene's loss (B,) in metres.
 
-        Columns: the ``num_observed`` observation residuals first, then the penalties' and the
-        prior's."""
+        Columns: the ``num_observed`` observation residuals of each of the ``variants`` physics
+        variants first (each over sqrt(variants)), then the penalties' and the prior's. A given
+        ``traj`` is the one simulator's (no variants); the loss is the variants' mean."""
         p = self.problem
-        if traj is None:
-            traj = p.simulate(x)
-        obs, loss = self.observation_residuals(traj)
-        parts = [obs]
-        if p.penalties:
-            from dejaview.losses import contact_penalty
+        if traj is not None or self.model is None:
+            trajs = [p.simulate(x, checkpoint=checkpoint) if traj is None else traj]
+        else:
+            trajs = self.model.trajectories(p, x, checkpoint=checkpoint)
+        scale = 1.0 / math.sqrt(len(trajs))
+        obs, pens, losses = [], [], []
+        for t in trajs:
+            o, loss = self.observation_residuals(t)
+            obs.append(o * scale)
+            losses.append(loss)
+            if p.penalties:
+                from dejaview.losses import contact_penalty
 
-            pen = sum(w * contact_penalty(p.world, traj, a, b) for a, b, w in p.penalties)
-            parts.append(pen.unsqueeze(-1) / self.settings.sigma)
-        parts.append(self.prior_residuals(x))
-        return torch.cat(parts, -1), loss
+                pen = sum(w * contact_penalty(p.world, t, a, b) for a, b, w in p.penalties)
+                pens.append(pen.unsqueeze(-1) * (scale / self.settings.sigma))
+        parts = obs + pens + [self.prior_residuals(x)]
+        return torch.cat(parts, -1), torch.stack(losses).mean(0)
 
     # ---------------------------------------------------------------- evaluation
     def feasible(self, x: torch.Tensor) -> torch.Tensor:
@@ -289,7 +309,7 @@ class Posterior:
         self.rollouts += xs.shape[0]
         c = 0.5 * (r * r).sum(-1)
         finite = torch.isfinite(c)
-        obs = r[:, :self.num_observed]  # ``residuals`` puts the observation's first
+        obs = r[:, :self.num_observed * self.variants]  # ``residuals`` puts the observation's first
         cost[ok] = torch.where(finite, c, torch.full_like(c, math.inf))
         chi2[ok] = torch.where(finite, (obs * obs).sum(-1), torch.full_like(c, math.inf))
         loss[ok] = torch.where(finite, l_, torch.full_like(c, math.inf))
@@ -303,7 +323,7 @@ class Posterior:
         """
         x = x.detach().clone().requires_grad_(True)
         with torch.enable_grad():
-            r, _ = self.residuals(x, self.problem.simulate(x, checkpoint=True))
+            r, _ = self.residuals(x, checkpoint=True)
             rows = []
             m = r.shape[1]
             for i in range(m):

@@ -262,7 +262,7 @@ class SolveResult:
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
-            **{k: self.settings[k] for k in ("prior", "observation", "search", "posterior")
+            **{k: self.settings[k] for k in ("prior", "observation", "model_uncertainty", "search", "posterior")
                if k in self.settings},
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}
@@ -496,6 +496,10 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
     settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
                                      tolerance=tolerance, budget=budget, samples=samples, **local)
+    mu = scene.inference.model_uncertainty
+    if settings.optimizer != "auto" and mu is not None and ((mu.friction or 0) > 0 or (mu.restitution or 0) > 0):
+        raise InferenceError(f"<model-uncertainty> needs the default search (optimizer auto on the spheres "
+                             f"backend), not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn = None
     if settings.optimizer == "auto":
         opt, extra, post = _search(scene, problem, settings, callback, should_stop)
@@ -542,15 +546,23 @@ def _make_problem(scene, problem, world, backend, compile, engine):
 
 def _search(scene, problem, settings: SolveSettings, callback, should_stop):
     """The default search: the most probable start under the scene's prior and observation noise."""
+    from dejaview.inference.model_uncertainty import ModelVariants, refine_under_variants
     from dejaview.inference.posterior import Posterior, feasibility_check
-    from dejaview.inference.search import DEFAULT_BUDGET, map_search
+    from dejaview.inference.search import DEFAULT_BUDGET, LM_FINAL_ITERATIONS, map_search
 
     inner = getattr(problem, "inner", problem)
-    post = Posterior(inner, settings.posterior, feasible=feasibility_check(scene, inner))
+    feasible = feasibility_check(scene, inner)
+    post = Posterior(inner, settings.posterior, feasible=feasible)
     opt = map_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
                      should_stop=should_stop, tolerance=settings.tolerance,
                      budget=settings.budget or DEFAULT_BUDGET)
-    extra = {**settings.posterior.to_json(), "search": {
+    model = ModelVariants.from_scene(scene, inner.world)
+    if model is not None and not opt.stopped:  # the modes refined and ranked under model uncertainty
+        post = Posterior(inner, settings.posterior, feasible=feasible, model=model)
+        opt = refine_under_variants(post, opt, iterations=LM_FINAL_ITERATIONS, seed=settings.seed,
+                                    callback=callback, should_stop=should_stop)
+    extra = {**settings.posterior.to_json(), **({"model_uncertainty": model.to_json()} if model else {}),
+             "search": {
         "neg_log_posterior": opt.cost, "observation_chi2": opt.chi2, "rollouts": opt.rollouts,
         "jacobians": opt.jacobians, "budget": settings.budget or DEFAULT_BUDGET,
         "modes": [{"neg_log_posterior": m.cost, "observation_chi2": m.chi2, "loss": m.loss,

@@ -17,14 +17,24 @@ What carries over, and how (docs/robotics.md has the user-facing version):
 * Mass: each movable object gets an explicit ``<inertial>`` with DejaView's
   mass, centre of mass and inertia (uniform density), so both engines move the
   same body. Importing, a body's mass is the object's ``mass``.
-* Contact (``contact_parameters``): Coulomb friction ``mu`` is the geom's
-  sliding friction with ``condim=3`` (no torsional or rolling friction,
-  which DejaView lacks too) and an elliptic cone with ``impratio=10`` (close
-  to hard Coulomb friction). Restitution e becomes the damping ratio of
-  MuJoCo's contact spring, ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` (e = 0:
-  critically damped), with a stiff time constant (``solref="0.004 zeta"``);
-  importing inverts that. MuJoCo combines two geoms' friction by their
-  maximum, DejaView by the geometric mean: equal values agree.
+* Contact (``contact_parameters``; the fidelity table in docs/physics-fidelity.md
+  measures it): Coulomb friction ``mu`` is the geom's sliding friction with
+  ``condim=3`` (no torsional or rolling friction, which DejaView lacks too)
+  and an elliptic cone with ``impratio=10`` (close to hard Coulomb
+  friction). The normal contact is MuJoCo's spring-damper in its direct form,
+  ``solref="-k -b"`` with a constant impedance (``solimp="0.99 0.99 0.001"``,
+  so k and b act as given): the stiffness is DejaView's, ``k = omega_0^2``
+  (its contact frequency, mass-normalised like MuJoCo's), so impacts last as
+  long in both engines; the damping ``b = 2 zeta omega_0`` is calibrated so
+  that MuJoCo's contact, which pushes and never pulls, integrated at its time
+  step, rebounds with DejaView's restitution e (``damping_ratio``). The
+  classic ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` holds for a spring-damper that
+  may pull; MuJoCo's may not, and that formula made a ball with e = 0.3
+  rebound with 0.40 and one with e = 0.9 diverge (zeta 0.03 at a 4 ms time
+  constant is a contact of 7,500 rad/s). Importing inverts the mapping for
+  either solref form. MuJoCo combines two geoms' friction by their maximum
+  and their solref by the mean, DejaView friction by the geometric mean and
+  restitution by the mean: equal values agree.
 * State: DejaView's linear velocity is the centre of mass's, world frame;
   a MuJoCo free joint's is the body origin's (world frame) and its angular
   velocity is in the body frame: both are converted.
@@ -37,6 +47,7 @@ What carries over, and how (docs/robotics.md has the user-facing version):
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -45,10 +56,11 @@ import numpy as np
 
 from dejaview.errors import DejaViewError, SceneError
 
-# MuJoCo settings shared by the export and tests/sim/test_mujoco_crosscheck.py
+# MuJoCo settings shared by the export, tests/sim/test_mujoco_crosscheck.py and bench/crossengine.py
 MJ_TIMESTEP = 0.0005
-TIME_CONSTANT = 0.004  # s: stiff contacts (little sinking) that MuJoCo still resolves at 0.5 ms
-SOLIMP = (0.95, 0.99, 0.001)
+DEFAULT_FREQUENCY = 250.0
+"""rad/s: DejaView's default contact frequency (0.25 / (dt / substeps) at dt 2 ms, 2 substeps)."""
+SOLIMP = (0.99, 0.99, 0.001)  # constant impedance: solref's stiffness and damping act as given
 OPTION = {"integrator": "implicitfast", "cone": "elliptic", "impratio": "10"}
 
 
@@ -56,39 +68,106 @@ class MJCFError(DejaViewError):
     """An MJCF model that cannot be imported, or a scene or state that cannot be exported."""
 
 
-def damping_ratio(restitution: float) -> float:
-    """Damping ratio of a mass-spring contact that rebounds with coefficient ``restitution``.
+def _rebound(zeta: float, omega_h: float) -> float:
+    """Restitution of MuJoCo's normal contact: unit mass and stiffness, damping ratio ``zeta``,
+    a force that pushes and never pulls, semi-implicit Euler at step ``omega_h`` (omega_0 times
+    MuJoCo's time step), approach speed 1."""
+    x, v = 0.0, -1.0
+    for _ in range(100000):
+        a = max(0.0, -x - 2.0 * zeta * v) if x < 0.0 else 0.0
+        v += omega_h * a
+        x += omega_h * v
+        if x >= 0.0 and v > 0.0:
+            return v
+    return 0.0
+
+
+def _max_damping_ratio(omega_h: float) -> float:
+    """Largest damping ratio used: half of what keeps the explicit damper stable (b h < 2)."""
+    return 0.5 / omega_h
+
+
+@functools.lru_cache(maxsize=256)
+def damping_ratio(restitution: float, frequency: float = DEFAULT_FREQUENCY,
+                  timestep: float = MJ_TIMESTEP) -> float:
+    """Damping ratio of MuJoCo's contact (stiffness ``frequency^2``) that rebounds with ``restitution``.
+
+    Bisection on ``_rebound`` (monotone in zeta). Restitutions below what the most damped
+    stable contact gives (0.016 at the defaults) get that contact.
 
     Args:
         restitution: 0..1.
+        frequency: contact natural frequency omega_0 (rad/s).
+        timestep: MuJoCo's time step (s).
     Returns:
-        zeta in (0, 1]; 1 (critically damped) for restitution 0.
+        zeta >= 0.
     """
-    if restitution <= 0.0:
-        return 1.0
-    log_e = math.log(min(float(restitution), 1.0 - 1e-9))
-    return -log_e / math.sqrt(math.pi ** 2 + log_e ** 2)
+    oh = frequency * timestep
+    hi = _max_damping_ratio(oh)
+    e = min(max(float(restitution), 0.0), 1.0)
+    if e <= _rebound(hi, oh):
+        return hi
+    lo = 0.0
+    if e >= _rebound(lo, oh):
+        return lo
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if _rebound(mid, oh) > e:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
-def restitution_of(zeta: float) -> float:
-    """Inverse of ``damping_ratio``: 0 for zeta >= 1."""
-    if zeta >= 1.0:
+def restitution_of(zeta: float, frequency: float = DEFAULT_FREQUENCY,
+                   timestep: float = MJ_TIMESTEP) -> float:
+    """Inverse of ``damping_ratio``: the restitution of MuJoCo's contact; 0 for the most damped
+    stable contact and beyond."""
+    oh = frequency * timestep
+    if zeta >= _max_damping_ratio(oh) or not oh < 1.0:
         return 0.0
-    return math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta * zeta))
+    return _rebound(max(float(zeta), 0.0), oh)
 
 
-def contact_parameters(friction: float, restitution: float) -> dict[str, str]:
-    """MJCF geom attributes for DejaView's friction and restitution.
+def solref_restitution(solref, timestep: float = MJ_TIMESTEP) -> float:
+    """Restitution of a geom's ``solref``: ``(timeconst, dampratio)`` (MuJoCo's natural frequency
+    is then 1 / (timeconst dampratio)) or ``(-stiffness, -damping)``."""
+    a, b = float(solref[0]), float(solref[1])
+    if a < 0.0 and b <= 0.0:
+        omega = math.sqrt(-a)
+        return restitution_of(-b / (2.0 * omega), omega, timestep)
+    if a > 0.0 and b > 0.0:
+        return restitution_of(b, 1.0 / (a * b), timestep)
+    return 0.0
+
+
+def contact_parameters(friction: float, restitution: float,
+                       frequency: float = DEFAULT_FREQUENCY) -> dict[str, str]:
+    """MJCF geom attributes for DejaView's friction and restitution (module docstring).
 
     Args:
         friction: Coulomb coefficient.
         restitution: 0..1.
+        frequency: DejaView's contact frequency omega_0 (rad/s), the stiffness of both engines.
     Returns:
         ``{"condim", "friction", "solref", "solimp"}`` as attribute strings.
     """
+    zeta = damping_ratio(float(restitution), float(frequency))
     return {"condim": "3", "friction": f"{_num(friction)} 0 0",
-            "solref": f"{_num(TIME_CONSTANT)} {_num(damping_ratio(restitution))}",
+            "solref": f"{_num(-frequency ** 2)} {_num(-2.0 * zeta * frequency)}",
             "solimp": _vec(SOLIMP)}
+
+
+def scene_frequency(scene) -> float:
+    """DejaView's contact frequency of a scene (``<simulation contact-frequency>`` or
+    0.25 / (dt / substeps)), rad/s."""
+    from dejaview.sim.build import simulation_extras
+    from dejaview.sim.world import DEFAULT_OMEGA_H
+
+    extras = simulation_extras(scene)
+    if extras.get("contact-frequency"):
+        return float(extras["contact-frequency"])
+    return DEFAULT_OMEGA_H * extras.get("substeps", 2) / scene.simulation.dt
 
 
 def _num(x) -> str:
@@ -128,7 +207,8 @@ def _geom(scene, obj, assets: list[str]) -> list[str]:
     """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``."""
     sim = scene.simulation
     contact = contact_parameters(sim.friction if obj.friction is None else obj.friction,
-                                 sim.restitution if obj.restitution is None else obj.restitution)
+                                 sim.restitution if obj.restitution is None else obj.restitution,
+                                 scene_frequency(scene))
     attrs = {"name": obj.id}
     kind = obj.geometry_kind
     if kind == "plane":
@@ -331,8 +411,8 @@ def import_mjcf(path, out_path, key: str | None = None) -> "object":
         pos = tuple(float(v) for v in data.geom_xpos[g])
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, data.geom_xmat[g])
-        zeta = float(model.geom_solref[g][1]) if model.geom_solref[g][0] > 0 else 1.0
-        friction, restitution = float(model.geom_friction[g][0]), restitution_of(zeta)
+        friction = float(model.geom_friction[g][0])
+        restitution = solref_restitution(model.geom_solref[g], float(model.opt.timestep))
         frictions.append(friction)
         restitutions.append(restitution)
         kwargs = dict(geometry, id=oid, fixed=fixed, friction=friction, restitution=round(restitution, 6),

@@ -1,0 +1,428 @@
+"""Cross-engine benchmark: answers that survive another engine's physics.
+
+    dejaview bench crossengine                       # fidelity table, then every case
+    dejaview bench crossengine --cases ball-bounce,box-tumble --no-warp
+    python bench/crossengine.py --csv crossengine.csv
+
+Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
+
+1. **Physics fidelity** (``fidelity``): the same start simulated by DejaView
+   (native engine, the scene's defaults) and by MuJoCo (the scene exported
+   with ``dejaview.io.mjcf.export_mjcf``, whose ``contact_parameters`` map
+   friction, restitution and contact stiffness), the distance between the
+   two engines' centres of mass after 0.5, 1.0 and 1.5 s, for bounce, roll,
+   slide, tumble and a box-box hit.
+2. **Inference across engines** (``CASES``, >= 16): MuJoCo simulates a known
+   start (balls and boxes, table and floor, sliding, bouncing, tumbling);
+   DejaView gets only the end pose (``<target>``, ``evaluate="final"``) and
+   solves with ``dejaview.solve``'s defaults (``optimizer="auto"``), once as
+   the scene is and once with ``<model-uncertainty friction restitution>``
+   (``UNCERTAINTY``); MuJoCo, and Warp where it runs, re-simulate each
+   answer. Success: the re-simulated end (object origin) within
+   ``SUCCESS_TOL`` (3 cm) of MuJoCo's observation. Seconds per solve and the
+   ratio with / without model uncertainty are printed too (not asserted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SUCCESS_TOL = 0.03
+"""Metres: a re-simulated answer's end within this of the observation counts as solved."""
+FIDELITY_TOL = 0.02
+"""Metres: the fidelity table's bar at 1.0 s."""
+FIDELITY_TIMES = (0.5, 1.0, 1.5)
+UNCERTAINTY = (0.2, 0.2)
+"""Relative standard deviations (friction, restitution) of the runs with model uncertainty."""
+TABLE_TOP = 0.7
+BALL_R = 0.05
+BOX = (0.2, 0.15, 0.1)
+
+
+def _v(values) -> str:
+    return " ".join(f"{float(x):.9g}" for x in values)
+
+
+def ball(oid: str, position, linear=(0, 0, 0), angular=(0, 0, 0)) -> str:
+    """A solid ball (5 cm, 0.4 kg)."""
+    return (f'<object id="{oid}" shape="sphere" radius="{BALL_R}" mass="0.4"><pose position="{_v(position)}" '
+            f'orientation="1 0 0 0"/><velocity linear="{_v(linear)}" angular="{_v(angular)}"/></object>')
+
+
+def box(oid: str, position, linear=(0, 0, 0), angular=(0, 0, 0), orientation=(1, 0, 0, 0)) -> str:
+    """A solid box (0.2 x 0.15 x 0.1 m, 1 kg)."""
+    return (f'<object id="{oid}" shape="box" size="{_v(BOX)}" mass="1.0"><pose position="{_v(position)}" '
+            f'orientation="{_v(orientation)}"/><velocity linear="{_v(linear)}" angular="{_v(angular)}"/>'
+            f'</object>')
+
+
+def about(axis, degrees: float) -> tuple:
+    """Quaternion (w x y z) of a rotation by ``degrees`` about ``axis``."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    h = math.radians(degrees) / 2
+    return (math.cos(h), *(math.sin(h) * a))
+
+
+def scene_text(objects: str, duration: float, restitution: float = 0.3, friction: float = 0.5,
+               inference: str = "") -> str:
+    """A scene: floor, a table (0.8 x 0.6 m, top at 0.7 m, centred at the origin), the objects."""
+    return f"""<scene version="1" name="crossengine" gravity="0 0 -9.81">
+  <simulation dt="0.002" duration="{duration}" friction="{friction}" restitution="{restitution}"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
+  <object id="table" shape="box" size="0.8 0.6 {TABLE_TOP}" fixed="true">
+    <pose position="0 0 {TABLE_TOP / 2}" orientation="1 0 0 0"/></object>
+  {objects}
+  {inference}
+</scene>"""
+
+
+def make_scene(text: str):
+    from dejaview.scene import Scene
+
+    return Scene.from_string(text, base_dir=ROOT)
+
+
+# ------------------------------------------------------------------ engines
+def mujoco_run(scene, times, state: dict | None = None):
+    """MuJoCo's object-frame origins and orientations of every movable object at ``times``.
+
+    Returns:
+        {t: (positions (N, 3), orientations (N, 4))}.
+    """
+    import mujoco
+
+    from dejaview.io.mjcf import export_mjcf
+
+    model = mujoco.MjModel.from_xml_string(export_mjcf(scene, state))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_forward(model, data)
+    ids = [model.body(o.id).id for o in scene.movable]
+    marks = {round(t / model.opt.timestep): t for t in times}
+    out = {}
+    for k in range(max(marks) + 1):
+        if k in marks:
+            out[marks[k]] = (data.xpos[ids].copy(), data.xquat[ids].copy())
+        mujoco.mj_step(model, data)
+    return out
+
+
+def dejaview_run(scene, times):
+    """DejaView's (native engine) object-frame origins and orientations at ``times``."""
+    import torch
+
+    from dejaview.sim import World, rollout
+    from dejaview.sim.build import initial_state
+
+    world = World.from_scene(scene)
+    steps = round(max(times) / world.dt)
+    with torch.no_grad():
+        traj = rollout(world, initial_state(world, scene), steps=steps, engine="native")
+    pos = world.object_position(_flat(traj.states))
+    out = {}
+    for t in times:
+        k = round(t / world.dt)
+        out[t] = (pos[k].numpy(), traj.states.orientation[k, 0].numpy())
+    return out
+
+
+def _flat(states):
+    """States (T, 1, N, ...) as a batch (T, N, ...) for ``World.object_position``."""
+    from dejaview.sim.state import State
+
+    return State(*(t[:, 0] for t in states.tensors()))
+
+
+def warp_end(scene):
+    """Warp's (``dejaview.backends.warp``, its defaults) end origin of the source, or None
+    where Warp cannot run here."""
+    try:
+        from dejaview.backends.warp import simulate_scene
+    except Exception:  # the warp extra is not installed
+        return None
+    try:
+        frames, traj = simulate_scene(scene)
+    except Exception as exc:  # Warp cannot build or run its kernels here
+        print(f"warp: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
+        return None
+    pos = frames.object_position(_flat(traj.states))[-1]
+    return pos[frames.body_index(scene.inference.source)].numpy()
+
+
+# ------------------------------------------------------------------ fidelity
+FIDELITY = (
+    ("bounce (ball dropped 0.5 m, e 0.3)", ball("ball", (1.0, 0, 0.5), (0.3, 0, 0)), 0.3),
+    ("bounce high (ball dropped 0.5 m, e 0.7)", ball("ball", (1.0, 0, 0.5), (0.3, 0.1, 0)), 0.7),
+    ("roll (ball rolling at 1 m/s)", ball("ball", (1.0, 0, BALL_R), (1.0, 0, 0), (0, 20.0, 0)), 0.3),
+    ("slide to roll (ball launched without spin)", ball("ball", (1.0, 0, BALL_R), (1.5, 0.3, 0)), 0.3),
+    ("ball rolls off the table", ball("ball", (-0.2, 0, TABLE_TOP + BALL_R), (1.2, 0, 0)), 0.3),
+    ("slide (box at 2 m/s on the floor)", box("box", (1.0, 0, BOX[2] / 2), (2.0, 0, 0)), 0.3),
+    ("slide and spin (box)", box("box", (1.0, 0, BOX[2] / 2), (1.5, 0.5, 0), (0, 0, 4.0)), 0.3),
+    ("tumble (box dropped tilted, spinning)", box("box", (1.0, 0, 0.3), (0.8, 0, 0), (0, 4.0, 0),
+                                                  about((0, 1, 0), 25)), 0.3),
+    ("box slides off the table", box("box", (0.0, 0, TABLE_TOP + BOX[2] / 2), (3.0, 0, 0)), 0.3),
+    ("box-box hit (sliding into a resting box)", box("box", (1.0, 0, BOX[2] / 2), (2.5, 0, 0))
+     + box("box2", (1.5, 0, BOX[2] / 2)), 0.3),
+)
+
+
+def fidelity(print_fn=print, names=None) -> list[dict]:
+    """The fidelity table: DejaView against MuJoCo from the same start (module docstring)."""
+    rows = []
+    print_fn(f"{'motion':<44} {'0.5 s':>7} {'1.0 s':>7} {'1.5 s':>7}  (cm, largest over the bodies)")
+    for name, objects, e in FIDELITY:
+        if names and not any(n in name for n in names):
+            continue
+        scene = make_scene(scene_text(objects, max(FIDELITY_TIMES), restitution=e))
+        a, b = dejaview_run(scene, FIDELITY_TIMES), mujoco_run(scene, FIDELITY_TIMES)
+        gap = {t: float(np.linalg.norm(a[t][0] - b[t][0], axis=-1).max()) for t in FIDELITY_TIMES}
+        row = {"section": "fidelity", "motion": name,
+               **{f"gap_{t:g}s_m": gap[t] for t in FIDELITY_TIMES},
+               "within_2cm_at_1s": gap[1.0] <= FIDELITY_TOL}
+        rows.append(row)
+        print_fn(f"{name:<44} " + " ".join(f"{100 * gap[t]:>7.2f}" for t in FIDELITY_TIMES)
+                 + ("" if row["within_2cm_at_1s"] else "  > 2 cm at 1.0 s"))
+    return rows
+
+
+# ------------------------------------------------------------------ inference
+@dataclass(frozen=True)
+class Case:
+    """One inference problem: the truth (objects XML, the source first), what is free, where.
+
+    Attributes:
+        name: case id.
+        objects: objects XML; the source is the object called ``source``.
+        area: (min (3,), max (3,)) start area of the source.
+        orientation: whether the start orientation is free (else the truth's is given).
+        duration: seconds MuJoCo simulates before the end is observed.
+        restitution: the scene's.
+    """
+
+    name: str
+    objects: str
+    area: tuple
+    orientation: bool = False
+    duration: float = 1.2
+    restitution: float = 0.3
+
+
+def _on_table(z):
+    return TABLE_TOP + z
+
+
+def _cases() -> tuple[Case, ...]:
+    zb, zx = _on_table(BALL_R), _on_table(BOX[2] / 2)
+    tab = lambda z: ((-0.35, -0.25, z), (0.35, 0.25, z))  # noqa: E731
+    floor = lambda x, y, z0, z1: ((x - 0.3, y - 0.3, z0), (x + 0.3, y + 0.3, z1))  # noqa: E731
+    tilt = about((1, 2, 0), 30)
+    return (
+        Case("ball-off-table", ball("source", (-0.2, 0.05, zb), (1.2, 0.1, 0)), tab(zb)),
+        Case("ball-off-table-2", ball("source", (0.0, -0.1, zb), (0.9, -0.4, 0), (4, 2, 0)), tab(zb)),
+        Case("ball-off-table-side", ball("source", (0.1, 0.0, zb), (0.1, 1.1, 0)), tab(zb), duration=1.0),
+        Case("ball-on-table", ball("source", (-0.25, -0.1, zb), (0.6, 0.3, 0)), tab(zb), duration=0.8),
+        Case("ball-slide-floor", ball("source", (1.0, 0.0, BALL_R), (1.5, 0.2, 0)),
+             floor(1.0, 0.0, BALL_R, BALL_R), duration=1.0),
+        Case("ball-roll-floor", ball("source", (1.0, 0.5, BALL_R), (-0.8, 0.6, 0), (-12, -16, 0)),
+             floor(1.0, 0.5, BALL_R, BALL_R), duration=1.0),
+        Case("ball-bounce", ball("source", (1.0, 0.5, 0.4), (1.0, 0.0, 1.0)), floor(1.0, 0.5, 0.3, 0.5),
+             restitution=0.5),
+        Case("ball-bounce-2", ball("source", (0.8, -0.6, 0.6), (0.5, 0.5, 0)), floor(0.8, -0.6, 0.5, 0.7),
+             restitution=0.6),
+        Case("ball-bounce-table", ball("source", (-0.2, 0.0, 1.0), (0.8, 0.2, 0)), tab(1.0), restitution=0.5),
+        Case("box-slide-floor", box("source", (1.0, 0.0, BOX[2] / 2), (2.0, 0, 0)),
+             floor(1.0, 0.0, BOX[2] / 2, BOX[2] / 2), duration=1.0),
+        Case("box-slide-spin-floor", box("source", (1.0, -0.5, BOX[2] / 2), (1.5, 0.5, 0), (0, 0, 4.0)),
+             floor(1.0, -0.5, BOX[2] / 2, BOX[2] / 2), duration=1.0),
+        Case("box-slide-table", box("source", (-0.2, 0.0, zx), (1.5, 0.2, 0)), tab(zx), duration=0.8),
+        Case("box-off-table", box("source", (0.0, 0.0, zx), (3.0, 0.0, 0)), tab(zx)),
+        Case("box-tumble", box("source", (1.0, 0.0, 0.3), (0.8, 0, 0), (0, 4.0, 0), about((0, 1, 0), 25)),
+             floor(1.0, 0.0, 0.2, 0.4), orientation=True),
+        Case("box-tumble-2", box("source", (1.0, 0.6, 0.4), (0.3, -0.6, 0.5), (2.0, 1.0, 3.0), tilt),
+             floor(1.0, 0.6, 0.3, 0.5), orientation=True),
+        Case("box-thrown", box("source", (0.8, -0.4, 0.5), (1.5, 0.2, 0.5), (0, 2.0, 0)),
+             floor(0.8, -0.4, 0.4, 0.6), orientation=True),
+        Case("box-hits-box", box("source", (1.0, 0.0, BOX[2] / 2), (2.5, 0, 0))
+             + box("other", (1.5, 0.0, BOX[2] / 2)),
+             floor(1.0, 0.0, BOX[2] / 2, BOX[2] / 2), duration=1.0),
+        Case("ball-hits-box", ball("source", (0.8, 0.0, BALL_R), (2.0, 0.0, 0), (0, 40.0, 0))
+             + box("other", (1.3, 0.0, BOX[2] / 2)), floor(0.8, 0.0, BALL_R, BALL_R), duration=1.0),
+    )
+
+
+CASES = _cases()
+
+
+def case_scene(case: Case, target=None, uncertainty=None):
+    """The case's scene; with ``target`` (origin, orientation) the ``<inference>`` section."""
+    inference = ""
+    if target is not None:
+        lo, hi = case.area
+        is_ball = 'shape="sphere"' in case.objects.split("</object>")[0]
+        mu = ("" if uncertainty is None else
+              f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
+        inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="0">
+    <target position="{_v(target[0])}" orientation="{_v(target[1])}"/>
+    <optimize position="true" orientation="{str(case.orientation).lower()}" linear-velocity="true" angular-velocity="true"/>
+    <start-area min="{_v(lo)}" max="{_v(hi)}"/>
+    {mu}
+  </inference>"""
+    return make_scene(scene_text(case.objects, case.duration, restitution=case.restitution,
+                                 inference=inference))
+
+
+def with_start(scene, initial: dict):
+    """``scene`` with the source's pose and velocity replaced by a solve's ``initial_state``."""
+    from dejaview.scene.model import Pose, Velocity
+
+    objs = []
+    for o in scene.objects:
+        if o.id == scene.inference.source:
+            o = replace(o, pose=Pose(tuple(initial["position"]), tuple(initial["orientation"])),
+                        velocity=Velocity(tuple(initial["linear_velocity"]), tuple(initial["angular_velocity"])))
+        objs.append(o)
+    return replace(scene, objects=tuple(objs))
+
+
+def angle_deg(q1, q2) -> float:
+    d = abs(float(np.dot(np.asarray(q1) / np.linalg.norm(q1), np.asarray(q2) / np.linalg.norm(q2))))
+    return math.degrees(2 * math.acos(min(1.0, d)))
+
+
+def solve_case(case: Case, uncertainty, warp: bool, print_fn=print) -> dict:
+    """Observe the case in MuJoCo, solve, re-simulate the answer in MuJoCo (and Warp)."""
+    import dejaview
+
+    truth = case_scene(case)
+    end = mujoco_run(truth, (case.duration,))[case.duration]
+    target = (end[0][0], end[1][0])
+    scene = case_scene(case, target, uncertainty)
+    t0 = time.perf_counter()
+    result = dejaview.solve(scene)
+    seconds = time.perf_counter() - t0
+    initial = result.initial_state
+    state = {"source": "source", "initial_state": initial}
+    back = mujoco_run(scene, (case.duration,), state)[case.duration]
+    mj_err = float(np.linalg.norm(back[0][0] - target[0]))
+    own = float(np.linalg.norm(_own_end(result) - target[0]))
+    search = result.settings.get("search", {})
+    row = {"section": "inference", "case": case.name,
+           "model_uncertainty": "off" if uncertainty is None else f"{uncertainty[0]:g} {uncertainty[1]:g}",
+           "seconds": seconds, "rollouts": search.get("rollouts"), "jacobians": search.get("jacobians"),
+           "own_end_error_m": own, "mujoco_end_error_m": mj_err,
+           "mujoco_angle_error_deg": angle_deg(back[1][0], target[1]),
+           "success": mj_err <= SUCCESS_TOL,
+           "start_error_m": float(np.linalg.norm(np.asarray(initial["position"]) - _truth_start(truth)))}
+    if warp:
+        w = warp_end(with_start(scene, initial))
+        row["warp_end_error_m"] = None if w is None else float(np.linalg.norm(w - target[0]))
+        row["warp_success"] = None if w is None else row["warp_end_error_m"] <= SUCCESS_TOL
+    print_fn(f"{case.name:<22} {row['model_uncertainty']:<8} {seconds:>7.1f} {1000 * own:>8.1f} "
+             f"{1000 * mj_err:>8.1f} {'yes' if row['success'] else 'no':<4}"
+             + ("" if row.get("warp_end_error_m") is None else f" {1000 * row['warp_end_error_m']:>8.1f}"))
+    return row
+
+
+def _own_end(result) -> np.ndarray:
+    """DejaView's end (object origin) of the answer: the last record of the solve's trajectory."""
+    problem = result.problem
+    inner = getattr(problem, "inner", problem)
+    src = inner.source
+    pos = inner.world.object_position(_flat(result.trajectory.states))
+    return pos[-1, src].numpy()
+
+
+def _truth_start(scene) -> np.ndarray:
+    return np.asarray(scene.object("source").pose.position)
+
+
+def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
+        with_fidelity: bool = True, baseline: bool = True) -> list[dict]:
+    """Fidelity table and the inference cases with and without model uncertainty (module docstring).
+
+    Args:
+        cases: case names (default all of ``CASES``).
+        uncertainty: (friction, restitution) relative standard deviations of the runs with it.
+        warp: also re-simulate the answers in Warp (where it is installed).
+        with_fidelity: print the fidelity table first.
+        baseline: also solve without model uncertainty.
+    Returns:
+        rows (dicts) of both parts.
+    """
+    from dejaview.cli.bench import load_average
+
+    chosen = [c for c in CASES if not cases or c.name in cases]
+    unknown = set(cases or ()) - {c.name for c in CASES}
+    if unknown:
+        raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; cases: "
+                         f"{', '.join(c.name for c in CASES)}")
+    rows = []
+    print_fn(f"# cross-engine benchmark ({load_average()})")
+    if with_fidelity:
+        print_fn("## fidelity: DejaView vs MuJoCo from the same start")
+        rows += fidelity(print_fn)
+    settings = ([None] if baseline else []) + [tuple(uncertainty)]
+    print_fn(f"## inference: MuJoCo observes, DejaView solves, MuJoCo{' and Warp' if warp else ''} "
+             f"re-simulate (success: within {100 * SUCCESS_TOL:g} cm)")
+    print_fn(f"{'case':<22} {'model-u':<8} {'seconds':>7} {'own mm':>8} {'mujoco mm':>8} ok  "
+             + ("warp mm" if warp else ""))
+    for case in chosen:
+        for u in settings:
+            rows.append(solve_case(case, u, warp, print_fn))
+    summary(rows, print_fn)
+    return rows
+
+
+def summary(rows, print_fn=print) -> None:
+    inf = [r for r in rows if r["section"] == "inference"]
+    groups = {}
+    for r in inf:
+        groups.setdefault(r["model_uncertainty"], []).append(r)
+    secs = {}
+    for key, rs in groups.items():
+        ok = sum(r["success"] for r in rs)
+        secs[key] = sum(r["seconds"] for r in rs) / len(rs)
+        line = (f"model uncertainty {key}: MuJoCo {ok}/{len(rs)} within {100 * SUCCESS_TOL:g} cm "
+                f"({100 * ok / len(rs):.0f} %), mean {secs[key]:.1f} s per solve")
+        w = [r for r in rs if r.get("warp_success") is not None]
+        if w:
+            line += f"; Warp {sum(r['warp_success'] for r in w)}/{len(w)}"
+        print_fn(line)
+    if "off" in secs and len(secs) > 1:
+        for key in secs:
+            if key != "off":
+                pairs = [(a, b) for a in groups["off"] for b in groups[key] if a["case"] == b["case"]]
+                ratio = np.median([b["seconds"] / a["seconds"] for a, b in pairs])
+                print_fn(f"cost with model uncertainty {key}: mean {secs[key] / secs['off']:.2f}x, "
+                         f"median per case {ratio:.2f}x the solve without it")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", default="", help="comma-separated case names (default: all)")
+    parser.add_argument("--no-warp", action="store_true")
+    parser.add_argument("--no-fidelity", action="store_true")
+    parser.add_argument("--csv", type=Path, default=None)
+    parser.add_argument("--no-baseline", action="store_true")
+    args = parser.parse_args(argv)
+    rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
+               with_fidelity=not args.no_fidelity, baseline=not args.no_baseline)
+    if args.csv is not None:
+        from dejaview.cli.bench import write_rows_csv
+
+        write_rows_csv(rows, args.csv)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    sys.exit(main())

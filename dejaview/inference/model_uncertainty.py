@@ -1,0 +1,184 @@
+"""Model uncertainty in the likelihood: the observed end averaged over physics variants.
+
+A real end comes from the real world, not from this simulator: friction,
+restitution and the penalty contact's stiffness are known only roughly. With
+``<model-uncertainty friction restitution>`` (relative standard deviations)
+the likelihood of an end is averaged over K variants of the physics drawn
+around the scene's values, and the search prefers pasts whose end holds up
+under them over "needle" pasts whose end hinges on the exact contact.
+
+The average is of the log-likelihood (``Posterior``'s least squares): the
+observation residuals r_k of every variant, each scaled by ``1 / sqrt(K)``,
+are stacked, so
+
+    0.5 |R|^2 = 0.5 (1/K) sum_k |r_k|^2 = 0.5 |mean_k r_k|^2 + 0.5 (1/K) sum_k |r_k - mean r|^2,
+
+the misfit of the variants' mean end plus their spread: a past whose end
+moves by centimetres when the friction changes by 10 % pays for it. (The log of
+the averaged likelihood would instead reward the one variant that fits; it is
+also no sum of squares, which the Levenberg-Marquardt stage needs.)
+
+Common random numbers: the variants are fixed for a solve (a deterministic
+design, or seeded draws), so every candidate is judged under the same
+physics and the objective stays a smooth function of the start, with exact
+Jacobians (each variant's rollout carries its own). The default K = 4 is the
+two-level orthogonal design of three factors in four runs (friction,
+restitution, stiffness at -1 or +1 standard deviation, each level twice, every
+pair of factors balanced): it reproduces each factor's mean and variance
+exactly, which is what a quadratic expansion of the log-likelihood needs.
+Other K draw standard normals (seeded) and standardise each factor.
+
+Engines: the native engine and the torch reference read friction,
+restitution and stiffness from the ``World`` (one value per body-static and
+body-body pair), not per batch element, so the K variants are K Worlds
+(``dataclasses.replace``: cheap, and each is packed once) and a batch of B
+candidates costs K rollouts of B.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+
+from dejaview.errors import InferenceError
+
+STIFFNESS_SD = 0.25
+"""Relative standard deviation of the contact stiffness (k = m omega_0^2) when any model uncertainty
+is asked for: the penalty stiffness is a numerical choice, not a measured property (MuJoCo's
+contact, a real table), so the answer should not hinge on it."""
+DEFAULT_VARIANTS = 4
+DESIGN4 = ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))
+"""The 2^(3-1) design: (friction, restitution, stiffness) levels in standard deviations."""
+MIN_FACTOR = 0.05
+"""A variant's friction or stiffness is at least this fraction of the scene's value (a 100 %
+standard deviation would otherwise give zero or negative values)."""
+
+
+def design(count: int, seed: int = 0) -> torch.Tensor:
+    """(K, 3) standard-normal levels of (friction, restitution, stiffness), fixed per solve."""
+    if count == 4:
+        return torch.tensor(DESIGN4, dtype=torch.float64)
+    if count < 2:
+        raise InferenceError(f"model uncertainty needs at least 2 variants, got {count}")
+    z = torch.randn(count, 3, generator=torch.Generator().manual_seed(int(seed)), dtype=torch.float64)
+    return (z - z.mean(0)) / z.std(0, unbiased=False)
+
+
+@dataclass(frozen=True)
+class ModelVariants:
+    """K physics variants of one World.
+
+    Attributes:
+        friction, restitution, stiffness: relative standard deviations.
+        levels: (K, 3) levels in standard deviations.
+        worlds: the K variant Worlds.
+    """
+
+    friction: float
+    restitution: float
+    stiffness: float
+    levels: torch.Tensor
+    worlds: tuple
+
+    @property
+    def count(self) -> int:
+        return len(self.worlds)
+
+    @staticmethod
+    def from_world(world, friction: float = 0.0, restitution: float = 0.0,
+                   stiffness: float = STIFFNESS_SD, count: int = DEFAULT_VARIANTS,
+                   seed: int = 0) -> "ModelVariants":
+        """Variants of ``world``: each pair's friction times ``1 + friction z_f``, restitution times
+        ``1 + restitution z_e`` (clipped to [0, 1]), contact frequency times ``sqrt(1 + stiffness
+        z_k)`` (the stiffness is m omega_0^2), for the design's levels z."""
+        for name, v in (("friction", friction), ("restitution", restitution), ("stiffness", stiffness)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise InferenceError(f"model uncertainty: {name} must be a number >= 0, got {v!r}")
+        levels = design(int(count), seed)
+        worlds = tuple(vary_world(world, 1.0 + friction * float(z[0]), 1.0 + restitution * float(z[1]),
+                                  1.0 + stiffness * float(z[2])) for z in levels)
+        return ModelVariants(float(friction), float(restitution), float(stiffness), levels, worlds)
+
+    @staticmethod
+    def from_scene(scene, world, count: int = DEFAULT_VARIANTS) -> "ModelVariants | None":
+        """The scene's ``<model-uncertainty>`` as variants of ``world``; None where absent or zero."""
+        mu = scene.inference.model_uncertainty if scene.inference is not None else None
+        if mu is None or not ((mu.friction or 0.0) > 0 or (mu.restitution or 0.0) > 0):
+            return None
+        return ModelVariants.from_world(world, mu.friction or 0.0, mu.restitution or 0.0,
+                                        count=count, seed=scene.inference.seed)
+
+    def to_json(self) -> dict:
+        """``result.json``'s ``model_uncertainty``."""
+        return {"friction": self.friction, "restitution": self.restitution, "stiffness": self.stiffness,
+                "variants": self.count, "levels": self.levels.tolist(),
+                "likelihood": "mean over the variants of the Gaussian log-likelihood"}
+
+    def trajectories(self, problem, x: torch.Tensor, checkpoint: bool = False) -> list:
+        """The K rollouts (one per variant World) of parameters x (B, P)."""
+        return [replace(problem, world=w).simulate(x, checkpoint=checkpoint) for w in self.worlds]
+
+
+def vary_world(world, friction_factor: float, restitution_factor: float, stiffness_factor: float):
+    """``world`` with every friction, restitution and the contact stiffness scaled.
+
+    Restitution is recovered from each pair's unloading factor (``World.restitution_to_unloading``
+    inverted), scaled, clipped to [0, 1] and mapped back at the new stiffness, so a variant's
+    impacts rebound with the scaled restitution.
+    """
+    from dejaview.sim.world import _discrete_restitution, restitution_to_unloading
+
+    f = max(friction_factor, MIN_FACTOR)
+    k = max(stiffness_factor, MIN_FACTOR)
+    h = world.dt / world.substeps
+    omega = world.contact.frequency * math.sqrt(k)
+    omega_h0, omega_h = world.contact.frequency * h, omega * h
+
+    def unload(phi: torch.Tensor) -> torch.Tensor:
+        flat = [restitution_to_unloading(min(1.0, max(0.0, _discrete_restitution(float(p), omega_h0)
+                                                      * restitution_factor)), omega_h)
+                if float(p) > 0 else 0.0 for p in phi.reshape(-1).tolist()]
+        return torch.tensor(flat, dtype=phi.dtype, device=phi.device).reshape(phi.shape)
+
+    return replace(world, mu_static=world.mu_static * f, mu_pair=world.mu_pair * f,
+                   unload_static=unload(world.unload_static), unload_pair=unload(world.unload_pair),
+                   contact=replace(world.contact, frequency=omega))
+
+
+def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callback=None,
+                          should_stop=None, budget: int = 0):
+    """The search's answer under model uncertainty: its modes refined and re-ranked on ``post``.
+
+    The global stage (``map_search``) runs on the scene's own physics: one rollout per candidate,
+    and it stops once a candidate explains the end, which under model uncertainty none does (the
+    variants' spread is a floor), so a global search on the averaged likelihood ran to its
+    patience (measured: 12-15x the solve's time). Its distinct modes (``found.modes``, best first,
+    and its best) are instead refined by Levenberg-Marquardt on the averaged likelihood of
+    ``post`` (exact Jacobians through every variant) and ranked by it: a needle past, whose end
+    moves when the friction does, loses to one whose end holds.
+
+    Args:
+        post: ``Posterior`` with ``model`` set.
+        found: ``SearchResult`` of the search on the scene's physics.
+        iterations: most LM iterations.
+    Returns:
+        ``SearchResult`` on ``post`` (cost, chi2 and modes under model uncertainty), history
+        appended to ``found``'s.
+    """
+    from dejaview.inference.search import CANDIDATES, SearchResult, _Search
+
+    s = _Search(post, iterations + len(found.history), seed, callback, should_stop, None,
+                budget or 10 ** 12)
+    s.history = list(found.history)
+    s.n_obs = max(1, post.num_observed)
+    starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:CANDIDATES - 1]
+    s.add_modes(s.refine(torch.stack(starts).to(torch.float64), iterations))
+    best = s.modes[0] if s.modes else s.best
+    return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
+                        candidate_x=torch.stack([m.x for m in s.modes or [best]]),
+                        candidate_loss=torch.tensor([m.loss for m in s.modes or [best]], dtype=torch.float64),
+                        cost=best.cost, chi2=best.chi2, modes=s.modes or [best],
+                        rollouts=found.rollouts + post.rollouts,
+                        jacobians=found.jacobians + post.jacobians)

@@ -1,0 +1,173 @@
+"""Model uncertainty in the likelihood (``dejaview.inference.model_uncertainty``).
+
+Built on ``box_along_shelf`` (a box slid along a shelf board, 0.3-1.0 s): where the box
+stops depends on the friction, so variants of the friction spread the ends of one start.
+"""
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from dejaview.errors import InferenceError
+from dejaview.inference import InferenceProblem
+from dejaview.inference.model_uncertainty import ModelVariants, design, vary_world
+from dejaview.inference.posterior import Posterior, PosteriorSettings
+from dejaview.scene import ModelUncertainty, Prior, Scene
+from dejaview.sim.world import _discrete_restitution
+
+SCENES = Path(__file__).resolve().parents[2] / "examples" / "scenes"
+
+
+def shelf(duration=0.5, **inference):
+    scene = Scene.from_xml(SCENES / "box_along_shelf.xml")
+    scene = replace(scene, simulation=replace(scene.simulation, duration=duration))
+    return replace(scene, inference=replace(scene.inference, **inference))
+
+
+def truth_x(problem):
+    import json
+
+    truth = json.loads((SCENES / "box_along_shelf.truth.json").read_text())["initial_state"]
+    return problem.layout.encode(position=truth["position"], linear_velocity=truth["linear_velocity"],
+                                 angular_velocity=truth["angular_velocity"]).double()
+
+
+def test_the_default_design_has_each_factors_mean_and_variance_and_balanced_pairs():
+    z = design(4)
+    assert z.mean(0).abs().max() == 0.0 and (z * z).mean(0).tolist() == [1.0, 1.0, 1.0]
+    assert (z.T @ z / 4 - torch.eye(3)).abs().max() == 0.0
+    drawn = design(16, seed=3)
+    assert drawn.mean(0).abs().max() < 1e-12 and drawn.std(0, unbiased=False).tolist() == pytest.approx([1.0] * 3)
+
+
+def test_a_variant_world_scales_friction_restitution_and_stiffness():
+    scene = shelf()
+    world = InferenceProblem.from_scene(scene).world
+    v = vary_world(world, 1.2, 2.0, 1.44)
+    assert torch.allclose(v.mu_static, 1.2 * world.mu_static)
+    assert v.contact.frequency == pytest.approx(1.2 * world.contact.frequency)
+    h = world.dt / world.substeps
+    e0 = _discrete_restitution(float(world.unload_static.flatten()[0]), world.contact.frequency * h)
+    e1 = _discrete_restitution(float(v.unload_static.flatten()[0]), v.contact.frequency * h)
+    assert e1 == pytest.approx(2.0 * e0, rel=1e-6)
+
+
+def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more():
+    """The truth explains its end exactly under the scene's physics; averaged over friction variants
+    (10 %, 20 %) its residuals are the variants' misfits over sqrt(K), and the cost is the mean of their
+    costs: larger, and larger still with more uncertainty."""
+    scene = shelf(duration=1.0, evaluate="final")  # "best" would find each variant's moment at the target
+    problem = InferenceProblem.from_scene(scene)
+    settings = PosteriorSettings.from_scene(scene)
+    x = truth_x(problem)
+    exact = Posterior(problem, settings)
+    r0, _ = exact.residuals(x)
+    costs = []
+    for sd in (0.1, 0.2):
+        model = ModelVariants.from_world(problem.world, friction=sd, restitution=0.0, stiffness=0.0)
+        post = Posterior(problem, settings, model=model)
+        r, loss = post.residuals(x)
+        n = exact.num_observed
+        assert r.shape[1] == r0.shape[1] + (model.count - 1) * n
+        # each block is one variant's misfit / sqrt(K)
+        for k, w in enumerate(model.worlds):
+            own = Posterior(replace(problem, world=w), settings).residuals(x)[0][:, :n]
+            assert torch.allclose(r[:, k * n:(k + 1) * n], own / math.sqrt(model.count))
+        cost, chi2, _ = post.cost(x)
+        assert chi2[0] == pytest.approx(float((r[:, :model.count * n] ** 2).sum()))
+        costs.append(float(cost[0]))
+    assert float(0.5 * (r0 ** 2).sum()) < 1e-3 < costs[0] < costs[1]
+
+
+def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
+    scene = shelf(duration=0.3, prior=Prior(speed=2.0))
+    problem = InferenceProblem.from_scene(scene)
+    model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
+    x = truth_x(problem) + 0.05
+    r, J = post.jacobian(x)
+    assert J.shape == (1, r.shape[1], problem.num_params) and r.shape[1] > 4 * post.num_observed
+    h = 1e-6
+    for j in range(problem.num_params):
+        e = torch.zeros_like(x)
+        e[0, j] = h
+        with torch.no_grad():
+            fd = (post.residuals(x + e)[0] - post.residuals(x - e)[0]) / (2 * h)
+        assert torch.allclose(J[0, :, j], fd[0], rtol=1e-5, atol=1e-5 * max(1.0, float(fd.abs().max())))
+
+
+def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_errors():
+    scene = shelf(model_uncertainty=ModelUncertainty(friction=0.1, restitution=0.3))
+    world = InferenceProblem.from_scene(scene).world
+    model = ModelVariants.from_scene(scene, world)
+    assert model.count == 4 and (model.friction, model.restitution) == (0.1, 0.3)
+    js = model.to_json()
+    assert js["friction"] == 0.1 and js["variants"] == 4 and len(js["levels"]) == 4
+    assert ModelVariants.from_scene(shelf(), world) is None
+    assert ModelVariants.from_scene(shelf(model_uncertainty=ModelUncertainty(friction=0.0)), world) is None
+    with pytest.raises(InferenceError, match="friction must be a number >= 0"):
+        ModelVariants.from_world(world, friction=-0.1)
+    with pytest.raises(InferenceError, match="at least 2 variants"):
+        ModelVariants.from_world(world, friction=0.1, count=1)
+
+
+SLIDE = """<scene version="1" name="slide"><simulation dt="0.002" duration="0.4" friction="0.5" restitution="0.3"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.05" mass="0.4">
+    <pose position="0 0 0.05" orientation="1 0 0 0"/><velocity linear="1 0 0" angular="0 0 0"/></object>
+  <inference source="ball" loss="position" evaluate="final">
+    <target position="0.35 0.02 0.05" orientation="1 0 0 0"/>
+    <optimize position="false" orientation="false" linear-velocity="true" angular-velocity="false"/>
+    {element}
+  </inference></scene>"""
+
+
+def test_the_cli_reads_the_element_and_the_flag_and_records_it(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from dejaview.cli import cli
+
+    path = tmp_path / "slide.xml"
+    path.write_text(SLIDE.format(element='<model-uncertainty friction="0.2" restitution="0.1"/>'))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet"])
+    assert result.exit_code == 0, result.output
+    mu = json.loads((out / "result.json").read_text())["model_uncertainty"]
+    assert (mu["friction"], mu["restitution"], mu["variants"]) == (0.2, 0.1, 4)
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
+                                      "--model-uncertainty", "0.05", "0"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "result.json").read_text())["model_uncertainty"]["friction"] == 0.05
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
+                                      "--model-uncertainty", "0", "0"])
+    assert "model_uncertainty" not in json.loads((out / "result.json").read_text())
+    result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--optimizer", "lbfgs"])
+    assert result.exit_code != 0 and "<model-uncertainty> needs the default search" in str(result.exception)
+    bad = tmp_path / "bad.xml"
+    bad.write_text(SLIDE.format(element='<model-uncertainty friction="-0.1"/>'))
+    result = CliRunner().invoke(cli, ["solve", str(bad), "-o", str(out)])
+    assert result.exit_code != 0 and "'friction' must be >= 0" in str(result.exception)
+
+
+def test_a_service_solve_job_reads_the_element_from_its_scene(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from dejaview.server.app import create_app
+    from tests.server.test_rest import wait_state
+
+    root = tmp_path / "root"
+    root.mkdir()
+    with TestClient(create_app(scene_root=root, results_dir=tmp_path / "results", workers=1,
+                               executor="thread")) as client:
+        xml = SLIDE.format(element='<model-uncertainty friction="0.2" restitution="0.1"/>')
+        response = client.post("/jobs", json={"kind": "solve", "scene_xml": xml})
+        assert response.status_code == 202, response.text
+        status = wait_state(client, response.json()["job_id"])
+        assert status["state"] == "done", status
+        result = client.get(f"/jobs/{status['job_id']}/result.json").json()
+        assert result["model_uncertainty"]["friction"] == 0.2
