@@ -206,3 +206,35 @@ def test_cli_samples_flag(tmp_path):
                           str(tmp_path / "bad"), "--samples", "-3", "--quiet"], capture_output=True, text=True,
                          timeout=600)
     assert bad.returncode != 0 and len(bad.stderr.strip().splitlines()) == 1 and "samples" in bad.stderr
+
+
+@pytest.mark.parametrize("block, settings", [
+    ("position", PosteriorSettings()),
+    ("orientation", PosteriorSettings()),                 # Haar
+    ("orientation", PosteriorSettings(tilt=0.4)),
+    ("linear_velocity", PosteriorSettings()),             # uniform in the ball of the bound
+    ("linear_velocity", PosteriorSettings(speed=0.7)),
+    ("angular_velocity", PosteriorSettings(spin=3.0)),
+])
+def test_prior_draws_follow_the_normalised_prior_density(block, settings):
+    """``log_prior_density`` is the normalised density of ``prior_draws``: importance weights
+    p / g under a broad normal g average to 1, and the draws' density ranks like p."""
+    from dejaview.inference.params import layout_from_scene
+    from dejaview.inference.sampling import log_prior_density, prior_draws
+
+    scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
+    free = {b: b == block for b in ("position", "orientation", "linear_velocity", "angular_velocity")}
+    scene = replace(scene, inference=replace(scene.inference, optimize=Optimize(**free)))
+
+    class P:
+        layout = layout_from_scene(scene)
+
+    P.settings = settings
+    gen = torch.Generator().manual_seed(0)
+    x = prior_draws(P, 20000, gen)
+    assert torch.isfinite(log_prior_density(P, x)).all()
+    sd = 3 * x.std(0)
+    g = sd * torch.randn(400000, x.shape[1], generator=gen, dtype=torch.float64)
+    log_g = (-0.5 * (g / sd) ** 2 - torch.log(sd * math.sqrt(2 * math.pi))).sum(-1)
+    w = torch.exp(log_prior_density(P, g) - log_g)
+    assert float(w.mean()) == pytest.approx(1.0, abs=0.03)
