@@ -58,9 +58,9 @@ DF = 5.0
 approximation of a contact landscape is only local)."""
 SCALE_INFLATION = 1.5
 """The reference components' scale over the Laplace standard deviation."""
-ESS_FRACTION = 0.5
+ESS_FRACTION = 0.7
 """Effective sample size kept by each tempering step, as a fraction of the particles."""
-RW_MOVES = 3
+RW_MOVES = 4
 """Random-walk Metropolis moves per tempering step (after one independence move)."""
 FINAL_MOVES = 12
 """Moves (independence and random walk) run at beta = 1 before the samples are returned."""
