@@ -7,7 +7,9 @@ import { TransformControls } from 'three/addons/controls/TransformControls.js';
 import { LossChart } from './chart.js';
 import { Connection, serverFetch, socketUrl } from './connection.js';
 import { loadMesh, parseSpheres, primitiveGeometry, spheresMesh } from './geometry.js';
-import { applyPose, heatmapDecal, parseTrajectory, trajectorySpline } from './results.js';
+import {
+  applyPose, heatmapDecal, parsePosterior, parseTrajectory, sampleCloud, trajectorySpline,
+} from './results.js';
 import { SceneModel } from './scene-xml.js';
 import { setupVR } from './vr.js';
 
@@ -71,6 +73,7 @@ const app = {
   path: null,
   heatmap: null,
   heatmapGrid: null,
+  samples: null, // the posterior samples' start points (THREE.Points)
   time: 0,
   playing: false,
   jobs: new Map(), // job_id -> {kind, state, requestId}
@@ -232,7 +235,7 @@ function clearScene() {
 }
 
 function clearResults() {
-  for (const key of ['path', 'heatmap']) {
+  for (const key of ['path', 'heatmap', 'samples']) {
     if (app[key]) app[key].removeFromParent();
     app[key] = null;
   }
@@ -447,6 +450,9 @@ async function handleMessage(msg) {
     case 'done':
       job.state = msg.state;
       notify(`${job.kind || 'job'} ${msg.state}`, msg.state === 'done' ? 'done' : 'error');
+      if (msg.state === 'done' && (job.kind === 'heatmap' || job.kind === 'solve')) {
+        await showSamples(msg.job_id);
+      }
       break;
     default:
       break;
@@ -482,6 +488,21 @@ function showHeatmap(grid) {
   const topZ = area ? Math.max(area.min[2], area.max[2]) : 1;
   app.heatmap = heatmapDecal(grid, world, surfaces, topZ);
   app.heatmap.visible = $('show-heatmap').checked;
+}
+
+// The posterior's samples of a done job (solve with samples, heatmap), when it drew any.
+async function showSamples(jobId) {
+  const response = await serverFetch(`jobs/${jobId}/posterior.csv`);
+  if (!response.ok) return; // a job that drew no samples has no posterior.csv
+  try {
+    const samples = parsePosterior(await response.text());
+    if (app.samples) app.samples.removeFromParent();
+    app.samples = sampleCloud(samples);
+    app.samples.visible = $('show-samples').checked;
+    world.add(app.samples);
+  } catch (err) {
+    notify(`posterior samples: ${err.message}`, 'error');
+  }
 }
 
 // Set-up poses back (the gizmos edit those), playback stopped.
@@ -534,6 +555,7 @@ $('play').onclick = () => (app.playing ? pause() : play());
 $('scrub').oninput = () => seek(((app.trajectory?.duration || 0) * Number($('scrub').value)) / 1000);
 $('setup-view').onclick = () => showSetup();
 $('show-heatmap').onchange = () => { if (app.heatmap) app.heatmap.visible = $('show-heatmap').checked; };
+$('show-samples').onchange = () => { if (app.samples) app.samples.visible = $('show-samples').checked; };
 $('show-path').onchange = () => { if (app.path) app.path.visible = $('show-path').checked; };
 $('show-spheres').onchange = () => {
   const on = $('show-spheres').checked;
@@ -674,6 +696,8 @@ window.dejaview = {
     trajectoryObjects: app.trajectory ? Object.keys(app.trajectory.objects) : [],
     heatmapShown: Boolean(app.heatmap?.parent && app.heatmap.visible),
     heatmapCells: app.heatmapGrid?.cells ?? null,
+    samplesShown: Boolean(app.samples?.parent && app.samples.visible),
+    sampleCount: app.samples ? app.samples.geometry.attributes.position.count : 0,
     jobs: [...app.jobs].map(([id, j]) => ({ id, kind: j.kind, state: j.state, error: j.error?.code })),
     loss: chart.points,
     result: app.result,

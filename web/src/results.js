@@ -134,3 +134,48 @@ export function heatmapDecal(grid, world, surfaces, topZ) {
   mesh.renderOrder = 2;
   return mesh;
 }
+
+const POSTERIOR_HEADER = 'sample,weight,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz';
+
+// posterior.csv -> [{weight, position: [x, y, z]}] (the source's start, object-frame origin)
+export function parsePosterior(csv) {
+  const lines = csv.trim().split(/\r?\n/);
+  if (lines[0].trim() !== POSTERIOR_HEADER) throw new Error(`posterior.csv: header is not ${POSTERIOR_HEADER}`);
+  return lines.slice(1).map((line) => line.split(',').map(Number)).filter((f) => f.length >= 5)
+    .map((f) => ({ weight: f[1], position: [f[2], f[3], f[4]] }));
+}
+
+// The posterior samples' start points, each coloured by the posterior probability around it: its
+// weight times the number of samples within `radius` (a kernel density estimate), on the heatmap's
+// colour scale (dark: few pasts start here, yellow: many).
+export function sampleCloud(samples, radius = 0.02) {
+  const n = samples.length;
+  const density = new Float32Array(n);
+  for (let i = 0; i < n; i += 1) {
+    const [xi, yi, zi] = samples[i].position;
+    let d = 0;
+    for (let j = 0; j < n; j += 1) {
+      const [xj, yj, zj] = samples[j].position;
+      const r2 = (xi - xj) ** 2 + (yi - yj) ** 2 + (zi - zj) ** 2;
+      if (r2 < radius * radius) d += samples[j].weight;
+    }
+    density[i] = d;
+  }
+  const top = Math.max(...density, 1e-12);
+  const positions = new Float32Array(3 * n);
+  const colours = new Float32Array(3 * n);
+  samples.forEach((s, i) => {
+    positions.set(s.position, 3 * i);
+    const [r, g, b] = colour(density[i] / top);
+    colours.set([r / 255, g / 255, b / 255], 3 * i);
+  });
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute('position', new THREE.BufferAttribute(positions, 3));
+  geometry.setAttribute('color', new THREE.BufferAttribute(colours, 3));
+  const points = new THREE.Points(geometry, new THREE.PointsMaterial({
+    size: 0.025, vertexColors: true, transparent: true, opacity: 0.9, depthWrite: false,
+  }));
+  points.name = 'posterior-samples';
+  points.renderOrder = 3;
+  return points;
+}
