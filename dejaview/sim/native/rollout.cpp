@@ -327,14 +327,33 @@ void distance(const Shape<S>& sh, const Dual<S, W>* pw, Dual<S, W>& dist, Dual<S
 constexpr double SLIP_EPS = 1e-3;
 constexpr double SMOOTH_MIN_POWER = 8.0;
 
+// x^8 and x^(1/8) (SMOOTH_MIN_POWER) by squarings and square roots: the values of std::pow to
+// round-off, several times cheaper
+static_assert(SMOOTH_MIN_POWER == 8.0, "pow8 and root8 implement SMOOTH_MIN_POWER = 8");
+template <typename S> inline S pow8(S x) { const S x2 = x * x, x4 = x2 * x2; return x4 * x4; }
+template <typename S> inline S root8(S x) { return std::sqrt(std::sqrt(std::sqrt(x))); }
+template <typename S, int W> inline Dual<S, W> pow8(const Dual<S, W>& a) {
+  const S x = a.v, x2 = x * x, x4 = x2 * x2;
+  return chain(a, x4 * x4, S(8) * x4 * x2 * x);
+}
+template <typename S, int W> inline Dual<S, W> root8(const Dual<S, W>& a) {
+  const S r = root8(a.v);
+  return chain(a, r, S(0.125) * r / a.v);
+}
+
+// per-thread scratch arrays of the wrench passes (no allocation per call); slot: which one
+template <typename T> inline std::vector<T>& scratch(int slot) {
+  thread_local std::vector<T> v[8];
+  return v[slot];
+}
+
 // friction force (contacts.friction_force)
 template <typename T, typename S>
 void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
   T speed = sqrt(dot3(vt, vt) + S(1e-30));
   T b = stick * speed;
   T scale = vmax(coulomb, b) + S(1e-30);
-  T den = pow(pow(coulomb / scale, S(SMOOTH_MIN_POWER)) + pow(b / scale, S(SMOOTH_MIN_POWER)) + S(1e-30),
-              S(1.0 / SMOOTH_MIN_POWER)) * scale;
+  T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(1e-30)) * scale;
   T k = coulomb * stick / den;
   for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
 }
@@ -397,7 +416,7 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
   picks.clear();
   const int cnt = w.count[a];
   const S* x = s;
-  std::vector<Pick> cand;
+  thread_local std::vector<Pick> cand;
   for (int k = 0; k < w.k; ++k) {
     const Shape<S>& sh = w.shapes[k];
     S* cl = clear + static_cast<int64_t>(k) * w.s_max;
@@ -452,7 +471,12 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   T rot[9], inv_w[9];
   quat_to_matrix(q, rot);
   rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
-  std::vector<T> depth(m), nrm(3 * m), arm(3 * m);
+  std::vector<T>& depth = scratch<T>(0);
+  std::vector<T>& nrm = scratch<T>(1);
+  std::vector<T>& arm = scratch<T>(2);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm.resize(3 * m);
   T total = T(0);
   for (int j = 0; j < m; ++j) {
     const Pick& pk = picks[j];
@@ -575,7 +599,14 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   quat_to_matrix(st_b + 3, rot_b);
   rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
   rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
-  std::vector<T> depth(m), nrm(3 * m), arm_a(3 * m), arm_b(3 * m);
+  std::vector<T>& depth = scratch<T>(3);
+  std::vector<T>& nrm = scratch<T>(4);
+  std::vector<T>& arm_a = scratch<T>(5);
+  std::vector<T>& arm_b = scratch<T>(6);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm_a.resize(3 * m);
+  arm_b.resize(3 * m);
   T total = T(0);
   for (int k = 0; k < m; ++k) {
     const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
