@@ -5,16 +5,24 @@ written once in C++ (``rollout.cpp``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
 contacts with 13 tangents, a touching body pair with 26, the integration with
-19), whatever the number of spheres, and the rollout carries their product
-``Phi_t = d state_t / d state_0`` (13N x 13N) to every recorded step.
-``native_rollout`` wraps it in a ``torch.autograd.Function``:
+19), whatever the number of spheres. Gradients (``native_rollout``, a
+``torch.autograd.Function``):
 
-- reverse mode: ``grad state_0 = sum_t Phi_t^T grad state_t`` (one contraction);
-- forward mode (``torch.func.jvp``/``jacfwd``, vmap included): ``Phi_t v``.
+- reverse mode (autograd alone): the rollout keeps its substep states (a
+  trace, O(steps * substeps * N)), and ``backward`` runs the adjoint
+  ``lam <- J^T lam`` back through them from the same dual passes, without
+  forming any Jacobian; bodies the adjoint has not reached through contacts
+  cost no dual pass (``_Traced``, issue 25);
+- forward mode (``torch.func.jvp``/``jacfwd``, vmap included, or any
+  ``torch.func`` transform): the rollout carries the product of the substep
+  Jacobians ``Phi_t = d state_t / d state_0`` (13N x 13N) to every record and
+  the tangent is ``Phi_t v`` (``_Rollout``; memory O(steps * (13N)^2)).
+  ``DEJAVIEW_NATIVE_GRADIENT=phi`` sends reverse mode this way too
+  (``sum_t Phi_t^T g_t``), as before issue 25, for comparisons.
 
-So both modes give the same gradient, and memory is O(steps * (13N)^2) with
-no autograd graph of the rollout (no checkpointing needed). Without gradients
-no Jacobian is computed.
+Both give the same gradients to round-off (``tests/sim/test_native_gradients.py``),
+with no autograd graph of the rollout (no checkpointing needed). Without
+gradients no Jacobian or trace is computed.
 
 Contact selection is made on values, as ``dejaview.sim.contacts``' ``topk``
 on detached depths. Spheres that do not touch carry exactly zero force and
