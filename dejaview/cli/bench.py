@@ -353,6 +353,32 @@ def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_
     _finish(rows, csv_path, False, [])
 
 
+@command.command("peers")
+@click.option("--quick", is_flag=True, help="N = 1, 2 over 50 steps, small batches (smoke test).")
+@click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1),
+              help="Timings are the best of this many runs.")
+@click.option("--memory-batch", default=1024, show_default=True, type=click.IntRange(min=1),
+              help="Candidates of the mug loss + gradient whose peak memory is reported.")
+@csv_option
+@check_option
+def peers(quick, repeats, memory_batch, csv_path, check):
+    """DejaView against MuJoCo with finite differences, in one process (issue 25).
+
+    A box thrown across a table onto the floor with N - 1 boxes in its way
+    (N = 1, 2, 4, 8, 16; 750 steps of 2 ms, 12 free parameters): DejaView's
+    rollout and exact loss + gradient beside MuJoCo's rollout and
+    finite-difference gradient (13 rollouts); the mug reference scene at B = 1
+    and 64; the peak memory of a 1024-candidate mug loss + gradient; and the
+    issue's targets. A few minutes without --quick.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("peers").run(print_fn=click.echo, quick=quick, repeats=repeats,
+                                     memory_batch=memory_batch)
+    _finish(rows, csv_path, check, [r["met"] for r in rows if r["section"] == "target"])
+
+
 @command.command("load")
 @click.option("--clients", default=50, show_default=True, type=click.IntRange(min=1),
               help="Concurrent WebSocket clients, one short simulate job each.")

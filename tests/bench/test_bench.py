@@ -151,3 +151,18 @@ def test_search_bench_solves_with_both_pipelines_and_reports_the_ratio():
     assert [r["pipeline"] for r in rows] == ["auto", "seed-pipeline"]
     assert rows[0]["success"] and rows[0]["seconds"] > 0
     assert any("time ratio" in line for line in lines)
+
+
+def test_peers_quick_compares_both_engines_and_writes_csv(tmp_path):
+    pytest.importorskip("mujoco", reason="the peers bench runs MuJoCo beside DejaView")
+    out = tmp_path / "peers.csv"
+    result = CliRunner().invoke(cli, ["bench", "peers", "--quick", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader(out.open()))
+    boxes = [r for r in rows if r["section"] == "boxes"]
+    assert [int(r["n"]) for r in boxes] == [1, 2]
+    for r in boxes:
+        for key in ("dv_rollout_s", "dv_grad_s", "mj_rollout_s", "mj_fd_grad_s"):
+            assert math.isfinite(float(r[key])) and float(r[key]) > 0, (key, r)
+    assert {r["section"] for r in rows} == {"boxes", "mug", "memory", "target"}
+    assert [r for r in rows if r["section"] == "memory"][0]["finite"] == "True"

@@ -5,16 +5,24 @@ written once in C++ (``rollout.cpp``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
 contacts with 13 tangents, a touching body pair with 26, the integration with
-19), whatever the number of spheres, and the rollout carries their product
-``Phi_t = d state_t / d state_0`` (13N x 13N) to every recorded step.
-``native_rollout`` wraps it in a ``torch.autograd.Function``:
+19), whatever the number of spheres. Gradients (``native_rollout``, a
+``torch.autograd.Function``):
 
-- reverse mode: ``grad state_0 = sum_t Phi_t^T grad state_t`` (one contraction);
-- forward mode (``torch.func.jvp``/``jacfwd``, vmap included): ``Phi_t v``.
+- reverse mode (autograd alone): the rollout keeps its substep states (a
+  trace, O(steps * substeps * N)), and ``backward`` runs the adjoint
+  ``lam <- J^T lam`` back through them from the same dual passes, without
+  forming any Jacobian; bodies the adjoint has not reached through contacts
+  cost no dual pass (``_Traced``, issue 25);
+- forward mode (``torch.func.jvp``/``jacfwd``, vmap included, or any
+  ``torch.func`` transform): the rollout carries the product of the substep
+  Jacobians ``Phi_t = d state_t / d state_0`` (13N x 13N) to every record and
+  the tangent is ``Phi_t v`` (``_Rollout``; memory O(steps * (13N)^2)).
+  ``DEJAVIEW_NATIVE_GRADIENT=phi`` sends reverse mode this way too
+  (``sum_t Phi_t^T g_t``), as before issue 25, for comparisons.
 
-So both modes give the same gradient, and memory is O(steps * (13N)^2) with
-no autograd graph of the rollout (no checkpointing needed). Without gradients
-no Jacobian is computed.
+Both give the same gradients to round-off (``tests/sim/test_native_gradients.py``),
+with no autograd graph of the rollout (no checkpointing needed). Without
+gradients no Jacobian or trace is computed.
 
 Contact selection is made on values, as ``dejaview.sim.contacts``' ``topk``
 on detached depths. Spheres that do not touch carry exactly zero force and
@@ -233,8 +241,8 @@ class _Rollout(torch.autograd.Function):
     @staticmethod
     def forward(init, steps, record_every, with_jac, packed):
         tensors, floats, ints = packed
-        states, phi, _ = extension().rollout(init.detach().contiguous(), steps, record_every, with_jac,
-                                             tensors, floats, ints, threads())
+        states, phi, _ = extension().rollout(init.detach().contiguous(), steps, record_every,
+                                             1 if with_jac else 0, tensors, floats, ints, threads())
         return states, phi
 
     @staticmethod
@@ -275,6 +283,63 @@ class _Rollout(torch.autograd.Function):
         states, phi = _Rollout.apply(x.reshape(v * b, *x.shape[2:]), steps, record_every, with_jac,
                                      packed)
         return (states.reshape(v, b, *states.shape[1:]), phi.reshape(v, b, *phi.shape[1:])), (0, 0)
+
+
+class _Traced(torch.autograd.Function):
+    """init (B, N, 13) -> recorded states (B, R, N, 13), reverse mode by the adjoint.
+
+    The rollout keeps its substep states (the trace, (B, steps * substeps, N, 13) at most);
+    ``backward`` runs ``lam <- J^T lam`` back through them in C++ (``adjoint`` in
+    ``rollout.cpp``), from the same per-substep dual passes as the Jacobians of ``_Rollout``,
+    without forming them: memory O(steps * substeps * N) and no (13N)^2 products.
+    """
+
+    @staticmethod
+    def forward(init, steps, record_every, packed):
+        tensors, floats, ints = packed
+        states, trace, _ = extension().rollout(init.detach().contiguous(), steps, record_every, 2,
+                                               tensors, floats, ints, threads())
+        return states, trace
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        init, steps, record_every, packed = inputs
+        states, trace = output
+        ctx.mark_non_differentiable(trace)
+        ctx.steps, ctx.record_every, ctx.packed = steps, record_every, packed
+        ctx.save_for_backward(init.detach(), states, trace)
+
+    @staticmethod
+    def backward(ctx, grad_states, _grad_trace):
+        init, states, trace = ctx.saved_tensors
+        tensors, floats, ints = ctx.packed
+        g = extension().adjoint(init, states, trace, grad_states, ctx.steps, ctx.record_every, tensors,
+                                floats, ints, threads())
+        return g, None, None, None
+
+
+GRADIENTS = ("adjoint", "phi")
+"""How a native rollout differentiates (``DEJAVIEW_NATIVE_GRADIENT``): ``adjoint`` (default)
+runs reverse mode by the adjoint wherever only autograd asks for a gradient; ``phi`` carries
+the full state Jacobians (``_Rollout``) for reverse mode too (the engine before issue 25,
+kept for comparisons). Forward mode and ``torch.func`` transforms always use the Jacobians."""
+
+
+def gradient_path() -> str:
+    """``DEJAVIEW_NATIVE_GRADIENT`` (``GRADIENTS``), default ``adjoint``."""
+    value = os.environ.get("DEJAVIEW_NATIVE_GRADIENT") or "adjoint"
+    if value not in GRADIENTS:
+        raise SimulationError(f"DEJAVIEW_NATIVE_GRADIENT must be one of {', '.join(GRADIENTS)}, "
+                              f"got {value!r}")
+    return value
+
+
+def _reverse_only(init: torch.Tensor) -> bool:
+    """True when only autograd's reverse mode can ask this rollout for a gradient."""
+    import torch._C._functorch as ft
+
+    return (ft.peek_interpreter_stack() is None
+            and torch.autograd.forward_ad.unpack_dual(init).tangent is None)
 
 
 def _needs_jacobian(init: torch.Tensor) -> bool:
@@ -318,13 +383,15 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
 
         tensors, floats, ints = packed
         states, _, status = extension().rollout(init.detach().contiguous(), int(steps), int(record_every),
-                                                False, tensors, floats + divergence.native_limits(), ints,
+                                                0, tensors, floats + divergence.native_limits(), ints,
                                                 threads())
         bad = (status[:, 0] >= 0).nonzero()
         if bad.numel():
             b = int(bad[0, 0])
             step, body, quantity, record = (int(v) for v in status[b])
             raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
+    elif _needs_jacobian(init) and _reverse_only(init) and gradient_path() == "adjoint":
+        states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
     else:
         states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)

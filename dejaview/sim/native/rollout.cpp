@@ -327,14 +327,33 @@ void distance(const Shape<S>& sh, const Dual<S, W>* pw, Dual<S, W>& dist, Dual<S
 constexpr double SLIP_EPS = 1e-3;
 constexpr double SMOOTH_MIN_POWER = 8.0;
 
+// x^8 and x^(1/8) (SMOOTH_MIN_POWER) by squarings and square roots: the values of std::pow to
+// round-off, several times cheaper
+static_assert(SMOOTH_MIN_POWER == 8.0, "pow8 and root8 implement SMOOTH_MIN_POWER = 8");
+template <typename S> inline S pow8(S x) { const S x2 = x * x, x4 = x2 * x2; return x4 * x4; }
+template <typename S> inline S root8(S x) { return std::sqrt(std::sqrt(std::sqrt(x))); }
+template <typename S, int W> inline Dual<S, W> pow8(const Dual<S, W>& a) {
+  const S x = a.v, x2 = x * x, x4 = x2 * x2;
+  return chain(a, x4 * x4, S(8) * x4 * x2 * x);
+}
+template <typename S, int W> inline Dual<S, W> root8(const Dual<S, W>& a) {
+  const S r = root8(a.v);
+  return chain(a, r, S(0.125) * r / a.v);
+}
+
+// per-thread scratch arrays of the wrench passes (no allocation per call); slot: which one
+template <typename T> inline std::vector<T>& scratch(int slot) {
+  thread_local std::vector<T> v[8];
+  return v[slot];
+}
+
 // friction force (contacts.friction_force)
 template <typename T, typename S>
 void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
   T speed = sqrt(dot3(vt, vt) + S(1e-30));
   T b = stick * speed;
   T scale = vmax(coulomb, b) + S(1e-30);
-  T den = pow(pow(coulomb / scale, S(SMOOTH_MIN_POWER)) + pow(b / scale, S(SMOOTH_MIN_POWER)) + S(1e-30),
-              S(1.0 / SMOOTH_MIN_POWER)) * scale;
+  T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(1e-30)) * scale;
   T k = coulomb * stick / den;
   for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
 }
@@ -397,7 +416,7 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
   picks.clear();
   const int cnt = w.count[a];
   const S* x = s;
-  std::vector<Pick> cand;
+  thread_local std::vector<Pick> cand;
   for (int k = 0; k < w.k; ++k) {
     const Shape<S>& sh = w.shapes[k];
     S* cl = clear + static_cast<int64_t>(k) * w.s_max;
@@ -452,7 +471,12 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   T rot[9], inv_w[9];
   quat_to_matrix(q, rot);
   rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
-  std::vector<T> depth(m), nrm(3 * m), arm(3 * m);
+  std::vector<T>& depth = scratch<T>(0);
+  std::vector<T>& nrm = scratch<T>(1);
+  std::vector<T>& arm = scratch<T>(2);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm.resize(3 * m);
   T total = T(0);
   for (int j = 0; j < m; ++j) {
     const Pick& pk = picks[j];
@@ -495,19 +519,30 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   }
 }
 
+// per-thread scratch of select_pair (no allocation per call)
+template <typename S> std::vector<int>& pair_ids_a() { thread_local std::vector<int> v; return v; }
+template <typename S> std::vector<int>& pair_ids_b() { thread_local std::vector<int> v; return v; }
+template <typename S> std::vector<S>& pair_pts_a() { thread_local std::vector<S> v; return v; }
+template <typename S> std::vector<S>& pair_pts_b() { thread_local std::vector<S> v; return v; }
+
 struct PairPick {
   int i, j;
   double depth;
 };
 
+// Returns a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair (exact
+// distances for the pairs looked at, the mid phase's margin for the others).
 template <typename S>
-void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
-                 std::vector<PairPick>& picks) {
+S select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
+              std::vector<PairPick>& picks) {
   picks.clear();
   S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
-  if (!(std::sqrt(dot3(dx, dx)) < w.bound[a] + w.bound[b])) return;
+  const S centres = std::sqrt(dot3(dx, dx));
+  if (!(centres < w.bound[a] + w.bound[b])) return centres - (w.bound[a] + w.bound[b]);
   // mid phase: sphere i of a can touch some sphere j of b only if |p_i - x_b| < r_i + bound_b
-  // (|p_i - p_j| < r_i + r_j and |p_j - x_b| + r_j <= bound_b); likewise for b's spheres
+  // (|p_i - p_j| < r_i + r_j and |p_j - x_b| + r_j <= bound_b); likewise for b's spheres. A
+  // sphere left out is at least |p_i - x_b| - r_i - bound_b >= 0 clear of every sphere of b.
+  S bound = std::numeric_limits<S>::infinity();
   auto near = [&](int body, const S* st, const S* rot, const S* other, S other_bound,
                   std::vector<int>& ids, std::vector<S>& pts) {
     ids.clear();
@@ -517,16 +552,21 @@ void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, cons
       S p[3], d[3];
       sphere_center(st, rot, c, p);
       for (int k = 0; k < 3; ++k) d[k] = p[k] - other[k];
-      if (std::sqrt(dot3(d, d)) < w.radii[body * w.s_max + i] + other_bound) {
+      const S gap = std::sqrt(dot3(d, d)) - (w.radii[body * w.s_max + i] + other_bound);
+      if (gap < 0) {
         ids.push_back(i);
         pts.insert(pts.end(), p, p + 3);
+      } else {
+        bound = std::min(bound, gap);
       }
     }
   };
-  std::vector<int> ia, ib;
-  std::vector<S> pa, pb;
+  std::vector<int>& ia = pair_ids_a<S>();
+  std::vector<int>& ib = pair_ids_b<S>();
+  std::vector<S>& pa = pair_pts_a<S>();
+  std::vector<S>& pb = pair_pts_b<S>();
   near(a, sa, ra, sb, w.bound[b], ia, pa);
-  if (ia.empty()) return;
+  if (ia.empty()) return bound;
   near(b, sb, rb, sa, w.bound[a], ib, pb);
   for (size_t u = 0; u < ia.size(); ++u) {
     const S r_i = w.radii[a * w.s_max + ia[u]];
@@ -534,6 +574,7 @@ void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, cons
       S df[3] = {pb[3 * v] - pa[3 * u], pb[3 * v + 1] - pa[3 * u + 1], pb[3 * v + 2] - pa[3 * u + 2]};
       const S depth = r_i + w.radii[b * w.s_max + ib[v]] - std::sqrt(dot3(df, df));
       if (depth > 0) picks.push_back({ia[u], ib[v], static_cast<double>(depth)});
+      bound = std::min(bound, -depth);
     }
   }
   if (static_cast<int>(picks.size()) > w.cap_pair &&
@@ -542,6 +583,7 @@ void select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, cons
                      [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
     picks.resize(w.cap_pair);
   }
+  return bound;
 }
 
 // wrench on a (out[0..5]) and on b (out[6..11]) from pair index pi's picked sphere pairs
@@ -557,7 +599,14 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   quat_to_matrix(st_b + 3, rot_b);
   rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
   rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
-  std::vector<T> depth(m), nrm(3 * m), arm_a(3 * m), arm_b(3 * m);
+  std::vector<T>& depth = scratch<T>(3);
+  std::vector<T>& nrm = scratch<T>(4);
+  std::vector<T>& arm_a = scratch<T>(5);
+  std::vector<T>& arm_b = scratch<T>(6);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm_a.resize(3 * m);
+  arm_b.resize(3 * m);
   T total = T(0);
   for (int k = 0; k < m; ++k) {
     const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
@@ -673,12 +722,23 @@ struct Scratch {
   std::vector<S> clear;                           // (N, K, s_max) clearance bounds (select_static)
   std::vector<S> last;                            // (N, 12) position and rotation at the last selection
   std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
+  std::vector<S> pair_jac;                        // (P, 12, 26) pair blocks (substep_adjoint)
+  std::vector<S> move;                            // (N) how far a sphere of each body moved this substep
+  std::vector<S> static_move;                     // (N) ... since its last select_static
+  std::vector<S> pair_clear;                      // (P) clearance bound of each pair (select_pair)
 };
 
+// which spheres touch at state (contact selection on values, the clearance bounds of sc updated)
+// which spheres touch at state (contact selection on values, the clearance bounds of sc updated).
+// need (N, or null for all): bodies whose contacts are wanted; the others get no static picks,
+// and a pair of two such bodies none (reverse mode skips bodies its adjoint has not reached).
+//
+// Pairs keep a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair, set
+// by select_pair and lowered every substep by how far either body moved: a pair whose bound
+// stays above CLEAR_MARGIN cannot touch and is skipped (exact, as select_static's bounds).
 template <typename S>
-void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or null */) {
+void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const char* need = nullptr) {
   const int n = w.n;
-  const int dim = 13 * n;
   for (int a = 0; a < n; ++a) {
     S* rot = &sc.rot[9 * a];
     S* last = &sc.last[12 * a];
@@ -690,13 +750,34 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
     const S move = std::sqrt(dx) + std::sqrt(dr) * w.reach[a];
     for (int i = 0; i < 3; ++i) last[i] = state[13 * a + i];
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
+    sc.move[a] = move;
+    sc.static_move[a] += move;  // since this body's last select_static
+    if (need != nullptr && !need[a]) {
+      sc.picks[a].clear();
+      continue;
+    }
     select_static(w, a, state + 13 * a, rot, sc.picks[a],
-                  &sc.clear[static_cast<int64_t>(a) * w.k * w.s_max], move);
+                  &sc.clear[static_cast<int64_t>(a) * w.k * w.s_max], sc.static_move[a]);
+    sc.static_move[a] = S(0);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
-    select_pair(w, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b], sc.pair_picks[pi]);
+    S& bound = sc.pair_clear[pi];
+    bound -= sc.move[a] + sc.move[b];
+    if (bound > S(CLEAR_MARGIN) || (need != nullptr && !need[a] && !need[b])) {
+      sc.pair_picks[pi].clear();
+      continue;
+    }
+    bound = select_pair(w, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b],
+                        sc.pair_picks[pi]);
   }
+}
+
+template <typename S>
+void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or null */) {
+  const int n = w.n;
+  const int dim = 13 * n;
+  select_contacts(w, state, sc);
   if (jac == nullptr) {
     for (int a = 0; a < n; ++a) static_wrench<S, S>(w, a, state + 13 * a, sc.picks[a], &sc.wrench[6 * a]);
     for (int pi = 0; pi < w.p; ++pi) {
@@ -778,6 +859,108 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
   std::copy(sc.next.begin(), sc.next.end(), state);
 }
 
+// Reverse mode, one substep: lam <- J(state)^T lam, J = d state' / d state the substep's Jacobian,
+// from the same dual passes as substep(..., jac) but without assembling J: with
+// s_a' = I(s_a, W_a) and W_a = W_s(s_a) + sum over touching pairs W_p(s_a, s_b),
+//   mu_a = (dI/dW_a)^T lam_a,  lam_a <- (dI/ds_a)^T lam_a + (dW_s/ds_a)^T mu_a + pair terms.
+// A body whose adjoint lam_a is zero has mu_a = 0: its integration and static contacts are then
+// skipped, and a pair only when both of its bodies are (bodies no contact chain connects to the
+// loss cost a value pass of their pairs at most).
+template <typename S>
+void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) {
+  const int n = w.n;
+  std::vector<char>& live = sc.blk;  // per body: adjoint nonzero
+  live.assign(n, 0);
+  for (int a = 0; a < n; ++a)
+    for (int i = 0; i < 13; ++i)
+      if (lam[13 * a + i] != S(0)) { live[a] = 1; break; }
+  select_contacts(w, state, sc, live.data());
+  // wrench values of every live body (pairs: duals where a live body takes part)
+  std::fill(sc.wrench.begin(), sc.wrench.end(), S(0));
+  sc.next.assign(13 * n, S(0));  // the new adjoint
+  std::vector<S>& mu = sc.dws;   // (N, 6)
+  mu.assign(6 * n, S(0));
+  std::vector<S>& dstatic = sc.jac;  // (N, 6, 13) static contacts' d W_s / d s_a
+  dstatic.resize(static_cast<size_t>(78) * n);
+  for (int a = 0; a < n; ++a) {
+    if (!live[a]) continue;
+    using D = Dual<S, 13>;
+    D st[13], o[6];
+    seed_state(state + 13 * a, st, 0);
+    static_wrench<D, S>(w, a, st, sc.picks[a], o);
+    for (int i = 0; i < 6; ++i) {
+      sc.wrench[6 * a + i] = o[i].v;
+      for (int j = 0; j < 13; ++j) dstatic[78 * a + 13 * i + j] = o[i].d[j];
+    }
+  }
+  std::vector<S>& dpair = sc.pair_jac;  // per touching pair with a live body: (12, 26)
+  dpair.resize(static_cast<size_t>(312) * w.p);
+  for (int pi = 0; pi < w.p; ++pi) {
+    if (sc.pair_picks[pi].empty()) continue;
+    const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+    if (!live[a] && !live[b]) continue;
+    using D = Dual<S, 26>;
+    D sa[13], sb[13], o[12];
+    seed_state(state + 13 * a, sa, 0);
+    seed_state(state + 13 * b, sb, 13);
+    pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
+    for (int i = 0; i < 6; ++i) {
+      sc.wrench[6 * a + i] += o[i].v;
+      sc.wrench[6 * b + i] += o[6 + i].v;
+    }
+    S* blk = &dpair[312 * static_cast<size_t>(pi)];
+    for (int i = 0; i < 12; ++i)
+      for (int j = 0; j < 26; ++j) blk[26 * i + j] = o[i].d[j];
+  }
+  // integration of each live body: its own adjoint and mu
+  for (int a = 0; a < n; ++a) {
+    if (!live[a]) continue;
+    using D = Dual<S, 19>;
+    D st[13], wr[6], o[13];
+    seed_state(state + 13 * a, st, 0);
+    for (int i = 0; i < 6; ++i) {
+      S value = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
+      wr[i] = D(value);
+      wr[i].d[13 + i] = S(1);
+    }
+    integrate<D, S>(w, a, st, wr, o);
+    const S* la = lam + 13 * a;
+    S* na = &sc.next[13 * a];
+    for (int i = 0; i < 13; ++i) {
+      const S l = la[i];
+      if (l == S(0)) continue;
+      for (int j = 0; j < 13; ++j) na[j] += l * o[i].d[j];
+      for (int k = 0; k < 6; ++k) mu[6 * a + k] += l * o[i].d[13 + k];
+    }
+    const S* ds = &dstatic[78 * a];
+    for (int k = 0; k < 6; ++k) {
+      const S m = mu[6 * a + k];
+      if (m == S(0)) continue;
+      for (int j = 0; j < 13; ++j) na[j] += m * ds[13 * k + j];
+    }
+  }
+  for (int pi = 0; pi < w.p; ++pi) {
+    if (sc.pair_picks[pi].empty()) continue;
+    const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+    if (!live[a] && !live[b]) continue;
+    const S* blk = &dpair[312 * static_cast<size_t>(pi)];
+    S* na = &sc.next[13 * a];
+    S* nb = &sc.next[13 * b];
+    for (int half = 0; half < 2; ++half) {
+      const S* m = &mu[6 * (half ? b : a)];
+      for (int k = 0; k < 6; ++k) {
+        if (m[k] == S(0)) continue;
+        const S* row = blk + 26 * (6 * half + k);
+        for (int j = 0; j < 13; ++j) {
+          na[j] += m[k] * row[j];
+          nb[j] += m[k] * row[13 + j];
+        }
+      }
+    }
+  }
+  std::copy(sc.next.begin(), sc.next.end(), lam);
+}
+
 // out = J phi, all dim x dim row-major; fixed sizes for 1 to 4 bodies so the loops unroll
 template <typename S, int D>
 void phi_update_fixed(const S* __restrict J, const S* __restrict phi, S* __restrict out) {
@@ -833,18 +1016,33 @@ inline int diverged(const S* s, S reach, S speed, S bound) {
 // state is then the last record written, status = {step, body, quantity, record} and the records
 // after it are NaN. status stays {-1, -1, -1, -1} otherwise.
 template <typename S>
-void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
-                   S* rec_states, S* rec_phi, const S* limits, int64_t* status) {
+void init_scratch(const World<S>& w, Scratch<S>& sc) {
   const int n = w.n;
-  const int dim = 13 * n;
-  Scratch<S> sc;
   sc.picks.resize(n);
   sc.pair_picks.resize(w.p);
   sc.rot.resize(9 * n);
   sc.wrench.resize(6 * n);
-  sc.next.resize(dim);
+  sc.next.resize(13 * n);
   sc.clear.assign(static_cast<size_t>(n) * w.k * w.s_max, -std::numeric_limits<S>::infinity());
   sc.last.assign(static_cast<size_t>(12) * n, std::numeric_limits<S>::infinity());
+  sc.move.assign(n, S(0));
+  sc.static_move.assign(n, S(0));
+  sc.pair_clear.assign(w.p, -std::numeric_limits<S>::infinity());
+}
+
+// Substep states kept for reverse mode (trace): per step the states before substeps k0..substeps-1,
+// k0 = 1 when every step is recorded (the state before substep 0 is then the previous record, or
+// init), else 0.
+inline int trace_first(int64_t record_every) { return record_every == 1 ? 1 : 0; }
+
+template <typename S>
+void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
+                   S* rec_states, S* rec_phi, const S* limits, int64_t* status, S* trace = nullptr) {
+  const int n = w.n;
+  const int dim = 13 * n;
+  Scratch<S> sc;
+  init_scratch(w, sc);
+  const int k0 = trace_first(record_every);
   std::vector<S> state(init, init + dim);
   std::vector<S> phi, tmp;
   if (with_jac) {
@@ -857,6 +1055,10 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
   int64_t r = 0;
   for (int64_t step = 1; step <= steps; ++step) {
     for (int k = 0; k < w.substeps; ++k) {
+      if (trace != nullptr && k >= k0) {
+        std::copy(state.begin(), state.end(), trace);
+        trace += dim;
+      }
       if (!with_jac) {
         substep<S>(w, state.data(), sc, nullptr);
         continue;
@@ -887,6 +1089,60 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
       return;
     }
   }
+}
+
+// Reverse mode of one candidate from its rollout (init, records, trace of run_candidate):
+// grad_init = sum_t Phi_t^T grad_t, as lam <- J^T lam backwards through the substeps.
+template <typename S>
+void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every,
+                       const S* rec_states, const S* trace, const S* grad, S* out) {
+  const int n = w.n;
+  const int dim = 13 * n;
+  Scratch<S> sc;
+  init_scratch(w, sc);
+  const int k0 = trace_first(record_every);
+  const int per_step = w.substeps - k0;
+  std::vector<S> lam(dim, S(0));
+  int64_t r = (steps + record_every - 1) / record_every - 1;
+  for (int64_t step = steps; step >= 1; --step) {
+    if (step % record_every == 0 || step == steps) {
+      const S* g = grad + r * dim;
+      for (int i = 0; i < dim; ++i) lam[i] += g[i];
+      --r;
+    }
+    for (int k = w.substeps - 1; k >= 0; --k) {
+      const S* s;
+      if (k >= k0) s = trace + ((step - 1) * per_step + (k - k0)) * static_cast<int64_t>(dim);
+      else s = step == 1 ? init : rec_states + (step - 2) * static_cast<int64_t>(dim);  // record_every 1
+      substep_adjoint(w, s, sc, lam.data());
+    }
+  }
+  std::copy(lam.begin(), lam.end(), out);
+}
+
+// candidates 0..b-1 spread over threads, handed out one at a time (they differ in cost: contacts)
+template <typename F>
+void parallel_for(int64_t b, int64_t threads, F work) {
+  const int64_t workers = std::min<int64_t>(std::max<int64_t>(threads, 1), b);
+  if (workers <= 1) {
+    for (int64_t i = 0; i < b; ++i) work(i);
+    return;
+  }
+  std::atomic<int64_t> next{0};
+  std::vector<std::thread> pool;
+  std::exception_ptr error;
+  std::mutex error_lock;
+  for (int64_t t = 0; t < workers; ++t)
+    pool.emplace_back([&] {
+      try {
+        for (int64_t i = next++; i < b; i = next++) work(i);
+      } catch (...) {
+        std::lock_guard<std::mutex> guard(error_lock);
+        error = std::current_exception();
+      }
+    });
+  for (auto& th : pool) th.join();
+  if (error) std::rethrow_exception(error);
 }
 
 template <typename S>
@@ -958,65 +1214,93 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
 
 // threads: candidates are spread over this many threads (torch's intra-op pool is not used, so the
 // simulator's parallelism does not depend on torch.set_num_threads).
-// init: (B, N, 13) -> states (B, R, N, 13) and, with_jac, phi (B, R, 13N, 13N) = d state / d init, and
-// status (B, 4): where a candidate diverged (run_candidate), checked only when floats carries the
-// limits {reach, speed} after its first 6 numbers
-std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, bool with_jac,
+// init: (B, N, 13) -> states (B, R, N, 13), extra and status (B, 4). mode 0: values only (extra
+// empty); 1: extra = phi (B, R, 13N, 13N) = d state / d init (forward mode); 2: extra = the trace
+// (B, steps * (substeps - k0), N, 13) of substep states that reverse mode (adjoint) reads. status:
+// where a candidate diverged (run_candidate), checked only when floats carries the limits
+// {reach, speed} after its first 6 numbers (mode 0 only).
+std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, int64_t mode,
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
                                    std::vector<int64_t> ints, int64_t threads) {
   TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
   TORCH_CHECK(init.dim() == 3 && init.size(2) == 13, "init must be (B, N, 13)");
   TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
+  TORCH_CHECK(mode >= 0 && mode <= 2, "mode must be 0 (values), 1 (Jacobians) or 2 (trace)");
+  TORCH_CHECK(init.scalar_type() == torch::kFloat64, "the native simulator runs in float64");
+  TORCH_CHECK(floats.size() == 6 || (floats.size() == 8 && mode == 0), "floats: gravity(3), h, omega, "
+              "unload_velocity [, reach, speed (values only)]");
   init = init.contiguous();
   for (auto& t : world) t = t.contiguous();
   const int64_t b = init.size(0), n = init.size(1);
   const int64_t dim = 13 * n;
   const int64_t records = (steps + record_every - 1) / record_every;
+  const bool with_jac = mode == 1;
+  const int64_t per_step = ints.empty() ? 0 : ints[0] - dv::trace_first(record_every);
   auto states = torch::empty({b, records, n, 13}, init.options());
-  auto phi = with_jac ? torch::empty({b, records, dim, dim}, init.options()) : torch::empty({0}, init.options());
+  torch::Tensor extra;
+  if (mode == 1) extra = torch::empty({b, records, dim, dim}, init.options());
+  else if (mode == 2) extra = torch::empty({b, steps * per_step, n, 13}, init.options());
+  else extra = torch::empty({0}, init.options());
   auto status = torch::full({b, 4}, -1, init.options().dtype(torch::kInt64));
-  TORCH_CHECK(init.scalar_type() == torch::kFloat64, "the native simulator runs in float64");
-  TORCH_CHECK(floats.size() == 6 || floats.size() == 8, "floats: gravity(3), h, omega, unload_velocity "
-              "[, reach, speed]");
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
     TORCH_CHECK(w.n == n, "state and world disagree on the number of bodies");
     const S* in = init.data_ptr<S>();
     S* out = states.data_ptr<S>();
-    S* ph = with_jac ? phi.data_ptr<S>() : nullptr;
+    S* ex = mode ? extra.data_ptr<S>() : nullptr;
+    const int64_t ex_per = mode == 1 ? records * dim * dim : steps * per_step * dim;
     const S limit_values[2] = {floats.size() == 8 ? floats[6] : S(0), floats.size() == 8 ? floats[7] : S(0)};
     const S* limits = floats.size() == 8 ? limit_values : nullptr;
     int64_t* st = status.data_ptr<int64_t>();
     pybind11::gil_scoped_release no_gil;  // other Python threads (a server's event loop) run meanwhile
-    auto work = [&](int64_t i) {
+    dv::parallel_for(b, threads, [&](int64_t i) {
       dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
-                           with_jac ? ph + i * records * dim * dim : nullptr, limits, st + 4 * i);
-    };
-    const int64_t workers = std::min<int64_t>(std::max<int64_t>(threads, 1), b);
-    if (workers <= 1) {
-      for (int64_t i = 0; i < b; ++i) work(i);
-    } else {  // candidates differ in cost (contacts): hand them out one at a time
-      std::atomic<int64_t> next{0};
-      std::vector<std::thread> pool;
-      std::exception_ptr error;
-      std::mutex error_lock;
-      for (int64_t t = 0; t < workers; ++t)
-        pool.emplace_back([&] {
-          try {
-            for (int64_t i = next++; i < b; i = next++) work(i);
-          } catch (...) {
-            std::lock_guard<std::mutex> guard(error_lock);
-            error = std::current_exception();
-          }
-        });
-      for (auto& th : pool) th.join();
-      if (error) std::rethrow_exception(error);
-    }
+                           with_jac ? ex + i * ex_per : nullptr, limits, st + 4 * i,
+                           mode == 2 ? ex + i * ex_per : nullptr);
+    });
   }
-  return {states, phi, status};
+  return {states, extra, status};
+}
+
+// Reverse mode: grad (B, R, N, 13) of the records of rollout(init, ..., mode 2) (states, trace)
+// -> grad init (B, N, 13) = sum_t Phi_t^T grad_t, without forming Phi.
+torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor trace, torch::Tensor grad,
+                      int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
+                      std::vector<double> floats, std::vector<int64_t> ints, int64_t threads) {
+  TORCH_CHECK(init.dim() == 3 && init.size(2) == 13 && init.scalar_type() == torch::kFloat64 &&
+              init.device().is_cpu(), "init must be (B, N, 13) float64 on the CPU");
+  init = init.contiguous();
+  states = states.contiguous();
+  trace = trace.contiguous();
+  grad = grad.to(torch::kFloat64).contiguous();
+  for (auto& t : world) t = t.contiguous();
+  const int64_t b = init.size(0), n = init.size(1);
+  const int64_t dim = 13 * n;
+  const int64_t records = (steps + record_every - 1) / record_every;
+  const int64_t per_step = ints[0] - dv::trace_first(record_every);
+  TORCH_CHECK(states.numel() == b * records * dim && grad.numel() == b * records * dim &&
+              trace.numel() == b * steps * per_step * dim, "adjoint: states, trace or grad of the wrong size");
+  auto out = torch::empty({b, n, 13}, init.options());
+  {
+    using S = double;
+    const dv::World<S> w = dv::make_world<S>(world, floats, ints);
+    TORCH_CHECK(w.n == n, "state and world disagree on the number of bodies");
+    const S* in = init.data_ptr<S>();
+    const S* rs = states.data_ptr<S>();
+    const S* tr = trace.data_ptr<S>();
+    const S* g = grad.data_ptr<S>();
+    S* o = out.data_ptr<S>();
+    pybind11::gil_scoped_release no_gil;
+    dv::parallel_for(b, threads, [&](int64_t i) {
+      dv::adjoint_candidate<S>(w, in + i * dim, steps, record_every, rs + i * records * dim,
+                               tr + i * steps * per_step * dim, g + i * records * dim, o + i * dim);
+    });
+  }
+  return out;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians (dejaview.sim.native)");
+  m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians or trace (dejaview.sim.native)");
+  m.def("adjoint", &adjoint, "reverse-mode gradient of a traced rollout (dejaview.sim.native)");
 }

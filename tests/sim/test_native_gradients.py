@@ -1,0 +1,149 @@
+"""The native engine's reverse mode by the adjoint against its full-Jacobian path (issue 25).
+
+Reverse mode (``_Traced``: ``lam <- J^T lam`` back through the substeps) and
+the engine before it (``DEJAVIEW_NATIVE_GRADIENT=phi``: ``Phi_t`` carried to
+every record, also what forward mode uses) must give the same gradients on
+multi-body scenes with static and body-pair contacts, every record interval
+and substep count, batches of different candidates, and bodies the loss
+never reaches; and both must agree with finite differences.
+"""
+
+import math
+
+import pytest
+import torch
+
+from dejaview.sim import StaticShape, native
+from dejaview.sim.integrate import rollout
+from dejaview.sim.state import State
+from tests.sim.conftest import box_body, make_world
+
+RTOL = 1e-9
+
+
+def _pile(substeps=2, boxes=4):
+    """A box thrown into a row of resting boxes on a floor, one box far off, resting alone."""
+    bodies = [box_body(f"box{i}", size=(0.1, 0.1, 0.05), per_axis=(3, 3, 2), mass=0.5)
+              for i in range(boxes)]
+    world = make_world(bodies, [StaticShape.make("floor", "plane"),
+                                StaticShape.make("step", "box", position=(0.6, 0.0, 0.02),
+                                                 half=(0.1, 0.3, 0.02))],
+                       substeps=substeps)
+    pos = [[0.0, 0.0, 0.09]] + [[0.13 + 0.105 * i, 0.02 * i, 0.025] for i in range(boxes - 2)]
+    pos.append([-1.0, 0.0, 0.025])  # far away: the loss's adjoint never reaches it
+    tilt = [math.cos(0.15), math.sin(0.15) * 0.6, math.sin(0.15) * 0.8, 0.0]
+    orient = [tilt] + [[1.0, 0.0, 0.0, 0.0]] * (boxes - 1)
+    lin = [[1.6, 0.1, -0.3]] + [[0.0, 0.0, 0.0]] * (boxes - 1)
+    ang = [[1.0, -2.0, 3.0]] + [[0.0, 0.0, 0.0]] * (boxes - 1)
+    return world, world.state(pos, orientation=orient, linear_velocity=lin, angular_velocity=ang)
+
+
+def _batch(state, batch):
+    shift = torch.linspace(-0.02, 0.02, batch, dtype=torch.float64)
+    s = State(*(t.expand(batch, *t.shape[1:]) for t in state.tensors()))
+    lin = s.linear_velocity.clone()
+    lin[:, 0, 0] += shift * 10
+    return s.replace(linear_velocity=lin)
+
+
+def _loss(traj) -> torch.Tensor:
+    """Every record's pose and velocity of every body, each candidate weighted differently."""
+    s = traj.states
+    w = torch.arange(1, s.position.shape[1] + 1, dtype=torch.float64)[None, :, None, None]
+    return ((w * s.position ** 2).sum() + 0.3 * (s.orientation[..., 1:] ** 2).sum()
+            + 0.01 * (s.linear_velocity ** 2).sum() + 0.001 * (s.angular_velocity ** 2).sum())
+
+
+def _reverse(world, state, steps, record_every=1, path="adjoint", monkeypatch=None, loss=_loss):
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", path)
+    x = torch.cat(state.tensors(), -1).detach().requires_grad_(True)
+    traj = rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=steps,
+                   record_every=record_every, engine="native")
+    (g,) = torch.autograd.grad(loss(traj), x)
+    return g
+
+
+def _same(a, b, rtol=RTOL):
+    scale = float(b.abs().max())
+    assert scale > 0
+    assert float((a - b).abs().max()) <= rtol * scale, float((a - b).abs().max()) / scale
+
+
+@pytest.mark.parametrize("substeps,record_every", [(2, 1), (2, 7), (1, 1), (3, 4)])
+def test_adjoint_equals_the_full_jacobian_path_on_a_pile_of_boxes(monkeypatch, substeps, record_every):
+    world, state = _pile(substeps)
+    state = _batch(state, 2)
+    steps = 150
+    adj = _reverse(world, state, steps, record_every, "adjoint", monkeypatch)
+    phi = _reverse(world, state, steps, record_every, "phi", monkeypatch)
+    _same(adj, phi)
+    # the thrown box moved the others: gradients reach them through the pair contacts
+    assert float(adj[:, 1].abs().max()) > 1e-3 * float(adj.abs().max())
+
+
+def test_adjoint_of_a_final_pose_loss_skips_bodies_it_never_reaches(monkeypatch):
+    world, state = _pile()
+
+    def final_pose(traj):
+        return (traj.states.position[-1, :, 0] ** 2).sum() + (traj.states.orientation[-1, :, 0, 1:] ** 2).sum()
+
+    adj = _reverse(world, state, 150, 1, "adjoint", monkeypatch, final_pose)
+    phi = _reverse(world, state, 150, 1, "phi", monkeypatch, final_pose)
+    _same(adj, phi)
+    assert float(adj[:, 1].abs().max()) > 0  # reached through contacts
+    assert torch.equal(adj[:, -1], torch.zeros_like(adj[:, -1]))  # the far box: exactly zero
+
+
+def test_adjoint_and_forward_mode_agree_with_finite_differences(monkeypatch):
+    world, state = _pile(boxes=3)
+    steps = 60  # the thrown box has hit the next one (FD needs smaller steps the longer the run)
+    x0 = torch.cat(state.tensors(), -1)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "adjoint")
+
+    def f(x):
+        traj = rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=steps,
+                       engine="native")
+        return (traj.states.position[-1, 0] ** 2).sum()
+
+    x = x0.clone().requires_grad_(True)
+    (g_adj,) = torch.autograd.grad(f(x), x)
+    jac_fwd = torch.func.jacfwd(f)(x0)
+    _same(jac_fwd, g_adj)
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(3):
+        v = torch.zeros_like(x0)  # along the thrown box's linear and angular velocity
+        v[0, 0, 7:13] = torch.randn(6, generator=gen, dtype=torch.float64)
+        eps = 1e-8  # stiff contacts: central differences converge to the gradient only this close
+        with torch.no_grad():
+            fd = (f(x0 + eps * v) - f(x0 - eps * v)) / (2 * eps)
+        exact = float((g_adj * v).sum())
+        assert abs(exact - float(fd)) <= 1e-5 * max(abs(exact), 1e-3), (exact, float(fd))
+
+
+def test_adjoint_through_an_inference_problem_equals_the_jacobian_path(monkeypatch):
+    from dataclasses import replace
+
+    from dejaview.inference import InferenceProblem
+    from dejaview.scene import Scene
+
+    problem = InferenceProblem.from_scene(Scene.from_xml("examples/scenes/box_among_boxes.xml"),
+                                          engine="native")
+    problem = replace(problem, steps=200)
+    x = problem.layout.encode().to(torch.float64)
+    x = x + 0.1 * torch.randn(3, x.shape[1], generator=torch.Generator().manual_seed(0), dtype=x.dtype)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "adjoint")
+    loss_a, grad_a = problem.value_and_grad(x, "reverse")
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "phi")
+    loss_p, grad_p = problem.value_and_grad(x, "reverse")
+    loss_f, grad_f = problem.value_and_grad(x, "forward")
+    assert torch.allclose(loss_a, loss_p, rtol=0, atol=1e-12)
+    _same(grad_a, grad_p)
+    _same(grad_f, grad_a)
+
+
+def test_unknown_gradient_path_is_a_one_line_error(monkeypatch):
+    from dejaview.errors import SimulationError
+
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "bogus")
+    with pytest.raises(SimulationError, match="DEJAVIEW_NATIVE_GRADIENT must be one of"):
+        native.gradient_path()
