@@ -216,8 +216,9 @@ def _make_parser() -> etree.XMLParser:
 
 
 def parse_xml(text: str | bytes, filename: str = "<string>",
-              max_bytes: int = DEFAULT_MAX_BYTES) -> etree._Element:
-    """Parse scene XML safely and return its root element (no schema check).
+              max_bytes: int = DEFAULT_MAX_BYTES, what: str = "scene files") -> etree._Element:
+    """Parse scene XML (or other untrusted XML: ``what`` names it in errors) safely and return
+    its root element (no schema check).
 
     Refuses documents over ``max_bytes``, empty documents, any DOCTYPE or
     ENTITY declaration (never expanded, never fetched) and malformed XML.
@@ -235,7 +236,7 @@ def parse_xml(text: str | bytes, filename: str = "<string>",
         kind = match.group(1).decode("ascii").upper()
         line = data.count(b"\n", 0, match.start()) + 1
         raise SceneError(
-            f"{kind} declarations are not allowed in scene files "
+            f"{kind} declarations are not allowed in {what} "
             "(entities and DTDs are refused, never expanded or fetched)",
             filename, line, "!" + kind)
     try:
@@ -247,7 +248,7 @@ def parse_xml(text: str | bytes, filename: str = "<string>",
     # Defence in depth: the byte scan above should make this unreachable.
     docinfo = root.getroottree().docinfo
     if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
-        raise SceneError("DOCTYPE declarations are not allowed in scene files",
+        raise SceneError(f"DOCTYPE declarations are not allowed in {what}",
                          filename, 1, "!DOCTYPE")
     return root
 
@@ -471,6 +472,13 @@ class _SceneReader:
             raise self.error(el, f"attribute '{name}' needs {n} numbers, got {len(tokens)}")
         return tuple(self.number(el, name, t) for t in tokens)
 
+    def floats_attr(self, el, name: str, default=None):
+        """Any number (zero included) of whitespace-separated numbers, as a tuple."""
+        raw = el.get(name)
+        if raw is None:
+            return default
+        return tuple(self.number(el, name, t) for t in raw.split())
+
     def quat_attr(self, el, name: str, default=None):
         q = self.vector_attr(el, name, 4)
         if q is None:
@@ -576,6 +584,9 @@ class _SceneReader:
             density=self.float_attr(el, "density"),
             friction=self.float_attr(el, "friction"),
             restitution=self.float_attr(el, "restitution"),
+            urdf=el.get("urdf"),
+            mjcf=el.get("mjcf"),
+            joints=self.floats_attr(el, "joints"),
             line=el.sourceline,
         )
 
@@ -733,6 +744,12 @@ def _object_element(obj: SceneObject) -> etree._Element:
         el.set("mesh", obj.mesh)
     if obj.spheres is not None:
         el.set("spheres", obj.spheres)
+    if obj.urdf is not None:
+        el.set("urdf", obj.urdf)
+    if obj.mjcf is not None:
+        el.set("mjcf", obj.mjcf)
+    if obj.joints is not None:
+        el.set("joints", _v(obj.joints))
     if obj.fixed:
         el.set("fixed", "true")
     for name in ("mass", "density", "friction", "restitution"):
