@@ -338,14 +338,31 @@ def _body_from_object(scene, obj) -> _Body | None:
     return body
 
 
+def _robot_links(scene, obj) -> list:
+    """A fixed robot's link geometry as fixed scene objects named ``robot-id/link`` (posed by forward
+    kinematics, ``dejaview.geometry.robot``); scaled meshes are left out."""
+    from dejaview.geometry.robot import robot_pieces
+    from dejaview.scene.model import Pose, SceneObject
+
+    parts = []
+    for p in robot_pieces(scene, obj):
+        if p.kind == "mesh" and p.scale != 1.0:
+            continue
+        parts.append(SceneObject(id=p.name, pose=Pose(p.position, p.orientation), fixed=True,
+                                 shape=None if p.kind == "mesh" else p.kind, mesh=None if p.mesh is None else str(p.mesh),
+                                 size=p.size, radius=p.radius, height=p.height, line=obj.line))
+    return parts
+
+
 # -------------------------------------------------------------------- scene
 class SceneCollision:
     """Exact interpenetration queries on one scene (build once, query often).
 
     Every object is placed at its ``<pose>``; :meth:`penetration` moves one
     object to candidate poses, :meth:`interpenetrations` checks the poses as
-    given. Objects whose geometry is not a plane, box, sphere, cylinder or
-    mesh are left out.
+    given. A robot (``urdf``/``mjcf``) takes part link by link, as fixed
+    objects named ``robot-id/link``. Objects whose geometry is not a plane, box,
+    sphere, cylinder or mesh are left out.
 
     Args:
         scene: a validated ``dejaview.scene.Scene`` (mesh files must exist).
@@ -360,12 +377,13 @@ class SceneCollision:
         self.scene = scene
         self._bodies: dict[str, _Body] = {}
         for obj in scene.objects:
-            try:
-                body = _body_from_object(scene, obj)
-            except GeometryError as exc:
-                raise GeometryError(f"object {obj.id!r}: {exc}") from exc
-            if body is not None:
-                self._bodies[obj.id] = body
+            for part in _robot_links(scene, obj) if obj.robot is not None else [obj]:
+                try:
+                    body = _body_from_object(scene, part)
+                except GeometryError as exc:
+                    raise GeometryError(f"object {part.id!r}: {exc}") from exc
+                if body is not None:
+                    self._bodies[part.id] = body
         self._request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
         self._boolean_request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=False)
         self._exact_request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
