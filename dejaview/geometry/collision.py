@@ -338,22 +338,6 @@ def _body_from_object(scene, obj) -> _Body | None:
     return body
 
 
-def _robot_links(scene, obj) -> list:
-    """A fixed robot's link geometry as fixed scene objects named ``robot-id/link`` (posed by forward
-    kinematics, ``dejaview.geometry.robot``); scaled meshes are left out."""
-    from dejaview.geometry.robot import robot_pieces
-    from dejaview.scene.model import Pose, SceneObject
-
-    parts = []
-    for p in robot_pieces(scene, obj):
-        if p.kind == "mesh" and p.scale != 1.0:
-            continue
-        parts.append(SceneObject(id=p.name, pose=Pose(p.position, p.orientation), fixed=True,
-                                 shape=None if p.kind == "mesh" else p.kind, mesh=None if p.mesh is None else str(p.mesh),
-                                 size=p.size, radius=p.radius, height=p.height, line=obj.line))
-    return parts
-
-
 # -------------------------------------------------------------------- scene
 class SceneCollision:
     """Exact interpenetration queries on one scene (build once, query often).
@@ -374,10 +358,12 @@ class SceneCollision:
     def __init__(self, scene):
         import fcl
 
+        from dejaview.geometry.robot import link_objects
+
         self.scene = scene
         self._bodies: dict[str, _Body] = {}
         for obj in scene.objects:
-            for part in _robot_links(scene, obj) if obj.robot is not None else [obj]:
+            for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
                 try:
                     body = _body_from_object(scene, part)
                 except GeometryError as exc:

@@ -30,8 +30,8 @@ import numpy as np
 
 from dejaview.errors import SceneError
 
-__all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "read_robot", "robot_pieces",
-           "robot_model"]
+__all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_objects",
+           "link_transforms", "read_robot", "robot_model", "robot_pieces"]
 
 MAX_ROBOT_BYTES = 4 << 20
 """Largest URDF or MJCF file read (4 MiB)."""
@@ -517,3 +517,21 @@ def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece
                                  orientation=matrix_quaternion(world[:3, :3]), size=g.size, radius=g.radius,
                                  height=g.height, mesh=g.mesh, scale=g.scale))
     return pieces
+
+
+def link_objects(scene, obj) -> list:
+    """A fixed robot's link geometry as fixed scene objects named ``robot-id/link``, posed in the world
+    (for consumers that know scene objects: fcl checks, MJCF export). Meshes with a ``scale`` other
+    than 1 are left out (a scene object's mesh has no scale)."""
+    from dejaview.scene.model import Pose, SceneObject
+
+    parts = []
+    for p in robot_pieces(scene, obj):
+        if p.kind == "mesh" and p.scale != 1.0:
+            continue
+        parts.append(SceneObject(id=p.name, pose=Pose(p.position, p.orientation), fixed=True,
+                                 shape=None if p.kind == "mesh" else p.kind,
+                                 mesh=None if p.mesh is None else str(p.mesh), size=p.size, radius=p.radius,
+                                 height=p.height, friction=obj.friction, restitution=obj.restitution,
+                                 line=obj.line))
+    return parts
