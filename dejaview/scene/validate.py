@@ -458,8 +458,14 @@ class _Checker:
                 self.report(pkey, f"'between' needs two object ids, got {len(pen.between)}")
             else:
                 a, b = pen.between
-                missing = [x for x in (a, b) if x not in ids]
-                if missing:
+                robots = {k for k, o in ids.items() if getattr(o, "robot", None) is not None}
+                missing = [x for x in (a, b) if x not in ids and not (isinstance(x, str) and "/" in x
+                                                                       and x.split("/", 1)[0] in robots)]
+                whole = [x for x in (a, b) if x in robots]
+                if whole:
+                    self.report(pkey, f"'between' names robot {whole[0]!r}: name one of its links "
+                                      f"('{whole[0]}/LINK', e.g. the link it should touch)")
+                elif missing:
                     self.report(pkey, "'between' names unknown object "
                                       + ", ".join(repr(x) for x in missing))
                 elif a == b:

@@ -104,3 +104,13 @@ def test_validate_names_an_object_inside_a_link(tmp_path):
     path.write_text(scene_text(f'urdf="{ARM}" joints="0 0 0" fixed="true"').replace("0.5 0 0.8", "0.55 0 0.4"))
     result = CliRunner().invoke(cli, ["validate", str(path)])
     assert result.exit_code == 2 and "'arm/forearm' and 'ball' interpenetrate" in result.output, result.output
+
+
+def test_a_penalty_names_a_link_of_a_robot_not_the_robot(tmp_path):
+    base = scene_text(f'urdf="{ARM}" joints="0 0 0" fixed="true"')
+    inference = ('<inference source="ball"><target position="0.5 0 0.45"/>'
+                 '<penalty between="ball {}"/></inference></scene>')
+    scene = read(tmp_path, base.replace("</scene>", inference.format("arm/forearm")))
+    assert scene.inference.penalties[0].between == ("ball", "arm/forearm")
+    with pytest.raises(SceneError, match="'between' names robot 'arm': name one of its links"):
+        read(tmp_path, base.replace("</scene>", inference.format("arm")))
