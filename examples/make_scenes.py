@@ -153,6 +153,25 @@ def box_among_boxes():
     return with_truth(scene, truth, guess)
 
 
+def box_hits_arm():
+    """A box thrown at a robot arm standing in a known pose (joints from its controller): it hits the
+    forearm, flies over and lands behind. Where was it thrown from?"""
+    arm = SceneObject(id="arm", urdf="../robots/arm.urdf", joints=(0.0, 0.35, -0.35), fixed=True)
+    truth = movable("box", "box", (0.45, -0.5, 0.6), linear=(0.3, 1.6, 0.8), angular=(0.5, 1.0, 0.3),
+                    mass=0.8)
+    guess = movable("box", "box", (0.45, -0.55, 0.6), linear=(0.0, 1.0, 0.0), mass=0.8)
+    scene = Scene(
+        name="box-hits-arm",
+        objects=(floor(), arm, truth),
+        simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.1),
+        inference=InferenceSettings(
+            source="box", target=Target((0, 0, 0)),
+            loss="pose", evaluate="best",
+            start_area=StartArea((0.2, -0.75, 0.6), (0.7, -0.35, 0.6)),
+            heatmap=HeatmapSettings(cells=(6, 4), samples=2, sigma=0.02)))
+    return with_truth(scene, truth, guess)
+
+
 RAMP_ANGLE = math.radians(20.0)
 
 
@@ -211,6 +230,7 @@ BUILDERS = {
     "mug_off_counter": mug_off_counter,
     "box_along_shelf": box_along_shelf,
     "box_among_boxes": box_among_boxes,
+    "box_hits_arm": box_hits_arm,
     "ball_down_ramp": ball_down_ramp,
     "box_down_ramp": box_down_ramp,
 }

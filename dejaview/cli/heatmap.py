@@ -40,9 +40,12 @@ def _cells(ctx, param, value):
               help="candidates per batched optimisation")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="processes optimising chunks at once (default: the CPU count, at most 2)")
+@click.option("--ray", "ray", envvar="DEJAVIEW_RAY_ADDRESS", default=None, metavar="ADDRESS",
+              help="optimise the chunks on Ray: 'local' (an instance in this process) or a cluster address "
+                   "(docs/scale.md; default $DEJAVIEW_RAY_ADDRESS); needs pip install 'dejaview[ray]'")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
-def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, no_plot, backend, engine,
+def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, no_plot, backend, engine,
             iterations, optimizer, gradient, seed, quiet):
     """Which cells of SCENE's start area could its source have started from? Writes
     heatmap.ppm, heatmap.png, heatmap.json, result.json and trajectory.csv (best solution) to DIR."""
@@ -57,6 +60,10 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
         raise click.ClickException(f"{scene}: the scene has no <inference> section")
     hs = sc.inference.heatmap
     nx, ny = cells or (hs.cells if hs is not None else (16, 16))
+    if ray:  # one worker per CPU of the cluster (local: of this machine) unless told
+        from dejaview.parallel import ray_cpus
+
+        workers = workers or ray_cpus(ray)
     workers = workers or max(1, min(os.cpu_count() or 1, 2))
     bar = tqdm(total=nx * ny, desc="heatmap", unit="cell", disable=not show_progress(quiet))
 
@@ -68,7 +75,7 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
                              batch_size=batch_size, workers=workers, callback=progress, backend=backend,
-                             engine=engine, method=method)
+                             engine=engine, method=method, ray=ray or None)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)

@@ -67,8 +67,17 @@ def _interpenetrations(scene, path: str, margin: float) -> list[str]:
     out = []
     for a, b, depth in pairs:
         # the line of the movable one: that is the pose to fix
-        obj = scene.object(b) if scene.object(a).fixed else scene.object(a)
+        fixed_a = _object(scene, a).fixed
+        obj = _object(scene, b) if fixed_a else _object(scene, a)
         where = f"{path}:{obj.line}" if obj.line is not None else path
         out.append(f"{where}: <object> {a!r} and {b!r} interpenetrate by {depth:.4f} m "
                    f"(more than the {margin:g} m accepted as resting contact)")
     return out
+
+
+def _object(scene, name: str):
+    """The scene object ``name``, or the robot a link ``robot-id/link`` belongs to."""
+    try:
+        return scene.object(name)
+    except KeyError:
+        return scene.object(name.split("/", 1)[0])

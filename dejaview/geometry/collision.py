@@ -342,8 +342,9 @@ class SceneCollision:
 
     Every object is placed at its ``<pose>``; :meth:`penetration` moves one
     object to candidate poses, :meth:`interpenetrations` checks the poses as
-    given. Objects whose geometry is not a plane, box, sphere, cylinder or
-    mesh are left out.
+    given. A robot (``urdf``/``mjcf``) takes part link by link, as fixed
+    objects named ``robot-id/link``. Objects whose geometry is not a plane, box,
+    sphere, cylinder or mesh are left out.
 
     Args:
         scene: a validated ``dejaview.scene.Scene`` (mesh files must exist).
@@ -355,15 +356,18 @@ class SceneCollision:
     def __init__(self, scene):
         import fcl
 
+        from dejaview.geometry.robot import link_objects
+
         self.scene = scene
         self._bodies: dict[str, _Body] = {}
         for obj in scene.objects:
-            try:
-                body = _body_from_object(scene, obj)
-            except GeometryError as exc:
-                raise GeometryError(f"object {obj.id!r}: {exc}") from exc
-            if body is not None:
-                self._bodies[obj.id] = body
+            for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
+                try:
+                    body = _body_from_object(scene, part)
+                except GeometryError as exc:
+                    raise GeometryError(f"object {part.id!r}: {exc}") from exc
+                if body is not None:
+                    self._bodies[part.id] = body
         self._request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
         self._boolean_request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=False)
         self._exact_request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)

@@ -81,15 +81,15 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
                     callback=None, should_stop=None, problem=None, backend: str = "spheres",
-                    engine: str = "auto", method: str | None = None) -> HeatmapResult:
+                    engine: str = "auto", method: str | None = None, ray: str | None = None) -> HeatmapResult:
     """Start-position heatmap of a scene's source.
 
-    ``method="posterior"`` (the default where the spheres backend runs and no local optimiser is
-    named; ``dejaview.heatmap.posterior.choose_method``) samples the posterior and histograms the
-    samples' start positions (``dejaview.heatmap.posterior``): the cells' probabilities are the
-    posterior's marginal. Of the arguments below it takes cells, samples (per cell), sigma (the
-    observation's), iterations and seed (the search's), callback, should_stop, problem, engine.
-    ``method="basins"`` runs the per-cell optimisations of this module's docstring.
+    ``method="posterior"`` (the default where the spheres backend runs, no local optimiser is
+    named and no ``ray``; ``dejaview.heatmap.posterior.choose_method``) samples the posterior and
+    histograms the samples' start positions (``dejaview.heatmap.posterior``): the cells'
+    probabilities are the posterior's marginal. Of the arguments below it takes cells, samples (per
+    cell), sigma (the observation's), iterations and seed (the search's), callback, should_stop,
+    problem, engine. ``method="basins"`` runs the per-cell optimisations of this module's docstring.
 
     The steps: the settings (``_settings``), the problem (``_with_problem``), every chunk's
     first guesses (``_first_guesses``), the batched optimisations (``_optimise_chunks``), the
@@ -122,6 +122,9 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         engine: the spheres backend's simulation engine (``InferenceProblem.engine``); ignored
             with ``problem``.
         method: ``posterior`` | ``basins`` | None (above).
+        ray: optimise the chunks on Ray (``dejaview.parallel``): ``"local"`` or a cluster address,
+            ``workers`` actors; each builds the problem from the scene. Same results as in processes.
+            Basins method only (a ``ray`` given picks it).
     Returns:
         HeatmapResult.
     Raises:
@@ -130,7 +133,12 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     from dejaview.heatmap.posterior import choose_method, posterior_heatmap
     from dejaview.heatmap.weighting import deduplicate
 
+    if ray is not None and method is None:
+        method = "basins"  # Ray distributes the per-cell optimisations' chunks
     if choose_method(method, optimizer, backend if problem is None else problem.backend) == "posterior":
+        if ray is not None:
+            raise InferenceError("ray distributes the basins heatmap's chunks; the posterior heatmap runs "
+                                 "in this process: drop ray or use method basins")
         for name, value in (("lr", lr), ("gradient", gradient)):
             if value is not None:
                 raise InferenceError(f"{name} applies to the basins heatmap (per-cell optimisations), "
@@ -141,7 +149,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     t_start = time.perf_counter()
     run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
                     radii, directions)
-    run = _with_problem(run, problem, backend, engine, gradient, lr)
+    run = replace(_with_problem(run, problem, backend, engine, gradient, lr), ray=ray)
     gen = torch.Generator().manual_seed(int(run.seed))
     guesses = _first_guesses(run, gen)
     results, history, state = _optimise_chunks(run, guesses, engine, callback, should_stop, t_start)
@@ -186,6 +194,7 @@ class _Run:
     problem: object = None
     gradient: str | None = None
     lr: float | None = None
+    ray: str | None = None
 
     @property
     def num_cells(self) -> int:
@@ -297,7 +306,7 @@ def _first_guesses(run: _Run, gen: torch.Generator) -> list[tuple[torch.Tensor, 
 
 def _optimise_chunks(run: _Run, guesses: list, engine: str, callback, should_stop,
                      t_start: float) -> tuple[list, list, dict]:
-    """Optimise every chunk (in this process or in ``run.workers`` processes), reporting progress.
+    """Optimise every chunk (in this process, in ``run.workers`` processes or on Ray), reporting progress.
 
     Returns:
         (per chunk (candidate_x (K, P), candidate_loss (K,), stopped), history (one ``Progress``
@@ -322,10 +331,10 @@ def _optimise_chunks(run: _Run, guesses: list, engine: str, callback, should_sto
     opts = dict(optimizer=run.optimizer, iterations=run.iterations, gradient=run.gradient, lr=run.lr,
                 seed=run.seed)
     problem = run.problem
-    if run.workers > 1 and len(chunks) > 1:
+    if run.ray is not None or (run.workers > 1 and len(chunks) > 1):
         results = _chunks_in_processes(run.scene, problem.backend, getattr(problem, "engine", engine),
                                        guesses, opts, run.workers, progress, should_stop,
-                                       state, chunks)
+                                       state, chunks, run.ray)
     else:
         results = []
         for ci, (idx, chunk_layout, x0) in enumerate(guesses):
@@ -460,9 +469,6 @@ def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, sho
     return opt.candidate_x, opt.candidate_loss, opt.stopped
 
 
-_WORKER: dict = {}
-
-
 def _engine_option(backend: str, engine: str) -> dict:
     """``make_problem`` options for ``engine`` (the spheres backend's; the default elsewhere)."""
     if backend == "spheres":
@@ -472,58 +478,36 @@ def _engine_option(backend: str, engine: str) -> dict:
     return {}
 
 
-def _worker_init(scene, backend: str, engine: str) -> None:
-    """Process-pool initialiser: one thread (torch's and the native simulator's), the scene's
-    problem built once per process."""
+def _worker_init(scene, backend: str, engine: str):
+    """A worker's setup (``dejaview.parallel``): one thread (torch's and the native simulator's),
+    the scene's problem built once per worker."""
     import os
 
     torch.set_num_threads(1)
     os.environ["DEJAVIEW_NATIVE_THREADS"] = "1"
     from dejaview.backends import make_problem
 
-    _WORKER["problem"] = make_problem(scene, backend, **_engine_option(backend, engine))
+    return make_problem(scene, backend, **_engine_option(backend, engine))
 
 
-def _worker_chunk(ci: int, lo: torch.Tensor, hi: torch.Tensor, x0: torch.Tensor, opts: dict, queue, stop):
-    problem = _WORKER["problem"]
+def _worker_chunk(problem, item, report, stopped):
+    ci, lo, hi, x0, opts = item
     chunk = with_layout(problem, replace(problem.layout, lo=lo, hi=hi))
-    return optimise_chunk(chunk, x0, ci, opts, lambda p: queue.put((ci, p)), stop.is_set)
+    return optimise_chunk(chunk, x0, ci, opts, report, stopped)
 
 
 def _chunks_in_processes(scene, backend, engine, guesses, opts, workers, progress, should_stop, state,
-                         chunks):
-    """Optimise the chunks in a pool of ``workers`` processes (spawned; each builds the problem from the
-    scene once); progress comes back through a queue and is reported from this thread."""
-    import multiprocessing
-    import queue as queue_mod
-    from concurrent.futures import ProcessPoolExecutor
+                         chunks, ray=None):
+    """Optimise the chunks in ``workers`` spawned processes or Ray actors (``dejaview.parallel``; each
+    builds the problem from the scene once); progress is reported from this thread."""
+    from dejaview.parallel import map_chunks
 
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Manager() as manager:
-        q, stop = manager.Queue(), manager.Event()
-        with ProcessPoolExecutor(max_workers=min(workers, len(guesses)), mp_context=ctx,
-                                 initializer=_worker_init, initargs=(scene, backend, engine)) as pool:
-            futures = [pool.submit(_worker_chunk, ci, layout.lo, layout.hi, x0, opts, q, stop)
-                       for ci, (_, layout, x0) in enumerate(guesses)]
-            pending = set(range(len(futures)))
-            while pending:
-                try:
-                    ci, p = q.get(timeout=0.1)
-                    progress(ci, p)
-                except queue_mod.Empty:
-                    pass
-                if should_stop is not None and should_stop():
-                    stop.set()
-                for ci in [c for c in pending if futures[c].done()]:
-                    pending.discard(ci)
-                    futures[ci].result()  # raise a worker's error here
-                    state["cells_done"] += len(chunks[ci])
-            while True:  # the last progress messages
-                try:
-                    progress(*q.get_nowait())
-                except queue_mod.Empty:
-                    break
-            return [f.result() for f in futures]
+    def done(ci, _result):
+        state["cells_done"] += len(chunks[ci])
+
+    items = [(ci, layout.lo, layout.hi, x0, opts) for ci, (_, layout, x0) in enumerate(guesses)]
+    return map_chunks(_worker_chunk, items, setup=_worker_init, setup_args=(scene, backend, engine),
+                      workers=workers, ray=ray, on_report=progress, on_done=done, should_stop=should_stop)
 
 
 def with_layout(problem, layout):

@@ -281,9 +281,13 @@ def export_mjcf(scene, state: dict | None = None) -> str:
     world, qpos, qvel = [], [], []
     for obj in scene.objects:
         if obj.fixed:
-            for geom in _geom(scene, obj, assets):
-                world.append(geom.replace("<geom ", f'<geom pos="{_vec(obj.pose.position)}" '
-                                                    f'quat="{_vec(obj.pose.orientation)}" ', 1))
+            from dejaview.geometry.robot import link_objects
+
+            # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
+            for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
+                for geom in _geom(scene, part, assets):
+                    world.append(geom.replace("<geom ", f'<geom pos="{_vec(part.pose.position)}" '
+                                                        f'quat="{_vec(part.pose.orientation)}" ', 1))
             continue
         s = states[obj.id]
         props = _mass_properties(scene, obj)

@@ -46,9 +46,11 @@ class Velocity:
 class SceneObject:
     """One rigid body of the scene.
 
-    Geometry is either a primitive (``shape`` with ``size``/``radius``/``height``)
-    or a mesh file (``mesh``). ``mesh`` and ``spheres`` are kept as written in
-    the file; ``Scene.resolve`` turns them into paths.
+    Geometry is either a primitive (``shape`` with ``size``/``radius``/``height``),
+    a mesh file (``mesh``) or a fixed robot (``urdf`` or ``mjcf``, posed by forward
+    kinematics at the ``joints`` values, radians or metres in the order of the
+    model's movable joints). File names are kept as written in the file;
+    ``Scene.resolve`` turns them into paths.
     """
 
     id: str
@@ -65,12 +67,26 @@ class SceneObject:
     density: float | None = None
     friction: float | None = None
     restitution: float | None = None
+    urdf: str | None = None
+    mjcf: str | None = None
+    joints: tuple[float, ...] | None = None
     line: int | None = field(default=None, compare=False, repr=False)
 
     @property
     def geometry_kind(self) -> str:
-        """``"mesh"`` or the primitive's shape name."""
-        return "mesh" if self.mesh is not None else str(self.shape)
+        """``"mesh"``, ``"urdf"``, ``"mjcf"`` or the primitive's shape name."""
+        if self.mesh is not None:
+            return "mesh"
+        if self.urdf is not None:
+            return "urdf"
+        if self.mjcf is not None:
+            return "mjcf"
+        return str(self.shape)
+
+    @property
+    def robot(self) -> str | None:
+        """The robot model file (``urdf`` or ``mjcf``) as written, or None."""
+        return self.urdf if self.urdf is not None else self.mjcf
 
 
 @dataclass(frozen=True)
@@ -285,7 +301,7 @@ class Scene:
         return tuple(o for o in self.objects if o.fixed)
 
     def resolve(self, name: str | None) -> Path | None:
-        """Resolve a file name from the scene (mesh, spheres) against ``base_dir``."""
+        """Resolve a file name from the scene (mesh, spheres, urdf, mjcf) against ``base_dir``."""
         if name is None:
             return None
         p = Path(name)

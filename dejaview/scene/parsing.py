@@ -54,8 +54,9 @@ def _make_parser() -> etree.XMLParser:
 
 
 def parse_xml(text: str | bytes, filename: str = "<string>",
-              max_bytes: int = DEFAULT_MAX_BYTES) -> etree._Element:
-    """Parse scene XML safely and return its root element (no schema check).
+              max_bytes: int = DEFAULT_MAX_BYTES, what: str = "scene files") -> etree._Element:
+    """Parse scene XML (or other untrusted XML: ``what`` names it in errors) safely and return
+    its root element (no schema check).
 
     Refuses documents over ``max_bytes``, empty documents, any DOCTYPE or
     ENTITY declaration (never expanded, never fetched) and malformed XML.
@@ -73,7 +74,7 @@ def parse_xml(text: str | bytes, filename: str = "<string>",
         kind = match.group(1).decode("ascii").upper()
         line = data.count(b"\n", 0, match.start()) + 1
         raise SceneError(
-            f"{kind} declarations are not allowed in scene files "
+            f"{kind} declarations are not allowed in {what} "
             "(entities and DTDs are refused, never expanded or fetched)",
             filename, line, "!" + kind)
     try:
@@ -85,7 +86,7 @@ def parse_xml(text: str | bytes, filename: str = "<string>",
     # Defence in depth: the byte scan above should make this unreachable.
     docinfo = root.getroottree().docinfo
     if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
-        raise SceneError("DOCTYPE declarations are not allowed in scene files",
+        raise SceneError(f"DOCTYPE declarations are not allowed in {what}",
                          filename, 1, "!DOCTYPE")
     return root
 

@@ -273,15 +273,21 @@ class _Checker:
         else:
             first_line[obj.id] = self.line(key)
 
-        # geometry: exactly one of shape and mesh
-        if obj.shape is not None and obj.mesh is not None:
-            self.report(key, f"object {obj.id!r} has both shape and mesh; give one geometry")
-        elif obj.shape is None and obj.mesh is None:
-            self.report(key, f"object {obj.id!r} has no geometry; give shape=... or mesh=...")
+        # geometry: exactly one of shape, mesh, urdf and mjcf
+        given = [name for name in ("shape", "mesh", "urdf", "mjcf") if getattr(obj, name, None) is not None]
+        if len(given) > 1:
+            both = f"both {given[0]} and {given[1]}" if len(given) == 2 else ", ".join(given[:-1]) + f" and {given[-1]}"
+            self.report(key, f"object {obj.id!r} has {both}; give one geometry")
+        elif not given:
+            self.report(key, f"object {obj.id!r} has no geometry; give shape=..., mesh=..., urdf=... or mjcf=...")
         elif obj.shape is not None:
             self.primitive(key, obj)
-        else:
+        elif obj.mesh is not None:
             self.mesh(key, obj)
+        else:
+            self.robot(key, obj)
+        if obj.joints is not None and obj.urdf is None and obj.mjcf is None:
+            self.report(key, "'joints' applies to a robot only (urdf=... or mjcf=...)")
         if obj.spheres is not None:
             self.file_exists(key, "spheres", obj.spheres)
 
@@ -360,6 +366,45 @@ class _Checker:
             return
         self.file_exists(key, "mesh", obj.mesh)
 
+    def robot(self, key, obj: SceneObject) -> None:
+        """A URDF or MJCF robot: fixed, no size or mass, its file readable, one value per movable
+        joint and each inside its limits, the meshes it names present."""
+        kind = "urdf" if obj.urdf is not None else "mjcf"
+        for name in ("size", "radius", "height", "spheres", "mass", "density"):
+            if getattr(obj, name) is not None:
+                self.report(key, f"'{name}' does not apply to a robot (its {kind.upper()} file gives the geometry)")
+        if obj.fixed is not True:
+            self.report(key, f"robot {obj.id!r} must be fixed (add fixed=\"true\"): its links are static "
+                             "geometry posed by 'joints'")
+        if obj.joints is not None:
+            for q in obj.joints:
+                if not self.number(key, "joints", q, limit=B.MAX_LENGTH):
+                    return
+        value = obj.robot
+        if not isinstance(value, str) or not value.strip():
+            self.report(key, f"'{kind}' names no file")
+            return
+        before = len(self.problems)
+        self.file_exists(key, kind, value)
+        if not self.check_files or len(self.problems) > before:
+            return
+        from dejaview.geometry.robot import joint_problems, robot_model
+
+        try:
+            model = robot_model(self.scene, obj)
+        except SceneError as exc:
+            self.report(key, f"{kind} {value!r}: {exc}")
+            return
+        for reason in joint_problems(model, obj.joints):
+            self.report(key, f"robot {obj.id!r}: {reason}")
+        for path in model.files:
+            try:
+                ok = Path(path).is_file()
+            except (OSError, ValueError):
+                ok = False
+            if not ok:
+                self.report(key, f"robot {obj.id!r}: mesh file {str(path)!r} named by {value!r} not found")
+
     def inference(self) -> None:
         inf = self.scene.inference
         key = ("inference",)
@@ -413,8 +458,14 @@ class _Checker:
                 self.report(pkey, f"'between' needs two object ids, got {len(pen.between)}")
             else:
                 a, b = pen.between
-                missing = [x for x in (a, b) if x not in ids]
-                if missing:
+                robots = {k for k, o in ids.items() if getattr(o, "robot", None) is not None}
+                missing = [x for x in (a, b) if x not in ids and not (isinstance(x, str) and "/" in x
+                                                                       and x.split("/", 1)[0] in robots)]
+                whole = [x for x in (a, b) if x in robots]
+                if whole:
+                    self.report(pkey, f"'between' names robot {whole[0]!r}: name one of its links "
+                                      f"('{whole[0]}/LINK', e.g. the link it should touch)")
+                elif missing:
                     self.report(pkey, "'between' names unknown object "
                                       + ", ".join(repr(x) for x in missing))
                 elif a == b:

@@ -249,6 +249,13 @@ class _SceneReader:
             raise self.error(el, f"attribute '{name}' needs {n} numbers, got {len(tokens)}")
         return tuple(self.number(el, name, t) for t in tokens)
 
+    def floats_attr(self, el, name: str, default=None):
+        """Any number (zero included) of whitespace-separated numbers, as a tuple."""
+        raw = el.get(name)
+        if raw is None:
+            return default
+        return tuple(self.number(el, name, t) for t in raw.split())
+
     def quat_attr(self, el, name: str, default=None):
         q = self.vector_attr(el, name, 4)
         if q is None:
@@ -354,6 +361,9 @@ class _SceneReader:
             density=self.float_attr(el, "density"),
             friction=self.float_attr(el, "friction"),
             restitution=self.float_attr(el, "restitution"),
+            urdf=el.get("urdf"),
+            mjcf=el.get("mjcf"),
+            joints=self.floats_attr(el, "joints"),
             line=el.sourceline,
         )
 
@@ -511,6 +521,12 @@ def _object_element(obj: SceneObject) -> etree._Element:
         el.set("mesh", obj.mesh)
     if obj.spheres is not None:
         el.set("spheres", obj.spheres)
+    if obj.urdf is not None:
+        el.set("urdf", obj.urdf)
+    if obj.mjcf is not None:
+        el.set("mjcf", obj.mjcf)
+    if obj.joints is not None:
+        el.set("joints", _v(obj.joints))
     if obj.fixed:
         el.set("fixed", "true")
     for name in ("mass", "density", "friction", "restitution"):

@@ -1,8 +1,8 @@
 """Scenes a client may run: XML text or a file inside the scene root, and nothing outside it.
 
 Every path is resolved (symlinks included) before it is used and must land
-inside the scene root: ``scene_path`` itself, and every ``mesh``/``spheres``
-file the scene names, whether the scene came as text (relative names resolve
+inside the scene root: ``scene_path`` itself, every ``mesh``/``spheres``/
+``urdf``/``mjcf`` file the scene names and every mesh a URDF names, whether the scene came as text (relative names resolve
 against the scene root) or as a file (they resolve against its folder, as
 everywhere else). Files outside the root are refused before anything checks
 whether they exist, so the server answers no questions about the rest of the
@@ -76,14 +76,16 @@ def resolve_scene_path(root: Path, name: str) -> Path:
 
 
 def check_files(scene, root: Path, filename: str) -> None:
-    """Every mesh and sphere file of ``scene`` must resolve inside ``root`` and exist.
+    """Every mesh, sphere, URDF and MJCF file of ``scene``, and every mesh a URDF names, must resolve
+    inside ``root`` and exist; then a robot's file is read (hardened XML: no DTD, no entities) and
+    its joints checked.
 
     Raises:
         ServiceError: ``path_outside_root``.
-        SceneError: a file inside the root that does not exist.
+        SceneError: a file inside the root that does not exist, a robot file or joints that do not fit.
     """
     for obj in scene.objects:
-        for attr in ("mesh", "spheres"):
+        for attr in ("mesh", "spheres", "urdf", "mjcf"):
             name = getattr(obj, attr)
             if name is None:
                 continue
@@ -95,6 +97,40 @@ def check_files(scene, root: Path, filename: str) -> None:
             if not path.resolve().is_file():
                 raise SceneError(f"{attr} file {name!r} not found in the scene root", filename,
                                  obj.line, "object")
+        if getattr(obj, "robot", None) is not None:
+            _check_robot(scene, obj, root, filename)
+
+
+def _check_robot(scene, obj, root: Path, filename: str) -> None:
+    """A robot's file read, the meshes it names inside ``root`` and present, its joints in limits."""
+    from dejaview.geometry.robot import joint_problems, robot_model
+
+    try:
+        model = robot_model(scene, obj)
+    except SceneError as exc:  # located in the robot file, shown relative to the root
+        where = _shown(Path(exc.file), root) if exc.file else obj.robot
+        where += f":{exc.line}" if exc.line else ""
+        element = f" <{exc.element}>" if exc.element else ""
+        raise SceneError(f"object {obj.id!r}: {where}:{element} {exc.reason}", filename, obj.line,
+                         "object") from None
+    for path in model.files:
+        if not inside(path, root):
+            raise ServiceError("path_outside_root", f"{filename}: object {obj.id!r}: {obj.robot!r} names mesh "
+                                                    f"{_shown(path, root)!r}, which leads outside the scene root")
+        if not path.resolve().is_file():
+            raise SceneError(f"mesh file {_shown(path, root)!r} named by {obj.robot!r} not found in the scene root",
+                             filename, obj.line, "object")
+    problems = joint_problems(model, obj.joints)
+    if problems:
+        raise SceneError(f"robot {obj.id!r}: {problems[0]}", filename, obj.line, "object")
+
+
+def _shown(path: Path, root: Path) -> str:
+    """A path as a client may see it: relative to the root where it is inside, else its name only."""
+    try:
+        return Path(os.path.normpath(Path(path).absolute())).relative_to(root).as_posix()
+    except ValueError:
+        return Path(path).name
 
 
 def read_scene_input(root: Path, *, scene_xml: str | None = None, scene_path: str | None = None,

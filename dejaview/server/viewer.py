@@ -67,6 +67,41 @@ def list_scenes(root: Path, limit: int = MAX_LISTED) -> list[str]:
     return sorted(found)
 
 
+def robot_link_geometry(root: Path, path: str, object_id: str) -> dict:
+    """The collision geometry of robot ``object_id`` of the scene file ``path`` (inside ``root``), posed
+    by forward kinematics in the robot's frame (its ``<pose>`` places the whole), for the viewer:
+    ``{"object": id, "links": [{"name", "link", "shape", "size", "radius", "height", "mesh", "scale",
+    "position", "orientation"}, ...]}``; ``mesh`` relative to the root (served by ``/files``).
+
+    Raises:
+        ServiceError: the scene's checks (``dejaview.server.scenes``: files inside the root, the robot
+            file read safely), ``not_found`` for an object that is not a robot of the scene.
+    """
+    from dataclasses import replace
+
+    from dejaview.errors import SceneError
+    from dejaview.geometry.robot import robot_pieces
+    from dejaview.scene.model import Pose
+    from dejaview.scene.xml import DEFAULT_MAX_BYTES
+    from dejaview.server.scenes import read_scene_input
+
+    scene = read_scene_input(root, scene_path=path, max_bytes=DEFAULT_MAX_BYTES).scene
+    obj = next((o for o in scene.objects if o.id == object_id), None)
+    if obj is None or obj.robot is None:
+        raise ServiceError("not_found", f"{path!r} has no robot {object_id!r}", 404)
+    try:
+        pieces = robot_pieces(scene, replace(obj, pose=Pose()))
+    except SceneError as exc:
+        raise ServiceError("invalid_scene", f"{path}: {exc.reason}", 422) from None
+    links = []
+    for p in pieces:
+        mesh = None if p.mesh is None else p.mesh.resolve().relative_to(root).as_posix()
+        links.append({"name": p.name, "link": p.link, "shape": p.kind, "size": p.size, "radius": p.radius,
+                      "height": p.height, "mesh": mesh, "scale": p.scale, "position": list(p.position),
+                      "orientation": list(p.orientation)})
+    return {"object": obj.id, "links": links}
+
+
 def index_page(token: str | None) -> str:
     """``index.html``; with a token, its stylesheet and script URLs carry ``?token=`` so the
     browser can load them from a server that requires one (the page itself was opened as
@@ -115,6 +150,11 @@ def add_viewer_routes(app: FastAPI, root: Path, token: str | None = None) -> Non
         if resolved.suffix.lower() not in SERVED_SUFFIXES:  # a link to some other kind of file
             raise ServiceError("not_found", f"{path!r}: no such file in the scene root", 404)
         return FileResponse(resolved, media_type=SERVED_SUFFIXES[suffix])
+
+    @app.get("/robot-links/{path:path}", summary="A robot's link geometry in a scene of the scene root "
+                                                 "(for the web viewer)")
+    def robot_links(path: str, object: str):
+        return robot_link_geometry(root, path, object)
 
     if STATIC_DIR.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")

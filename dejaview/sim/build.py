@@ -4,7 +4,8 @@ Movable objects become rigid bodies: mass properties from their mesh (or the
 closed forms of their primitive) and a sphere packing (the scene's
 ``spheres=`` file, else one built and cached beside the mesh). Fixed objects
 become static shapes: analytic signed distances for primitives, a sampled
-grid (built from the mesh and cached) for meshes.
+grid (built from the mesh and cached) for meshes; a robot (``urdf``/``mjcf``)
+one static shape per link collision geometry.
 
 Backend-specific ``<simulation>`` attributes read here:
 ``substeps`` (int, default 2), ``contact-frequency`` (rad/s, default
@@ -111,6 +112,40 @@ def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:
                             grid_spacing=grid.spacing, **common)
 
 
+def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShape]:
+    """Static shapes of a fixed robot object (``urdf``/``mjcf``): one per link collision geometry,
+    posed by forward kinematics (``dejaview.geometry.robot``) and named ``robot-id/link``; meshes
+    as signed distance grids (a uniform ``scale`` scales the grid)."""
+    from dejaview.geometry.robot import robot_pieces
+
+    sim = scene.simulation
+    material = dict(friction=sim.friction if obj.friction is None else obj.friction,
+                    restitution=sim.restitution if obj.restitution is None else obj.restitution)
+    statics = []
+    for p in robot_pieces(scene, obj):
+        common = dict(position=p.position, orientation=p.orientation, **material)
+        if p.kind == "plane":
+            statics.append(StaticShape.make(p.name, "plane", **common))
+        elif p.kind == "box":
+            statics.append(StaticShape.make(p.name, "box", half=0.5 * np.asarray(p.size), **common))
+        elif p.kind == "sphere":
+            statics.append(StaticShape.make(p.name, "sphere", radius=p.radius, **common))
+        elif p.kind == "cylinder":
+            statics.append(StaticShape.make(p.name, "cylinder", radius=p.radius, half_height=0.5 * p.height,
+                                            **common))
+        else:
+            from dejaview.geometry.sdf import load_or_build_sdf
+
+            try:  # the grid is built in the mesh's units at spacing / scale, then scaled
+                grid = load_or_build_sdf(p.mesh, spacing=sdf_spacing / p.scale, padding=0.1 / p.scale)
+            except GeometryError as exc:
+                raise SceneError(f"object {obj.id!r}: link {p.link!r}: {exc}", **_where(scene, obj)) from exc
+            statics.append(StaticShape.make(p.name, "grid", grid=p.scale * np.asarray(grid.values),
+                                            grid_origin=p.scale * np.asarray(grid.origin),
+                                            grid_spacing=p.scale * grid.spacing, **common))
+    return statics
+
+
 def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                      max_spheres: int = 256, sdf_spacing: float | None = None,
                      progress=None, max_steps: int | None = None) -> World:
@@ -133,7 +168,10 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
     say = progress or (lambda _msg: None)
     bodies, statics = [], []
     for obj in scene.objects:
-        if obj.fixed:
+        if obj.fixed and obj.robot is not None:
+            say(f"robot {obj.id}")
+            statics.extend(statics_from_robot(scene, obj, spacing))
+        elif obj.fixed:
             say(f"static {obj.id}")
             statics.append(static_from_object(scene, obj, spacing))
         else:

@@ -104,3 +104,64 @@ def test_job_limits(scene_root, tmp_path):
         with pytest.raises(ServiceError) as info:
             check_job(kind, drop, {}, config)
         assert info.value.code == "invalid_scene" and "no <inference>" in info.value.message
+
+
+def robot_scene(urdf: str, joints: str = "0 0.3 -0.3") -> str:
+    return f"""<scene version="1"><simulation dt="0.01" duration="0.05"/>
+      <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+      <object id="arm" urdf="{urdf}" joints="{joints}" fixed="true"><pose position="0 0 0"/></object>
+      <object id="ball" shape="sphere" radius="0.03" mass="0.1"><pose position="0.5 0 0.6"/></object></scene>"""
+
+
+def urdf_with_mesh(mesh: str) -> str:
+    return f"""<robot name="r"><link name="base"><collision><geometry>
+      <mesh filename="{mesh}"/></geometry></collision></link>
+      <link name="arm"><collision><geometry><box size="0.1 0.1 0.1"/></geometry></collision></link>
+      <joint name="j" type="revolute"><parent link="base"/><child link="arm"/>
+      <limit lower="-1" upper="1"/></joint></robot>"""
+
+
+def test_robot_files_and_the_meshes_they_name_stay_inside_the_root(scene_root, tmp_path):
+    root = scene_root.resolve()
+    (root / "robots").mkdir(exist_ok=True)
+    (root / "robots" / "ok.urdf").write_text(urdf_with_mesh("../meshes/cube.obj"))
+    got = read(root, scene_xml=robot_scene("robots/ok.urdf", joints="0.5"))
+    assert got.scene.object("arm").joints == (0.5,)
+    # a URDF outside the root, and a URDF inside that names a mesh outside (relative, absolute, symlink)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "secret.obj").write_text("v 0 0 0\n")
+    (outside / "arm.urdf").write_text(urdf_with_mesh("secret.obj"))
+    (root / "robots" / "up.urdf").write_text(urdf_with_mesh("../../elsewhere/secret.obj"))
+    (root / "robots" / "abs.urdf").write_text(urdf_with_mesh(str(outside / "secret.obj")))
+    (root / "robots" / "link.obj").symlink_to(outside / "secret.obj")
+    (root / "robots" / "sym.urdf").write_text(urdf_with_mesh("link.obj"))
+    for urdf in (str(outside / "arm.urdf"), "../elsewhere/arm.urdf", "robots/up.urdf", "robots/abs.urdf",
+                 "robots/sym.urdf"):
+        with pytest.raises(ServiceError) as info:
+            read(root, scene_xml=robot_scene(urdf, joints="0"))
+        assert info.value.code == "path_outside_root", urdf
+        if urdf.startswith("robots/"):  # what the URDF names outside is not shown: nothing about the disk
+            assert str(outside) not in info.value.message and "elsewhere" not in info.value.message
+
+
+def test_hostile_or_wrong_robot_files_are_one_line_scene_errors(scene_root):
+    root = scene_root.resolve()
+    (root / "robots").mkdir(exist_ok=True)
+    (root / "robots" / "bomb.urdf").write_text(
+        '<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;">]>\n'
+        '<robot name="&b;"><link name="x"/></robot>')
+    (root / "robots" / "ext.urdf").write_text(
+        '<!DOCTYPE r SYSTEM "file:///etc/passwd"><robot name="r"><link name="x"/></robot>')
+    (root / "robots" / "ok.urdf").write_text(urdf_with_mesh("../meshes/cube.obj"))
+    cases = {"robots/bomb.urdf": "robots/bomb.urdf:2: <!DOCTYPE> DOCTYPE declarations are not allowed in URDF",
+             "robots/ext.urdf": "robots/ext.urdf:1: <!DOCTYPE> DOCTYPE declarations are not allowed in URDF",
+             "robots/ok.urdf": "'joints' needs 1 values, one per movable joint of ok.urdf (j), got 2"}
+    for urdf, reason in cases.items():
+        with pytest.raises(ServiceError) as info:
+            read(root, scene_xml=robot_scene(urdf, joints="0 0"))
+        assert info.value.code == "invalid_scene" and reason in info.value.message, info.value.message
+        assert "\n" not in info.value.message
+    with pytest.raises(ServiceError) as info:
+        read(root, scene_xml=robot_scene("robots/ok.urdf", joints="1.5"))
+    assert "joint 'j' = 1.5 rad is outside its limits [-1.0, 1.0] rad" in info.value.message

@@ -51,7 +51,7 @@ def test_the_viewer_is_served_at_the_root(client):
 
 
 def test_scenes_lists_scene_files_inside_the_root_only(client):
-    assert client.get("/scenes").json() == {"scenes": ["scenes/toss.xml"]}
+    assert client.get("/scenes").json() == {"scenes": ["scenes/arm.xml", "scenes/toss.xml"]}
 
 
 def test_files_serves_scenes_meshes_and_packings(client):
@@ -77,3 +77,18 @@ def test_files_refuses_everything_else(client, path, status, code):
 def test_unknown_routes_still_answer_json_404(client):
     response = client.get("/no/such/route")
     assert response.status_code == 404 and response.json()["code"] == "not_found"
+
+
+def test_robot_links_are_posed_by_the_server(client):
+    got = client.get("/robot-links/scenes/arm.xml", params={"object": "arm"})
+    assert got.status_code == 200, got.text
+    links = got.json()["links"]
+    assert [link["name"] for link in links] == ["arm/base", "arm/turret", "arm/upper_arm", "arm/forearm",
+                                                "arm/hand"]
+    assert links[0]["shape"] == "cylinder" and links[0]["position"] == pytest.approx([0, 0, 0.05])
+    assert links[4]["shape"] == "mesh" and links[4]["mesh"] == "meshes/cube.obj"  # served by /files
+    assert client.get("/files/" + links[4]["mesh"]).status_code == 200
+    missing = client.get("/robot-links/scenes/arm.xml", params={"object": "floor"})
+    assert missing.status_code == 404 and missing.json()["code"] == "not_found"
+    outside = client.get("/robot-links/linked/secret.xml", params={"object": "arm"})
+    assert outside.status_code == 400 and outside.json()["code"] == "path_outside_root"

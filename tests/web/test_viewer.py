@@ -158,3 +158,29 @@ def test_upload_a_scene_with_its_mesh_and_packing(page, web_server, web_root):
     page.check("#show-spheres")
     assert state(page)["packings"]["cube"]["visible"]
     assert not [n for n in s["notifications"] if n["kind"] == "error"]
+
+
+def test_robot_links_are_drawn(page, web_server, artifacts):
+    """A URDF robot: the server poses its links (forward kinematics), the viewer draws each of them,
+    the mesh hand included; the screen shows them (pixels change where the forearm is when the
+    robot is hidden)."""
+    import io
+
+    from PIL import Image
+
+    open_viewer(page, web_server)
+    loaded = load_scene(page, "scenes/arm.xml")
+    assert loaded["robotLinks"] == {"arm": ["arm/base", "arm/turret", "arm/upper_arm", "arm/forearm",
+                                            "arm/hand"]}
+    # the forearm's centre in the world (yaw 0.5, pitch 0.35, elbow -0.35: level, 0.15 m past the elbow)
+    reach = 0.4 * math.cos(0.35) + 0.15
+    centre = [reach * math.cos(0.5), reach * math.sin(0.5), 0.4 - 0.4 * math.sin(0.35)]
+    at = page.evaluate(f"window.dejaview.screenPoint('arm', {centre})")
+    shown = Image.open(io.BytesIO(page.screenshot(path=artifacts / "robot-arm.png"))).convert("RGB")
+    page.evaluate("window.dejaview.three.world.children.forEach(g => { "
+                  "if (g.userData.objectId === 'arm') g.visible = false; })")
+    page.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    hidden = Image.open(io.BytesIO(page.screenshot())).convert("RGB")
+    x, y = round(at["x"]), round(at["y"])
+    a, b = shown.getpixel((x, y)), hidden.getpixel((x, y))
+    assert sum(abs(p - q) for p, q in zip(a, b)) > 30, (a, b)

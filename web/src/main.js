@@ -168,6 +168,8 @@ async function buildObject(obj) {
   const mat = material(obj.id);
   if (obj.mesh) {
     node.visual = await loadMesh(fileUrl(obj.mesh), obj.mesh, mat);
+  } else if (obj.robot) {
+    node.visual = await loadRobot(obj, mat);
   } else {
     node.visual = new THREE.Mesh(primitiveGeometry(obj), mat);
   }
@@ -185,6 +187,34 @@ async function buildObject(obj) {
       notify(`${obj.id}: sphere packing ${obj.spheres}: ${err.message}`, 'error');
     }
   }
+}
+
+// A robot (urdf= or mjcf=): the server poses its links by forward kinematics (GET robot-links/SCENE),
+// in the robot's frame, so the object's group (its <pose>) carries them all.
+async function loadRobot(obj, mat) {
+  const group = new THREE.Group();
+  group.userData.robotLinks = [];
+  if (app.files || !app.model.origin) {
+    throw new Error('robots are drawn from scenes in the server\'s scene root (the server poses the links)');
+  }
+  const path = app.model.origin.split('/').map(encodeURIComponent).join('/');
+  const response = await serverFetch(`robot-links/${path}?object=${encodeURIComponent(obj.id)}`);
+  if (!response.ok) {
+    const body = await response.json().catch(() => ({}));
+    throw new Error(`robot links: ${body.message || body.error?.message || `HTTP ${response.status}`}`);
+  }
+  for (const link of (await response.json()).links) {
+    const part = link.shape === 'mesh'
+      ? await loadMesh(`files/${link.mesh.split('/').map(encodeURIComponent).join('/')}`, link.mesh, mat)
+      : new THREE.Mesh(primitiveGeometry({ id: link.name, ...link }), mat);
+    if (link.shape === 'mesh') part.scale.setScalar(link.scale);
+    part.position.set(...link.position);
+    part.quaternion.copy(toQuat(link.orientation));
+    part.name = link.name;
+    group.add(part);
+    group.userData.robotLinks.push(link.name);
+  }
+  return group;
 }
 
 // The start area (a box that bounds the initial position) as a wire box; a flat area as a square.
@@ -683,6 +713,8 @@ window.dejaview = {
     origin: app.model?.origin ?? null,
     objects: app.model ? app.model.objects.map((o) => o.id) : [],
     meshesLoaded: [...app.nodes.values()].filter((n) => n.visual).length,
+    robotLinks: Object.fromEntries([...app.nodes].filter(([, n]) => n.visual?.userData.robotLinks)
+      .map(([id, n]) => [id, n.visual.userData.robotLinks])),
     packings: Object.fromEntries([...app.nodes].filter(([, n]) => n.packing)
       .map(([id, n]) => [id, { spheres: n.packing.count, visible: n.packing.visible }])),
     source: app.model?.source ?? null,

@@ -70,6 +70,7 @@ export class SceneModel {
         shape: el.getAttribute('shape'),
         mesh: el.getAttribute('mesh'),
         spheres: el.getAttribute('spheres'),
+        robot: el.getAttribute('urdf') || el.getAttribute('mjcf'), // its links come from the server
         size: numbers(el.getAttribute('size'), [1, 1, 1]),
         radius: Number(el.getAttribute('radius') ?? 0.5),
         height: Number(el.getAttribute('height') ?? 1),

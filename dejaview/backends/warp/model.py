@@ -248,6 +248,14 @@ class WarpSimulator:
             friction = sim.friction if obj.friction is None else obj.friction
             restitution = sim.restitution if obj.restitution is None else obj.restitution
             try:
+                if obj.fixed and obj.robot is not None:  # a robot: one static per link geometry
+                    from dejaview.geometry.robot import link_objects
+
+                    statics.extend(_Static(p.id, _shape_of(scene, p), friction, restitution,
+                                           np.asarray(p.pose.position, dtype=np.float64),
+                                           np.asarray(p.pose.orientation, dtype=np.float64))
+                                   for p in link_objects(scene, obj))
+                    continue
                 shape = _shape_of(scene, obj)
                 if obj.fixed:
                     statics.append(_Static(obj.id, shape, friction, restitution,

@@ -1,0 +1,537 @@
+"""Fixed robots in scenes: URDF and MJCF models posed by forward kinematics (pytorch-kinematics).
+
+A scene object ``<object id="arm" urdf="robots/arm.urdf" joints="q1 q2 ..." fixed="true">`` (or
+``mjcf="model.xml"``) stands for every link of the model, posed at the given joint values (radians
+or metres, in the order of the model's movable joints) relative to the object's ``<pose>``. Each
+link's collision geometry becomes one static piece of the world (``dejaview.sim.build``): boxes,
+spheres and cylinders one to one, meshes as signed distance grids, MJCF capsules as a cylinder
+and two spheres.
+
+Reading is in two parts so that checks stay cheap:
+
+* :func:`read_robot` parses the file (lxml, no torch): movable joints and their limits, and each
+  link's collision geometry. The XML is untrusted: DOCTYPE and ENTITY declarations are refused
+  before any parser sees the text, and no entity, DTD or network access is ever resolved.
+  URDF mesh names resolve against the URDF's folder (``package://`` and ``file://`` URIs are
+  refused); an MJCF robot may name no file at all (``<include>``, mesh, texture...): primitives only.
+* :func:`robot_pieces` poses the geometry with pytorch-kinematics' forward kinematics
+  (``build_chain_from_urdf`` / ``build_chain_from_mjcf``, imported here, lazily: it costs ~2 s).
+
+Errors are :class:`~dejaview.errors.SceneError` naming the robot file, its line and element.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dejaview.errors import SceneError
+
+__all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_objects",
+           "link_transforms", "read_robot", "robot_model", "robot_pieces"]
+
+MAX_ROBOT_BYTES = 4 << 20
+"""Largest URDF or MJCF file read (4 MiB)."""
+
+MOVABLE_URDF_JOINTS = ("revolute", "continuous", "prismatic")
+_REFUSED_URDF_JOINTS = ("floating", "planar")
+
+
+@dataclass(frozen=True)
+class RobotJoint:
+    """A movable joint: ``kind`` revolute | continuous | prismatic; limits in rad or m (None: none)."""
+
+    name: str
+    kind: str
+    lower: float | None = None
+    upper: float | None = None
+
+
+@dataclass(frozen=True)
+class LinkGeometry:
+    """One collision geometry of a link, in the link's frame.
+
+    Attributes:
+        link: link (URDF) or body (MJCF) name.
+        kind: box | sphere | cylinder | mesh | plane.
+        size: (3,) box edge lengths (m).
+        radius, height: sphere and cylinder radius, cylinder height (m).
+        mesh: the mesh file (resolved) and ``scale`` its uniform scale.
+        origin: (4, 4) link-from-geometry transform.
+        line: line of the element in the robot file.
+    """
+
+    link: str
+    kind: str
+    origin: np.ndarray
+    size: tuple[float, float, float] | None = None
+    radius: float | None = None
+    height: float | None = None
+    mesh: Path | None = None
+    scale: float = 1.0
+    line: int | None = None
+
+
+@dataclass(frozen=True)
+class RobotModel:
+    """What :func:`read_robot` found in a URDF or MJCF file.
+
+    Attributes:
+        path: the file; format: ``urdf`` | ``mjcf``.
+        joints: the movable joints, in the file's order (the order of a scene's ``joints``).
+        geometry: every link's collision geometry.
+        text: the file's XML as parsed (comments dropped), what pytorch-kinematics reads.
+        files: files the model names (URDF meshes), resolved.
+    """
+
+    path: Path
+    format: str
+    joints: tuple[RobotJoint, ...]
+    geometry: tuple[LinkGeometry, ...]
+    text: bytes = field(repr=False)
+    files: tuple[Path, ...] = ()
+
+
+@dataclass(frozen=True)
+class RobotPiece:
+    """One posed collision geometry of a robot, in the world.
+
+    ``name``: ``robot-id/link`` (``#k`` appended for a link's k-th extra geometry); ``kind``: box |
+    sphere | cylinder | mesh | plane; ``position`` (3,) and ``orientation`` (4,) w x y z of the
+    geometry's frame; ``size``/``radius``/``height``/``mesh``/``scale`` as in :class:`LinkGeometry`.
+    """
+
+    name: str
+    link: str
+    kind: str
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
+    size: tuple[float, float, float] | None = None
+    radius: float | None = None
+    height: float | None = None
+    mesh: Path | None = None
+    scale: float = 1.0
+
+
+# ---------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------
+def read_robot(path: str | Path, format: str) -> RobotModel:
+    """Parse a URDF (``format="urdf"``) or MJCF (``"mjcf"``) file's joints and collision geometry.
+
+    Raises:
+        SceneError: naming the robot file, line and element: unreadable, hostile or malformed XML,
+            a joint type a fixed robot cannot have, geometry that is not supported, a ``package://``
+            mesh name.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_ROBOT_BYTES + 1)
+    except OSError as exc:
+        raise SceneError(f"cannot read {format.upper()} file: {exc.strerror or exc}", str(path)) from None
+    if len(data) > MAX_ROBOT_BYTES:
+        raise SceneError(f"{format.upper()} file is over the {MAX_ROBOT_BYTES >> 20} MiB limit", str(path))
+    from lxml import etree
+
+    from dejaview.scene.xml import parse_xml
+
+    root = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
+    text = etree.tostring(root)
+    if format == "urdf":
+        return _read_urdf(path, root, text)
+    if format == "mjcf":
+        return _read_mjcf(path, root, text)
+    raise ValueError(f"unknown robot format {format!r}")
+
+
+def _err(path: Path, el, reason: str) -> SceneError:
+    return SceneError(reason, str(path), getattr(el, "sourceline", None), getattr(el, "tag", None))
+
+
+def _floats(path: Path, el, name: str, n: int, default=None) -> tuple[float, ...] | None:
+    raw = el.get(name)
+    if raw is None:
+        return default
+    try:
+        values = tuple(float(t) for t in raw.split())
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise _err(path, el, f"attribute '{name}' needs {n} finite number{'s' if n > 1 else ''}, got {raw!r}")
+    return values
+
+
+def _positive(path: Path, el, name: str, value) -> float:
+    if value is None:
+        raise _err(path, el, f"missing attribute '{name}'")
+    v = value[0] if isinstance(value, tuple) else value
+    if not v > 0:
+        raise _err(path, el, f"attribute '{name}' must be positive, got {v!r}")
+    return float(v)
+
+
+def rpy_matrix(rpy) -> np.ndarray:
+    """(3, 3) rotation of URDF roll-pitch-yaw (fixed axes x, y, z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def _transform(rotation=None, translation=None) -> np.ndarray:
+    t = np.eye(4)
+    if rotation is not None:
+        t[:3, :3] = rotation
+    if translation is not None:
+        t[:3, 3] = translation
+    return t
+
+
+def _urdf_origin(path: Path, el) -> np.ndarray:
+    origin = el.find("origin")
+    if origin is None:
+        return np.eye(4)
+    xyz = _floats(path, origin, "xyz", 3, (0.0, 0.0, 0.0))
+    rpy = _floats(path, origin, "rpy", 3, (0.0, 0.0, 0.0))
+    return _transform(rpy_matrix(rpy), xyz)
+
+
+def _read_urdf(path: Path, root, text: bytes) -> RobotModel:
+    if root.tag != "robot":
+        raise _err(path, root, f"the root element is <{root.tag}>, a URDF's is <robot>")
+    links = {}
+    geometry, files = [], []
+    for link in root.findall("link"):
+        name = link.get("name")
+        if not name:
+            raise _err(path, link, "a <link> needs a 'name'")
+        if name in links:
+            raise _err(path, link, f"duplicate link name {name!r}")
+        links[name] = link
+        for col in link.findall("collision"):
+            geom = col.find("geometry")
+            shapes = [] if geom is None else [g for g in geom if isinstance(g.tag, str)]
+            if len(shapes) != 1:
+                raise _err(path, col, f"link {name!r}: a <collision> needs a <geometry> with one shape")
+            g = shapes[0]
+            origin = _urdf_origin(path, col)
+            if g.tag == "box":
+                size = _floats(path, g, "size", 3)
+                for v in size or (None,):
+                    _positive(path, g, "size", v)
+                geometry.append(LinkGeometry(name, "box", origin, size=size, line=g.sourceline))
+            elif g.tag == "sphere":
+                r = _positive(path, g, "radius", _floats(path, g, "radius", 1))
+                geometry.append(LinkGeometry(name, "sphere", origin, radius=r, line=g.sourceline))
+            elif g.tag == "cylinder":  # URDF cylinders are along z, centred: ours too
+                r = _positive(path, g, "radius", _floats(path, g, "radius", 1))
+                h = _positive(path, g, "length", _floats(path, g, "length", 1))
+                geometry.append(LinkGeometry(name, "cylinder", origin, radius=r, height=h, line=g.sourceline))
+            elif g.tag == "mesh":
+                mesh, scale = _urdf_mesh(path, g)
+                files.append(mesh)
+                geometry.append(LinkGeometry(name, "mesh", origin, mesh=mesh, scale=scale, line=g.sourceline))
+            else:
+                raise _err(path, g, f"link {name!r}: collision geometry <{g.tag}> is not supported "
+                                    "(box, sphere, cylinder, mesh)")
+    if not links:
+        raise _err(path, root, "the robot has no <link>")
+    joints = []
+    for joint in root.findall("joint"):
+        name, kind = joint.get("name"), joint.get("type")
+        if not name or not kind:
+            raise _err(path, joint, "a <joint> needs a 'name' and a 'type'")
+        if kind in _REFUSED_URDF_JOINTS:
+            raise _err(path, joint, f"joint {name!r} is {kind}: a fixed robot's joints are revolute, "
+                                    "continuous, prismatic or fixed")
+        if kind not in MOVABLE_URDF_JOINTS + ("fixed",):
+            raise _err(path, joint, f"joint {name!r} has unknown type {kind!r}")
+        for end in ("parent", "child"):
+            e = joint.find(end)
+            if e is None or e.get("link") not in links:
+                raise _err(path, joint, f"joint {name!r}: <{end} link=...> must name a link of the robot")
+        if kind == "fixed":
+            continue
+        lower = upper = None
+        limit = joint.find("limit")
+        if kind != "continuous":
+            if limit is None:
+                raise _err(path, joint, f"{kind} joint {name!r} needs a <limit lower upper>")
+            lower = _floats(path, limit, "lower", 1, (0.0,))[0]
+            upper = _floats(path, limit, "upper", 1, (0.0,))[0]
+            if lower > upper:
+                raise _err(path, limit, f"joint {name!r}: lower limit {lower!r} is above upper {upper!r}")
+        joints.append(RobotJoint(name, kind, lower, upper))
+    return RobotModel(path=path, format="urdf", joints=tuple(joints), geometry=tuple(geometry), text=text,
+                      files=tuple(files))
+
+
+def _urdf_mesh(path: Path, g) -> tuple[Path, float]:
+    name = g.get("filename")
+    if not name:
+        raise _err(path, g, "a <mesh> needs a 'filename'")
+    if "://" in name:
+        raise _err(path, g, f"mesh {name!r}: URIs (package://, file://) are not resolved; give a path "
+                            "relative to the URDF file")
+    from dejaview.scene.validate import MESH_SUFFIXES
+
+    if Path(name).suffix.lower() not in MESH_SUFFIXES:
+        raise _err(path, g, f"mesh {name!r}: unsupported suffix (use one of {', '.join(MESH_SUFFIXES)})")
+    scale = _floats(path, g, "scale", 3, (1.0, 1.0, 1.0))
+    if not (scale[0] > 0 and scale[0] == scale[1] == scale[2]):
+        raise _err(path, g, f"mesh {name!r}: scale {g.get('scale')!r} must be uniform and positive")
+    p = Path(name)
+    return (p if p.is_absolute() else path.absolute().parent / p), float(scale[0])
+
+
+# MuJoCo geom types (mjtGeom) that make static pieces; others are refused.
+_MJ_PLANE, _MJ_SPHERE, _MJ_CAPSULE, _MJ_CYLINDER, _MJ_BOX = 0, 2, 3, 5, 6
+_MJ_NAMES = {0: "plane", 1: "hfield", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box",
+             7: "mesh", 8: "sdf"}
+
+
+def _read_mjcf(path: Path, root, text: bytes) -> RobotModel:
+    if root.tag != "mujoco":
+        raise _err(path, root, f"the root element is <{root.tag}>, an MJCF model's is <mujoco>")
+    for el in root.iter():
+        if not isinstance(el.tag, str):
+            continue
+        if el.tag == "include" or el.get("file") is not None or el.get("fileback") is not None:
+            raise _err(path, el, "an MJCF robot may name no file (<include>, mesh, texture, height field): "
+                                 "primitives only; give meshes in a URDF")
+    try:
+        import mujoco
+    except ImportError:
+        raise SceneError("MJCF robots need the mujoco package: pip install mujoco", str(path)) from None
+    try:
+        model = mujoco.MjModel.from_xml_string(text.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise SceneError(f"MuJoCo cannot compile the model: {' '.join(str(exc).split())}", str(path)) from None
+    joints = []
+    for j in range(model.njnt):
+        jnt = model.joint(j)
+        kind = {2: "prismatic", 3: "revolute"}.get(int(model.jnt_type[j]))
+        if kind is None:
+            what = {0: "a free joint", 1: "a ball joint"}.get(int(model.jnt_type[j]), "a joint")
+            raise SceneError(f"joint {jnt.name or j!r} is {what}: a fixed robot's joints are hinges and "
+                             "slides (free bodies: dejaview import-mjcf)", str(path), None, "joint")
+        limited = bool(model.jnt_limited[j])
+        lo, hi = (float(model.jnt_range[j][0]), float(model.jnt_range[j][1])) if limited else (None, None)
+        joints.append(RobotJoint(jnt.name or f"joint{j}", kind if limited or kind == "prismatic" else "continuous",
+                                 lo, hi))
+    geometry = []
+    for g in range(model.ngeom):
+        if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
+            continue  # a visual-only geom: MuJoCo collides nothing with it either
+        body = model.body(int(model.geom_bodyid[g])).name
+        if not body:
+            raise SceneError(f"geom {g} is on a body without a name: name every body that carries geoms",
+                             str(path), None, "body")
+        kind, size = int(model.geom_type[g]), model.geom_size[g]
+        origin = _transform(_quat_matrix(model.geom_quat[g]), model.geom_pos[g])
+        if kind == _MJ_PLANE:
+            geometry.append(LinkGeometry(body, "plane", origin))
+        elif kind == _MJ_SPHERE:
+            geometry.append(LinkGeometry(body, "sphere", origin, radius=float(size[0])))
+        elif kind == _MJ_BOX:
+            geometry.append(LinkGeometry(body, "box", origin, size=tuple(2.0 * float(s) for s in size[:3])))
+        elif kind in (_MJ_CYLINDER, _MJ_CAPSULE):
+            geometry.append(LinkGeometry(body, "cylinder", origin, radius=float(size[0]),
+                                         height=2.0 * float(size[1])))
+            if kind == _MJ_CAPSULE:  # a capsule is a cylinder with a sphere on each end
+                for sign in (-1.0, 1.0):
+                    geometry.append(LinkGeometry(body, "sphere", origin @ _transform(None, (0, 0, sign * size[1])),
+                                                 radius=float(size[0])))
+        else:
+            name = model.geom(g).name or f"#{g}"
+            raise SceneError(f"geom {name!r} is a {_MJ_NAMES.get(kind, kind)}: an MJCF robot's geoms are planes, "
+                             "spheres, capsules, cylinders and boxes", str(path), None, "geom")
+    return RobotModel(path=path, format="mjcf", joints=tuple(joints), geometry=tuple(geometry), text=text)
+
+
+def _quat_matrix(q) -> np.ndarray:
+    from dejaview.sim.world import quat_to_matrix_np
+
+    return quat_to_matrix_np(q)
+
+
+def joint_problems(model: RobotModel, values) -> list[str]:
+    """Reasons the joint values do not fit the model (wrong count, outside limits); empty when they do."""
+    values = tuple(values or ())
+    if len(values) != len(model.joints):
+        names = " ".join(j.name for j in model.joints) or "none"
+        return [f"'joints' needs {len(model.joints)} values, one per movable joint of "
+                f"{model.path.name} ({names}), got {len(values)}"]
+    problems = []
+    for joint, q in zip(model.joints, values):
+        if joint.lower is not None and not joint.lower - 1e-9 <= q <= joint.upper + 1e-9:
+            unit = "m" if joint.kind == "prismatic" else "rad"
+            problems.append(f"joint {joint.name!r} = {q!r} {unit} is outside its limits "
+                            f"[{joint.lower!r}, {joint.upper!r}] {unit}")
+    return problems
+
+
+# ---------------------------------------------------------------------------
+# posing (pytorch-kinematics)
+# ---------------------------------------------------------------------------
+def link_transforms(model: RobotModel, values) -> dict[str, np.ndarray]:
+    """Robot-frame (4, 4) transform of every link (URDF) or body (MJCF), by forward kinematics.
+
+    Args:
+        model: from :func:`read_robot`.
+        values: one value per movable joint, in ``model.joints`` order.
+    Raises:
+        SceneError: wrong joint values, or a model pytorch-kinematics cannot build.
+    """
+    problems = joint_problems(model, values)
+    if problems:
+        raise SceneError(problems[0], str(model.path))
+    if not model.joints and model.format == "urdf":  # no joint: one link (pk finds no root then)
+        return {g.link: np.eye(4) for g in model.geometry}
+    import torch
+
+    with torch.no_grad():
+        try:
+            import pytorch_kinematics as pk
+
+            if model.format == "urdf":
+                chain = pk.build_chain_from_urdf(model.text)
+            else:
+                chain = _mjcf_chain(pk, model)
+            chain = chain.to(dtype=torch.float64)
+            names = chain.get_joint_parameter_names()
+            by_name = {j.name: float(q) for j, q in zip(model.joints, values)}
+            th = torch.tensor([[by_name[n] for n in names]], dtype=torch.float64)
+            fk = chain.forward_kinematics(th)
+        except Exception as exc:  # pytorch-kinematics' errors are of every kind
+            raise SceneError(f"pytorch-kinematics cannot pose the robot: {' '.join(str(exc).split())}",
+                             str(model.path)) from None
+    return {name: t.get_matrix()[0].numpy().copy() for name, t in fk.items()}
+
+
+def _mjcf_chain(pk, model: RobotModel):
+    """A pytorch-kinematics chain of an MJCF body tree, built from MuJoCo's compiled model.
+
+    Not ``pk.build_chain_from_mjcf``: in pytorch-kinematics 0.10 it recognises no joint type under
+    mujoco 3.2+ (its map is keyed by the enum, MuJoCo hands out integers), and it leaves out the
+    joint's anchor (``pos``): a hinge turns the body about ``pos``, so the body's frame is
+    ``body offset @ T(pos) @ R(q) @ T(-pos)``. Here the ``T(-pos)`` is a fixed frame after the joint's.
+    """
+    import mujoco
+    import torch
+    from pytorch_kinematics import frame as pk_frame
+
+    m = mujoco.MjModel.from_xml_string(model.text.decode("utf-8"))
+
+    def tf(pos=None, quat=None):  # float32 like pytorch-kinematics' own builders; the chain moves to float64
+        return pk.Transform3d(pos=None if pos is None else torch.tensor(np.asarray(pos), dtype=torch.float32),
+                              rot=None if quat is None else torch.tensor(np.asarray(quat), dtype=torch.float32))
+
+    frames = {0: pk_frame.Frame(m.body(0).name, link=pk_frame.Link(m.body(0).name), joint=pk_frame.Joint())}
+    for b in range(1, m.nbody):
+        body = m.body(b)
+        parent = frames[int(body.parentid[0])]
+        if int(body.jntnum[0]) > 1:
+            raise ValueError(f"body {body.name!r} has {int(body.jntnum[0])} joints; a robot's bodies have one at most")
+        if int(body.jntnum[0]) == 0:
+            f = pk_frame.Frame(body.name, link=pk_frame.Link(body.name, offset=tf(body.pos, body.quat)),
+                               joint=pk_frame.Joint(body.name + "_fixed", offset=None))
+            parent.children = parent.children + [f]
+        else:
+            j = int(body.jntadr[0])
+            jnt = m.joint(j)
+            kind = "revolute" if int(m.jnt_type[j]) == 3 else "prismatic"
+            anchor = np.asarray(jnt.pos, dtype=np.float64)
+            moving = pk_frame.Frame(body.name + "__anchor",
+                                    link=pk_frame.Link(body.name + "__anchor", offset=tf(body.pos, body.quat)),
+                                    joint=pk_frame.Joint(jnt.name, offset=tf(anchor), joint_type=kind,
+                                                         axis=np.asarray(jnt.axis, dtype=np.float32)))
+            f = pk_frame.Frame(body.name, link=pk_frame.Link(body.name),
+                               joint=pk_frame.Joint(body.name + "_anchor_back", offset=tf(-anchor)))
+            moving.children = [f]
+            parent.children = parent.children + [moving]
+        frames[b] = f
+    return pk.Chain(frames[0])
+
+
+def matrix_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """(3, 3) rotation -> unit quaternion w x y z (Shepperd's method; any sign of w)."""
+    m = np.asarray(r, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 0.0))
+        v = [0.0, 0.0, 0.0]
+        v[i] = 0.25 * s
+        v[j] = (m[j, i] + m[i, j]) / s
+        v[k] = (m[k, i] + m[i, k]) / s
+        q = ((m[k, j] - m[j, k]) / s, *v)
+    n = math.sqrt(sum(c * c for c in q))
+    return tuple(float(c / n) for c in q)
+
+
+def robot_model(scene, obj) -> RobotModel:
+    """The robot model of a scene object (``urdf`` or ``mjcf``), its file resolved against the scene."""
+    fmt = "urdf" if obj.urdf is not None else "mjcf"
+    return read_robot(scene.resolve(obj.robot), fmt)
+
+
+def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece]:
+    """Every collision geometry of a robot object, posed in the world.
+
+    Args:
+        scene: the Scene (files resolve against it).
+        obj: a SceneObject with ``urdf`` or ``mjcf``; its ``<pose>`` places the robot's root.
+        model: the object's model if already read.
+    Raises:
+        SceneError: naming the scene object, for any problem of the robot file or its joints.
+    """
+    from dejaview.sim.world import quat_to_matrix_np
+
+    try:
+        model = model or robot_model(scene, obj)
+        links = link_transforms(model, obj.joints)
+    except SceneError as exc:
+        raise SceneError(f"object {obj.id!r}: {exc}", str(scene.path) if scene.path else None, obj.line,
+                         "object") from None
+    base = _transform(quat_to_matrix_np(obj.pose.orientation), obj.pose.position)
+    pieces, seen = [], {}
+    for g in model.geometry:
+        if g.link not in links:
+            raise SceneError(f"object {obj.id!r}: link {g.link!r} of {model.path.name} is not connected to the "
+                             "robot's root", str(scene.path) if scene.path else None, obj.line, "object")
+        world = base @ links[g.link] @ g.origin
+        k = seen.get(g.link, 0)
+        seen[g.link] = k + 1
+        name = f"{obj.id}/{g.link}" + (f"#{k}" if k else "")
+        pieces.append(RobotPiece(name=name, link=g.link, kind=g.kind, position=tuple(float(v) for v in world[:3, 3]),
+                                 orientation=matrix_quaternion(world[:3, :3]), size=g.size, radius=g.radius,
+                                 height=g.height, mesh=g.mesh, scale=g.scale))
+    return pieces
+
+
+def link_objects(scene, obj) -> list:
+    """A fixed robot's link geometry as fixed scene objects named ``robot-id/link``, posed in the world
+    (for consumers that know scene objects: fcl checks, MJCF export). Meshes with a ``scale`` other
+    than 1 are left out (a scene object's mesh has no scale)."""
+    from dejaview.scene.model import Pose, SceneObject
+
+    parts = []
+    for p in robot_pieces(scene, obj):
+        if p.kind == "mesh" and p.scale != 1.0:
+            continue
+        parts.append(SceneObject(id=p.name, pose=Pose(p.position, p.orientation), fixed=True,
+                                 shape=None if p.kind == "mesh" else p.kind,
+                                 mesh=None if p.mesh is None else str(p.mesh), size=p.size, radius=p.radius,
+                                 height=p.height, friction=obj.friction, restitution=obj.restitution,
+                                 line=obj.line))
+    return parts

@@ -1,0 +1,108 @@
+"""``dejaview.parallel.map_chunks``: the same results in order here, in processes and on Ray; progress,
+cancellation and errors come back; without Ray, ``--ray`` is a one-line error naming the extra."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dejaview.parallel import ParallelError, map_chunks
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _setup(offset):
+    return {"offset": offset}
+
+
+def _square(context, chunk, report, stopped):
+    report(("started", chunk))
+    if chunk == "boom":
+        raise ValueError("chunk 'boom' is bad")
+    return chunk * chunk + context["offset"]
+
+
+def _until_stopped(context, chunk, report, stopped):
+    import time
+
+    for _ in range(200):
+        if stopped():
+            return "stopped"
+        time.sleep(0.01)
+    return "ran"
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_results_come_back_in_order_with_progress(workers):
+    reports, done = [], []
+    out = map_chunks(_square, [3, 1, 2], setup=_setup, setup_args=(10,), workers=workers,
+                     on_report=lambda i, m: reports.append((i, m)), on_done=lambda i, r: done.append(i))
+    assert out == [19, 11, 14]
+    assert sorted(reports) == [(0, ("started", 3)), (1, ("started", 1)), (2, ("started", 2))]
+    assert sorted(done) == [0, 1, 2]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_worker_error_is_raised_here(workers):
+    with pytest.raises(ValueError, match="chunk 'boom' is bad"):
+        map_chunks(_square, [1, "boom"], setup=_setup, setup_args=(0,), workers=workers)
+
+
+def test_cancellation_reaches_the_workers():
+    out = map_chunks(_until_stopped, [0, 1], workers=2, should_stop=lambda: True)
+    assert out == ["stopped", "stopped"]
+    assert map_chunks(_until_stopped, [0, 1, 2], should_stop=lambda: True) == ["stopped"]  # the rest skipped
+
+
+def test_bad_workers_are_refused():
+    with pytest.raises(ParallelError, match="workers must be a positive integer"):
+        map_chunks(_square, [1], workers=0)
+
+
+def test_without_ray_the_cli_says_to_install_the_extra(tmp_path):
+    """Ray hidden (a None entry in sys.modules makes ``import ray`` fail): one line naming the extra."""
+    code = ("import sys; sys.modules['ray'] = None; from dejaview.cli import main; "
+            f"main(['heatmap', {str(ROOT / 'examples/scenes/ball_down_ramp.xml')!r}, '-o', {str(tmp_path)!r}, "
+            "'--ray', 'local', '--cells', '2x2', '--samples', '1', '--iterations', '1'])")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "error: --ray needs Ray, which is not installed: pip install 'dejaview[ray]'"
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray = pytest.importorskip("ray", reason="Ray is the test extra's (pip install -e '.[test]')")
+    import os
+
+    os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
+    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", log_to_driver=False,
+             configure_logging=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_runs_the_chunks_like_processes(local_ray):
+    reports = []
+    out = map_chunks(_square, [3, 1, 2], setup=_setup, setup_args=(10,), workers=2, ray="local",
+                     on_report=lambda i, m: reports.append((i, m)))
+    assert out == [19, 11, 14] and sorted(reports)[0] == (0, ("started", 3))
+    with pytest.raises(ValueError, match="chunk 'boom' is bad"):
+        map_chunks(_square, [1, "boom"], setup=_setup, setup_args=(0,), workers=2, ray="local")
+    assert map_chunks(_until_stopped, [0, 1], workers=2, ray="local", should_stop=lambda: True) == \
+        ["stopped", "stopped"]
+
+
+def test_ray_heatmap_equals_the_local_heatmap(local_ray):
+    from dejaview.heatmap import compute_heatmap
+    from dejaview.scene import Scene
+
+    scene = Scene.from_xml(ROOT / "examples" / "scenes" / "ball_down_ramp.xml")
+    kw = dict(cells=(2, 2), samples=2, iterations=2, radii=(0.01, 0.05), directions=2)
+    here = compute_heatmap(scene, workers=1, **kw)
+    progress = []
+    on_ray = compute_heatmap(scene, workers=2, ray="local", callback=progress.append, **kw)
+    np.testing.assert_allclose(on_ray.probability, here.probability, rtol=0, atol=1e-6)
+    assert on_ray.best.loss == pytest.approx(here.best.loss, rel=1e-6)
+    assert progress[-1].cells_done == 4 and {p.chunk for p in progress} == {0, 1}
