@@ -19,7 +19,7 @@ import trimesh
 
 from dejaview.errors import GeometryError
 
-MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
+from dejaview.scene.model import MESH_SUFFIXES  # noqa: E402
 CACHE_ENV = "DEJAVIEW_CACHE_DIR"
 CACHE_FOLDER = ".dejaview-cache"
 PRIMITIVE_SHAPES = ("box", "sphere", "cylinder")

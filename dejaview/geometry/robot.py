@@ -137,7 +137,7 @@ def read_robot(path: str | Path, format: str) -> RobotModel:
         raise SceneError(f"{format.upper()} file is over the {MAX_ROBOT_BYTES >> 20} MiB limit", str(path))
     from lxml import etree
 
-    from dejaview.scene.xml import parse_xml
+    from dejaview.scene.parsing import parse_xml
 
     root = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
     text = etree.tostring(root)
@@ -278,7 +278,7 @@ def _urdf_mesh(path: Path, g) -> tuple[Path, float]:
     if "://" in name:
         raise _err(path, g, f"mesh {name!r}: URIs (package://, file://) are not resolved; give a path "
                             "relative to the URDF file")
-    from dejaview.scene.validate import MESH_SUFFIXES
+    from dejaview.scene.model import MESH_SUFFIXES
 
     if Path(name).suffix.lower() not in MESH_SUFFIXES:
         raise _err(path, g, f"mesh {name!r}: unsupported suffix (use one of {', '.join(MESH_SUFFIXES)})")

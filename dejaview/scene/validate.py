@@ -32,8 +32,7 @@ from dejaview.scene.model import (
 
 __all__ = ["MESH_SUFFIXES", "scene_problems", "validate_scene"]
 
-MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
-"""Mesh file suffixes a scene may name (anything trimesh reads among them)."""
+from dejaview.scene.model import MESH_SUFFIXES  # noqa: E402  (re-exported)
 
 # Attributes each primitive takes; the others do not apply to it.
 _SHAPE_ATTRS = {
