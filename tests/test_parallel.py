@@ -100,9 +100,10 @@ def test_ray_heatmap_equals_the_local_heatmap(local_ray):
 
     scene = Scene.from_xml(ROOT / "examples" / "scenes" / "ball_down_ramp.xml")
     kw = dict(cells=(2, 2), samples=2, iterations=2, radii=(0.01, 0.05), directions=2)
-    here = compute_heatmap(scene, workers=1, **kw)
+    here = compute_heatmap(scene, workers=1, method="basins", **kw)  # ray distributes the basins method
     progress = []
     on_ray = compute_heatmap(scene, workers=2, ray="local", callback=progress.append, **kw)
+    assert on_ray.settings.get("method", "basins") == "basins"
     np.testing.assert_allclose(on_ray.probability, here.probability, rtol=0, atol=1e-6)
     assert on_ray.best.loss == pytest.approx(here.best.loss, rel=1e-6)
     assert progress[-1].cells_done == 4 and {p.chunk for p in progress} == {0, 1}

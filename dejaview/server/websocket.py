@@ -151,6 +151,10 @@ class Connection:
         self.out.put_nowait(encode(message))
 
     def error(self, code: str, message: str, request_id=None, job_id=None) -> None:
+        if not _utf8(message):  # a client's text echoed into the message may hold lone surrogates
+            message = message.encode("utf-8", "replace").decode("utf-8")
+        if isinstance(request_id, str) and not _utf8(request_id):
+            request_id = None
         self.send(ErrorMessage(code=code, message=message, request_id=request_id, job_id=job_id))
 
     def _rate_limited(self) -> None:
@@ -177,8 +181,8 @@ class Connection:
             self.error("invalid_json", f"not valid JSON: {' '.join(str(exc).split())}"[:300])
             return
         request_id = data.get("request_id") if isinstance(data, dict) else None
-        if not isinstance(request_id, str) or len(request_id) > 200:
-            request_id = None
+        if not isinstance(request_id, str) or len(request_id) > 200 or not _utf8(request_id):
+            request_id = None  # echoed back only where it can be sent (lone surrogates cannot)
         if not isinstance(data, dict):
             self.error("invalid_message", f"a message is a JSON object with a 'type', not a "
                                           f"{type(data).__name__}")
@@ -292,3 +296,12 @@ class BareReplies:
             frames.append(await asyncio.to_thread(path.read_text, encoding="utf-8"))
         for frame in frames:
             conn.out.put_nowait(frame)
+
+
+def _utf8(text: str) -> bool:
+    """Whether ``text`` can be encoded as UTF-8 (JSON may carry lone surrogates that cannot)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True

@@ -309,3 +309,14 @@ def test_bare_text_errors_are_error_lines(client, frame, fragment):
         assert "\n" not in line
         ws.send_text('{"type": "ping"}')
         assert receive(ws) == {"type": "pong"}
+
+
+def test_a_request_id_with_a_lone_surrogate_gets_an_error_not_a_crash(client):
+    """JSON may escape a lone surrogate (\\udaf0), which no UTF-8 frame can carry back: the error
+    leaves the request id out and the connection goes on (found by the 10^4-message fuzz)."""
+    with client.websocket_connect("/ws") as ws:
+        ws.send_text('{"type": "ping", "request_id": "a\\udaf0b"}')
+        err = receive(ws)
+        assert err["type"] == "error" and err["code"] == "invalid_message" and err.get("request_id") is None
+        ws.send_text(json.dumps({"type": "ping", "request_id": "ok"}))
+        assert receive(ws) == {"type": "pong", "request_id": "ok"}
