@@ -62,7 +62,7 @@ ESS_FRACTION = 0.7
 """Effective sample size kept by each tempering step, as a fraction of the particles."""
 RW_MOVES = 4
 """Random-walk Metropolis moves per tempering step (after one independence move)."""
-FINAL_MOVES = 12
+FINAL_MOVES = 8
 """Moves (independence and random walk) run at beta = 1 before the samples are returned."""
 TARGET_ACCEPTANCE = 0.3
 """Random-walk acceptance rate the step scale adapts towards."""
@@ -78,7 +78,7 @@ NEIGHBOURS_PER_PARAMETER = 2
 """A random-walk step's covariance is that of the particle's ``2 P + 2`` nearest neighbours."""
 DISTINCT_FRACTION = 0.9
 """A tempering step's moves go on until this fraction of the particles are distinct ..."""
-MAX_MOVES = 10
+MAX_MOVES = 8
 """... or this many moves have run."""
 
 
