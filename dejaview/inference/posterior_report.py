@@ -54,7 +54,7 @@ def weighted_quantiles(values: torch.Tensor, weights: torch.Tensor, qs) -> torch
 
 def summary(samples, layout, modes) -> dict:
     """``result.json``'s ``posterior``: sampler statistics, the modes with their probability mass
-    (the share of samples each mode's reference component is most responsible for) and, per free
+    (the share of samples nearest to each of the search's distinct modes) and, per free
     parameter, the median and the central 50 % and 90 % intervals in physical units.
 
     Args:

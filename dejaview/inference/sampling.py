@@ -311,8 +311,8 @@ class PosteriorSamples:
 
     Attributes:
         x: (N, P) parameters; weights: (N,) non-negative, summing to 1; log_density: (N,).
-        component: (N,) the mode each sample belongs to: the search mode whose reference
-            component is the most responsible for it.
+        component: (N,) the mode each sample belongs to: the nearest of the search's distinct
+            modes (the reference components' centres), in scaled parameters.
         mode_index: per component, the index of the search mode it is centred on.
         stats: what the sampler did (stages, betas, acceptance, ESS, rollouts, seconds).
     """
@@ -538,6 +538,6 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
              "first_step_ess": smc.ess_steps[0] if smc.ess_steps else None,
              "unique_samples": int(torch.unique(smc.x, dim=0).shape[0]),
              "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - smc.t0}
-    nearest_mode = q.component_log_prob(smc.x)[:, :len(mode_index)].argmax(-1)
+    nearest_mode = torch.cdist(smc.x, q.means).argmin(-1)  # in scaled parameters
     return PosteriorSamples(x=smc.x, weights=weights, log_density=smc.lp, component=nearest_mode,
                             mode_index=mode_index, stats=stats)
