@@ -100,17 +100,15 @@ def base_scene(name: str):
     raise ValueError(f"unknown calibration scene {name!r}; choose from {', '.join(CASES)}")
 
 
-def observe(scene, truth, generator):
-    """The scene with its target set to the noisy observed end of the start ``truth`` (1, P), and
-    the posterior of the scene as given (whose ``sample`` draws truths from the prior)."""
+def observe(scene, post, truth, generator):
+    """The scene with its target set to the noisy observed end of the start ``truth`` (1, P),
+    simulated with ``post``'s problem and observed with its noise (``post``: the scene's
+    ``Posterior``)."""
     import torch
 
-    from dejaview.inference.posterior import Posterior, PosteriorSettings
-    from dejaview.inference.problem import InferenceProblem
     from dejaview.sim.rotation import quat_multiply, quat_rotate, rotvec_to_quat
 
-    problem = InferenceProblem.from_scene(scene)
-    settings = PosteriorSettings.from_scene(scene)
+    problem, settings = post.problem, post.settings
     with torch.no_grad():
         st = problem.simulate(truth).states
     b = problem.source
@@ -124,7 +122,7 @@ def observe(scene, truth, generator):
         origin = com + eps - quat_rotate(q_obs, problem.world.com[b])
     inf = scene.inference
     target = replace(inf.target, position=tuple(origin.tolist()), orientation=tuple(q_obs.tolist()))
-    return replace(scene, inference=replace(inf, target=target)), Posterior(problem, settings)
+    return replace(scene, inference=replace(inf, target=target))
 
 
 def prior_width90(post) -> list[float]:
@@ -152,7 +150,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     scene = base_scene(name)
     prior_post = Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
     truth = prior_post.sample(1, gen)
-    observed, _ = observe(scene, truth, gen)
+    observed = observe(scene, prior_post, truth, gen)
     t0 = time.perf_counter()
     result = solve(observed, samples=samples, seed=index)
     seconds = time.perf_counter() - t0

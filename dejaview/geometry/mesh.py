@@ -18,8 +18,8 @@ import numpy as np
 import trimesh
 
 from dejaview.errors import GeometryError
+from dejaview.scene.model import MESH_SUFFIXES
 
-from dejaview.scene.model import MESH_SUFFIXES  # noqa: E402
 CACHE_ENV = "DEJAVIEW_CACHE_DIR"
 CACHE_FOLDER = ".dejaview-cache"
 PRIMITIVE_SHAPES = ("box", "sphere", "cylinder")

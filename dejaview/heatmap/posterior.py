@@ -29,7 +29,6 @@ from dejaview.errors import InferenceError
 METHODS = ("posterior", "basins")
 """``compute_heatmap`` methods: the posterior's marginal (this module) or the per-cell
 optimisations with basin weighting (``dejaview.heatmap.search``)."""
-LOCAL_OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
 SEARCH_SHARE = 0.5
 """Share of the progress bar's cells given to the search (the sampler gets the rest)."""
 
@@ -43,14 +42,15 @@ def choose_method(method: str | None, optimizer: str | None, backend: str | None
     """
     from dejaview.scene.model import OPTIMIZERS
 
+    local_optimizers = [o for o in OPTIMIZERS if o != "auto"]
     if optimizer is not None and optimizer not in OPTIMIZERS:
         raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
     if method is None:
-        local = optimizer in LOCAL_OPTIMIZERS or (backend not in (None, "spheres"))
+        local = optimizer in local_optimizers or (backend not in (None, "spheres"))
         return "basins" if local else "posterior"
     if method not in METHODS:
         raise InferenceError(f"unknown heatmap method {method!r}; choose one of {', '.join(METHODS)}")
-    if method == "posterior" and optimizer in LOCAL_OPTIMIZERS:
+    if method == "posterior" and optimizer in local_optimizers:
         raise InferenceError(f"the posterior heatmap samples around the default search's modes; "
                              f"optimizer {optimizer} applies to the basins method")
     if method == "posterior" and backend not in (None, "spheres"):

@@ -24,6 +24,7 @@ from dejaview.scene.model import (
     EVALUATES,
     GRADIENTS,
     LOSSES,
+    MESH_SUFFIXES,
     OPTIMIZERS,
     SHAPES,
     Scene,
@@ -31,8 +32,6 @@ from dejaview.scene.model import (
 )
 
 __all__ = ["MESH_SUFFIXES", "scene_problems", "validate_scene"]
-
-from dejaview.scene.model import MESH_SUFFIXES  # noqa: E402  (re-exported)
 
 # Attributes each primitive takes; the others do not apply to it.
 _SHAPE_ATTRS = {

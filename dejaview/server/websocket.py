@@ -181,8 +181,8 @@ class Connection:
             self.error("invalid_json", f"not valid JSON: {' '.join(str(exc).split())}"[:300])
             return
         request_id = data.get("request_id") if isinstance(data, dict) else None
-        if not isinstance(request_id, str) or len(request_id) > 200 or not _utf8(request_id):
-            request_id = None  # echoed back only where it can be sent (lone surrogates cannot)
+        if not isinstance(request_id, str) or len(request_id) > 200:
+            request_id = None
         if not isinstance(data, dict):
             self.error("invalid_message", f"a message is a JSON object with a 'type', not a "
                                           f"{type(data).__name__}")
