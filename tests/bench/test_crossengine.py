@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from dejaview.cli import cli
 from dejaview.cli.bench import bench_module
 
-pytest.importorskip("mujoco")
+pytest.importorskip("mujoco", reason="the crossengine bench re-simulates in MuJoCo (test extra: pip install -e '.[test]')")
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ stops depends on the friction, so variants of the friction spread the ends of on
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -15,24 +14,10 @@ from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem
 from dejaview.inference.model_uncertainty import ModelVariants, design, vary_world
 from dejaview.inference.posterior import Posterior, PosteriorSettings
-from dejaview.scene import ModelUncertainty, Prior, Scene
+from dejaview.scene import ModelUncertainty, Prior
 from dejaview.sim.world import _discrete_restitution
 
-SCENES = Path(__file__).resolve().parents[2] / "examples" / "scenes"
-
-
-def shelf(duration=0.5, **inference):
-    scene = Scene.from_xml(SCENES / "box_along_shelf.xml")
-    scene = replace(scene, simulation=replace(scene.simulation, duration=duration))
-    return replace(scene, inference=replace(scene.inference, **inference))
-
-
-def truth_x(problem):
-    import json
-
-    truth = json.loads((SCENES / "box_along_shelf.truth.json").read_text())["initial_state"]
-    return problem.layout.encode(position=truth["position"], linear_velocity=truth["linear_velocity"],
-                                 angular_velocity=truth["angular_velocity"]).double()
+from .test_posterior import assert_jacobian_matches_finite_differences, shelf, truth_x
 
 
 def test_the_default_design_has_each_factors_mean_and_variance_and_balanced_pairs():
@@ -87,16 +72,8 @@ def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
     problem = InferenceProblem.from_scene(scene)
     model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
     post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
-    x = truth_x(problem) + 0.05
-    r, J = post.jacobian(x)
-    assert J.shape == (1, r.shape[1], problem.num_params) and r.shape[1] > 4 * post.num_observed
-    h = 1e-6
-    for j in range(problem.num_params):
-        e = torch.zeros_like(x)
-        e[0, j] = h
-        with torch.no_grad():
-            fd = (post.residuals(x + e)[0] - post.residuals(x - e)[0]) / (2 * h)
-        assert torch.allclose(J[0, :, j], fd[0], rtol=1e-5, atol=1e-5 * max(1.0, float(fd.abs().max())))
+    r, _ = assert_jacobian_matches_finite_differences(post, truth_x(problem) + 0.05)
+    assert r.shape[1] > 4 * post.num_observed
 
 
 def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_errors():

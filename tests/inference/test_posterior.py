@@ -27,7 +27,8 @@ def shelf(duration=0.5, **inference):
     return replace(scene, inference=replace(scene.inference, **inference))
 
 
-def truth_x(problem, scene, name="box_along_shelf"):
+def truth_x(problem, name="box_along_shelf"):
+    """Parameters (1, P) of the bundled scene ``name``'s true start."""
     import json
 
     truth = json.loads((SCENES / f"{name}.truth.json").read_text())["initial_state"]
@@ -59,7 +60,7 @@ def test_the_true_start_explains_its_own_end_and_an_other_does_not():
     scene = shelf(duration=1.0)
     problem = InferenceProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
-    x = torch.cat([truth_x(problem, scene), problem.layout.encode().double()])
+    x = torch.cat([truth_x(problem), problem.layout.encode().double()])
     cost, chi2, loss = post.cost(x)
     assert chi2[0] < 1e-4 and loss[0] < 1e-4  # the bundled target is the truth's end (rounded)
     assert chi2[1] > 10.0
@@ -99,16 +100,21 @@ def test_the_residual_jacobian_matches_finite_differences():
     scene = shelf(duration=0.3, prior=Prior(speed=2.0))
     problem = InferenceProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
-    x = truth_x(problem, scene) + 0.05
+    assert_jacobian_matches_finite_differences(post, truth_x(problem) + 0.05)
+
+
+def assert_jacobian_matches_finite_differences(post, x, h=1e-6):
+    """``post.jacobian`` at x (1, P) against central differences of ``post.residuals``, column by
+    column (rtol 1e-5); returns the residuals and the Jacobian."""
     r, J = post.jacobian(x)
-    assert J.shape == (1, r.shape[1], problem.num_params)
-    h = 1e-6
-    for j in range(problem.num_params):
+    assert J.shape == (1, r.shape[1], x.shape[1])
+    for j in range(x.shape[1]):
         e = torch.zeros_like(x)
         e[0, j] = h
         with torch.no_grad():
             fd = (post.residuals(x + e)[0] - post.residuals(x - e)[0]) / (2 * h)
         assert torch.allclose(J[0, :, j], fd[0], rtol=1e-5, atol=1e-5 * max(1.0, float(fd.abs().max())))
+    return r, J
 
 
 def test_a_start_inside_the_counter_is_rejected_by_fcl_without_simulating_it():

@@ -168,7 +168,7 @@ def test_exported_ball_rebounds_in_mujoco_with_the_scene_restitution(restitution
 
     The classic damping ratio of a spring-damper that may pull (the mapping before) made MuJoCo's
     ball rebound with 0.40 at e = 0.3 and diverge at e = 0.9."""
-    mujoco = pytest.importorskip("mujoco")
+    mujoco = pytest.importorskip("mujoco", reason="the mujoco test extra is not installed: pip install '.[test]'")
     text = f"""<scene version="1"><simulation dt="0.002" duration="1" restitution="{restitution}"/>
       <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
       <object id="ball" shape="sphere" radius="0.05" mass="0.4">

@@ -52,7 +52,7 @@ from dejaview.sim import StaticShape, World, rollout
 from dejaview.sim.rotation import quat_rotate
 from tests.sim.conftest import ball_body, box_body
 
-mujoco = pytest.importorskip("mujoco")
+mujoco = pytest.importorskip("mujoco", reason="the cross-check needs MuJoCo (test extra: pip install -e '.[test]')")
 
 G = 9.81
 MU = 0.5
