@@ -21,6 +21,12 @@ INTERVALS = (0.5, 0.9)
 """Central credible intervals reported for every free parameter."""
 MIN_MODE_MASS = 1e-3
 """Modes holding less posterior mass than this are left out of the summary."""
+PATHS_HEADER = ("sample", "step", "time", "x", "y", "z")
+"""``posterior_paths.csv``'s header: the source's object-frame origin along a few samples' pasts."""
+PATHS = 8
+"""How many samples' trajectories ``posterior_paths.csv`` holds (the viewer draws them faintly)."""
+PATH_RECORDS = 60
+"""About how many records each of those trajectories keeps."""
 
 
 def physical(layout, x: torch.Tensor) -> torch.Tensor:
@@ -98,6 +104,48 @@ def write_csv(path, samples, layout) -> Path:
         writer.writerow(CSV_HEADER)
         for i, (w, row) in enumerate(zip(samples.weights.tolist(), rows)):
             writer.writerow([i, repr(float(w)), *(repr(float(v)) for v in row)])
+    return path
+
+
+def path_samples(samples, count: int = PATHS, seed: int = 0) -> list[int]:
+    """Indices of up to ``count`` distinct samples drawn by weight (systematic resampling over
+    the distinct samples, so a mode holding 40 % of the mass gets about 40 % of the paths),
+    sorted."""
+    x, w = samples.x, samples.weights.to(torch.float64)
+    distinct, inverse = torch.unique(x, dim=0, return_inverse=True)
+    mass = torch.zeros(distinct.shape[0], dtype=torch.float64).index_add_(0, inverse, w)
+    first = torch.full((distinct.shape[0],), x.shape[0], dtype=torch.long)
+    first = first.scatter_reduce(0, inverse, torch.arange(x.shape[0]), reduce="amin")
+    k = min(count, distinct.shape[0])
+    if k == 0 or float(mass.sum()) <= 0:
+        return []
+    gen = torch.Generator().manual_seed(int(seed))
+    u = (torch.rand(1, generator=gen, dtype=torch.float64) + torch.arange(k, dtype=torch.float64)) / k
+    picks = torch.searchsorted(torch.cumsum(mass / mass.sum(), 0), u).clamp_max(distinct.shape[0] - 1)
+    return sorted({int(first[i]) for i in picks.tolist()})
+
+
+def write_paths(path, problem, samples, count: int = PATHS, seed: int = 0) -> Path:
+    """``posterior_paths.csv``: the source's trajectory (object-frame origin, ``PATHS_HEADER``)
+    from a few samples (``path_samples``), re-simulated together; ``sample`` is the row of
+    ``posterior.csv`` it starts from. About ``PATH_RECORDS`` records each, the last step
+    included."""
+    from dejaview.io.trajectory import trajectory_rows
+
+    chosen = path_samples(samples, count, seed)
+    path = Path(path)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(PATHS_HEADER)
+        if chosen:
+            every = max(1, int(problem.duration_steps) // PATH_RECORDS)
+            with torch.no_grad():
+                traj = problem.simulate(samples.x[chosen].to(problem.dtype), record_every=every)
+            source = problem.frames.names[problem.source]
+            for b, index in enumerate(chosen):
+                for row in trajectory_rows(problem.frames, traj, b):
+                    if row[2] == source:
+                        writer.writerow([index, row[0], row[1], *row[3:6]])
     return path
 
 

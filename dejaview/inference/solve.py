@@ -270,7 +270,8 @@ class SolveResult:
         }
 
     def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
-        """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``)."""
+        """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``); with
+        posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         paths = {"result": out / "result.json", "iterations": out / "iterations.csv",
@@ -284,9 +285,11 @@ class SolveResult:
                                  f"{p.duration_s:.6f}", int(p.restarted)])
         self.problem.write_trajectory(paths["trajectory"], self.trajectory)
         if self.posterior is not None:
-            from dejaview.inference.posterior_report import write_csv
+            from dejaview.inference.posterior_report import write_csv, write_paths
 
             paths["posterior"] = write_csv(out / "posterior.csv", self.posterior, self.problem.layout)
+            paths["posterior_paths"] = write_paths(out / "posterior_paths.csv", self.problem, self.posterior,
+                                                   seed=int(self.settings.get("seed") or 0))
         if plot:
             quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
             paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)

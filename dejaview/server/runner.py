@@ -72,6 +72,7 @@ ARTEFACTS = {
     "heatmap.json": "application/json",
     "iterations.csv": "text/csv; charset=utf-8",
     "posterior.csv": "text/csv; charset=utf-8",
+    "posterior_paths.csv": "text/csv; charset=utf-8",
 }
 
 

@@ -3,6 +3,7 @@ every mode weighted by its mass, and wired through solve, the CLI and result fil
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import subprocess
@@ -17,8 +18,16 @@ import torch
 from dejaview.errors import InferenceError
 from dejaview.inference import solve
 from dejaview.inference.posterior import PosteriorSettings
-from dejaview.inference.posterior_report import CSV_HEADER, read_csv, weighted_quantiles
+from dejaview.inference.posterior_report import (
+    CSV_HEADER,
+    PATHS,
+    PATHS_HEADER,
+    path_samples,
+    read_csv,
+    weighted_quantiles,
+)
 from dejaview.inference.sampling import Mixture, log_base_density, sample_posterior
+from dejaview.inference.sampling import PosteriorSamples as Samples
 from dejaview.inference.search import Mode
 from dejaview.scene import Optimize, PosteriorSamples, Scene
 
@@ -169,6 +178,32 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
         iv = post["intervals"][name]
         assert iv["90%"][0] <= iv["50%"][0] <= iv["median"] <= iv["50%"][1] <= iv["90%"][1]
         assert iv["90%"][0] - 0.02 <= start[axis] <= iv["90%"][1] + 0.02  # the MAP sits in the bulk
+    # a few samples' pasts: each starts at its posterior.csv row and ends where its own rollout ends
+    rows = list(csv.reader(paths["posterior_paths"].open()))
+    assert tuple(rows[0]) == PATHS_HEADER
+    by_sample = {}
+    for r in rows[1:]:
+        by_sample.setdefault(int(r[0]), []).append([float(v) for v in r[1:]])
+    assert 1 <= len(by_sample) <= PATHS
+    chosen = sorted(by_sample)
+    with torch.no_grad():
+        traj = result.problem.simulate(result.posterior.x[chosen])
+    end = result.problem.frames.object_position(traj.final)[:, result.problem.source]
+    for b, (index, path) in enumerate(sorted(by_sample.items())):
+        steps = [int(p[0]) for p in path]
+        assert steps == sorted(steps) and steps[0] == 0 and steps[-1] == result.problem.duration_steps
+        assert path[0][2:] == pytest.approx(states[index, 0:3].tolist(), abs=1e-6)
+        assert path[-1][2:] == pytest.approx(end[b].tolist(), abs=1e-6)
+
+
+def test_paths_are_drawn_by_weight_among_distinct_samples():
+    x = torch.tensor([[0.0], [1.0], [1.0], [1.0], [2.0]], dtype=torch.float64)
+    w = torch.tensor([0.5, 0.2, 0.2, 0.1, 0.0], dtype=torch.float64)
+    smp = Samples(x=x, weights=w, log_density=torch.zeros(5), component=torch.zeros(5, dtype=torch.long),
+                  mode_index=[0])
+    assert path_samples(smp, count=8) == [0, 1]  # distinct samples only (first rows), never a weightless one
+    assert path_samples(smp, count=2) == [0, 1]  # 2 draws, half the mass each
+    assert len(path_samples(smp, count=1)) == 1
 
 
 def test_samples_override_the_scene_and_zero_draws_none():

@@ -75,12 +75,15 @@ def test_load_move_solve_animate_heatmap_export(page, web_server, web_root, arti
     assert s["heatmapShown"] and s["heatmapCells"] == [2, 2]
     assert s["result"]["source"] == "cube"
     # the heatmap is the posterior's marginal: its samples' start points are drawn as a cloud
-    page.wait_for_function("window.dejaview.state().samplesShown", timeout=30_000)
+    # with a few of them re-simulated as faint trajectories
+    page.wait_for_function("window.dejaview.state().samplesShown && window.dejaview.state().samplePaths > 0",
+                           timeout=30_000)
     s = state(page)
     assert s["sampleCount"] == s["result"]["posterior"]["samples"] > 0
+    assert 1 <= s["samplePaths"] <= 8
     page.screenshot(path=artifacts / "3a-posterior-samples.png")
     page.uncheck("#show-samples")
-    assert not state(page)["samplesShown"]
+    assert not state(page)["samplesShown"] and state(page)["samplePaths"] == 0
     page.check("#show-samples")
 
     # the trajectory animates in real time: time advances and the cube moves along it

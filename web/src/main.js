@@ -8,7 +8,8 @@ import { LossChart } from './chart.js';
 import { Connection, serverFetch, socketUrl } from './connection.js';
 import { loadMesh, parseSpheres, primitiveGeometry, spheresMesh } from './geometry.js';
 import {
-  applyPose, heatmapDecal, parsePosterior, parseTrajectory, sampleCloud, trajectorySpline,
+  applyPose, heatmapDecal, parsePosterior, parsePosteriorPaths, parseTrajectory, sampleCloud,
+  samplePaths, trajectorySpline,
 } from './results.js';
 import { SceneModel } from './scene-xml.js';
 import { setupVR } from './vr.js';
@@ -74,6 +75,7 @@ const app = {
   heatmap: null,
   heatmapGrid: null,
   samples: null, // the posterior samples' start points (THREE.Points)
+  samplePaths: null, // a few posterior samples' trajectories (THREE.Group of faint lines)
   time: 0,
   playing: false,
   jobs: new Map(), // job_id -> {kind, state, requestId}
@@ -265,7 +267,7 @@ function clearScene() {
 }
 
 function clearResults() {
-  for (const key of ['path', 'heatmap', 'samples']) {
+  for (const key of ['path', 'heatmap', 'samples', 'samplePaths']) {
     if (app[key]) app[key].removeFromParent();
     app[key] = null;
   }
@@ -532,6 +534,17 @@ async function showSamples(jobId) {
     world.add(app.samples);
   } catch (err) {
     notify(`posterior samples: ${err.message}`, 'error');
+    return;
+  }
+  const paths = await serverFetch(`jobs/${jobId}/posterior_paths.csv`);
+  if (!paths.ok) return;
+  try {
+    if (app.samplePaths) app.samplePaths.removeFromParent();
+    app.samplePaths = samplePaths(parsePosteriorPaths(await paths.text()));
+    app.samplePaths.visible = $('show-samples').checked;
+    world.add(app.samplePaths);
+  } catch (err) {
+    notify(`posterior paths: ${err.message}`, 'error');
   }
 }
 
@@ -585,7 +598,9 @@ $('play').onclick = () => (app.playing ? pause() : play());
 $('scrub').oninput = () => seek(((app.trajectory?.duration || 0) * Number($('scrub').value)) / 1000);
 $('setup-view').onclick = () => showSetup();
 $('show-heatmap').onchange = () => { if (app.heatmap) app.heatmap.visible = $('show-heatmap').checked; };
-$('show-samples').onchange = () => { if (app.samples) app.samples.visible = $('show-samples').checked; };
+$('show-samples').onchange = () => {
+  for (const shown of [app.samples, app.samplePaths]) if (shown) shown.visible = $('show-samples').checked;
+};
 $('show-path').onchange = () => { if (app.path) app.path.visible = $('show-path').checked; };
 $('show-spheres').onchange = () => {
   const on = $('show-spheres').checked;
@@ -730,6 +745,7 @@ window.dejaview = {
     heatmapCells: app.heatmapGrid?.cells ?? null,
     samplesShown: Boolean(app.samples?.parent && app.samples.visible),
     sampleCount: app.samples ? app.samples.geometry.attributes.position.count : 0,
+    samplePaths: app.samplePaths?.parent && app.samplePaths.visible ? app.samplePaths.children.length : 0,
     jobs: [...app.jobs].map(([id, j]) => ({ id, kind: j.kind, state: j.state, error: j.error?.code })),
     loss: chart.points,
     result: app.result,

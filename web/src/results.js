@@ -145,6 +145,37 @@ export function parsePosterior(csv) {
     .map((f) => ({ weight: f[1], position: [f[2], f[3], f[4]] }));
 }
 
+const PATHS_HEADER = 'sample,step,time,x,y,z';
+
+// posterior_paths.csv -> [[x, y, z], ...] per sample (a few samples' pasts, the source's origin)
+export function parsePosteriorPaths(csv) {
+  const lines = csv.trim().split(/\r?\n/);
+  if (lines[0].trim() !== PATHS_HEADER) throw new Error(`posterior_paths.csv: header is not ${PATHS_HEADER}`);
+  const paths = new Map();
+  for (const line of lines.slice(1)) {
+    const f = line.split(',').map(Number);
+    if (f.length < 6 || f.some((v) => !Number.isFinite(v))) continue;
+    if (!paths.has(f[0])) paths.set(f[0], []);
+    paths.get(f[0]).push([f[3], f[4], f[5]]);
+  }
+  return [...paths.values()].filter((points) => points.length >= 2);
+}
+
+// A few posterior samples' trajectories as faint lines (other pasts that explain the same end).
+export function samplePaths(paths) {
+  const group = new THREE.Group();
+  const material = new THREE.LineBasicMaterial({
+    color: 0x9ecbff, transparent: true, opacity: 0.35, depthWrite: false,
+  });
+  for (const points of paths) {
+    const geometry = new THREE.BufferGeometry().setFromPoints(points.map((p) => new THREE.Vector3(...p)));
+    group.add(new THREE.Line(geometry, material));
+  }
+  group.name = 'posterior-paths';
+  group.renderOrder = 3;
+  return group;
+}
+
 // The posterior samples' start points, each coloured by the posterior probability around it: its
 // weight times the number of samples within `radius` (a kernel density estimate), on the heatmap's
 // colour scale (dark: few pasts start here, yellow: many).
