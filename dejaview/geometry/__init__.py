@@ -9,5 +9,7 @@ Modules (import them directly; this package imports nothing, so that
 * ``dejaview.geometry.sdf``: ``SignedDistanceGrid``, ``load_or_build_sdf``;
 * ``dejaview.geometry.distance``: inside tests and exact distances on lattices;
 * ``dejaview.geometry.collision``: ``SceneCollision`` (exact interpenetration
-  tests with python-fcl), ``load_or_build_pieces`` (convex decomposition).
+  tests with python-fcl);
+* ``dejaview.geometry.convex_pieces``: ``load_or_build_pieces`` (convex
+  decomposition with CoACD, cached).
 """

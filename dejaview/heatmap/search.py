@@ -445,7 +445,7 @@ def _weigh(run: _Run, cand: _Candidates, keep: torch.Tensor, level: torch.Tensor
 def _best_solution(run: _Run, cand: _Candidates, history: list, settings: dict):
     """The best candidate overall, re-simulated, as a ``SolveResult``."""
     from dejaview.inference.optimize import OptimizationResult
-    from dejaview.inference.solve import SolveResult
+    from dejaview.inference.result import SolveResult
 
     loss, xs = cand.loss, cand.x
     b = int(torch.argmin(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))))

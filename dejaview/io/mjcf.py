@@ -220,7 +220,7 @@ def _geom(scene, obj, assets: list[str]) -> list[str]:
     elif kind == "cylinder":
         attrs.update(type="cylinder", size=f"{_num(obj.radius)} {_num(0.5 * obj.height)}")
     elif kind == "mesh":
-        from dejaview.geometry.collision import load_or_build_pieces
+        from dejaview.geometry.convex_pieces import load_or_build_pieces
 
         # MuJoCo collides a mesh as its convex hull: a non-convex one goes as its convex pieces
         pieces = load_or_build_pieces(scene.resolve(obj.mesh))

@@ -277,7 +277,7 @@ class Scene:
 
     def to_xml(self) -> str:
         """The scene as XML text (UTF-8 declaration included)."""
-        from dejaview.scene.xml import scene_to_xml
+        from dejaview.scene.writer import scene_to_xml
 
         return scene_to_xml(self)
 

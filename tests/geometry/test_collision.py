@@ -12,8 +12,8 @@ import torch
 import trimesh
 
 from dejaview.errors import GeometryError
-from dejaview.geometry.collision import (DEFAULT_MARGIN, TOUCHING, SceneCollision, convex_pieces,
-                                         load_or_build_pieces, quaternion_matrices)
+from dejaview.geometry.collision import DEFAULT_MARGIN, TOUCHING, SceneCollision, quaternion_matrices
+from dejaview.geometry.convex_pieces import convex_pieces, load_or_build_pieces
 from dejaview.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[2]
