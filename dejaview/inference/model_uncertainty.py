@@ -154,7 +154,7 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
     The global stage (``map_search``) runs on the scene's own physics: one rollout per candidate,
     and it stops once a candidate explains the end, which under model uncertainty none does (the
     variants' spread is a floor), so a global search on the averaged likelihood ran to its
-    patience (measured: 12-15x the solve's time). Its distinct modes (``found.modes``, best first,
+    patience (``docs/physics-fidelity.md`` has the measured cost). Its distinct modes (``found.modes``, best first,
     and its best) are instead refined by Levenberg-Marquardt on the averaged likelihood of
     ``post`` (exact Jacobians through every variant) and ranked by it: a needle past, whose end
     moves when the friction does, loses to one whose end holds.

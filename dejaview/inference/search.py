@@ -72,8 +72,8 @@ GLOBAL_PATIENCE = 40
 JACOBIAN_COST = 3
 """Budget units of one candidate's residual Jacobian (a rollout with gradients ~3 rollouts)."""
 DEFAULT_BUDGET = 20000
-"""Rollouts per solve: ~13 s on the mug (0.65 ms per candidate in a batch), more than the
-searches of the bundled scenes need (see the recovery suite's table)."""
+"""Rollouts per solve: more than the searches of the bundled scenes need (the recovery suite's
+table in ``docs/benchmarks.md`` lists what each used)."""
 
 
 def screen_size(num_params: int) -> int:

@@ -144,22 +144,14 @@ def default_gradient(num_params: int) -> str:
     """The faster gradient mode for a problem (scene format: ``gradient`` defaults to it).
 
     In principle forward mode wins for the ~12 parameters of one object (no
-    graph to store, P tangents in one batched pass). Measured with torch 2.13
-    on CPU, eager forward-mode AD costs ~40x a plain op per op (Python
-    decompositions behind ``torch.func.jvp``), so one gradient of 12
-    parameters takes ~20x a plain rollout in forward mode and ~4x in reverse
-    mode (bench/sim.py: 61 s vs 12.8 s on the reference mug scene). Reverse mode is therefore the default for
-    every size; forward mode stays available (``gradient="forward"``) and
-    gives the same gradients.
-
-    Why (measured, torch 2.13 CPU, one thread): an op between a tangent-carrying
-    tensor and a constant (a World tensor, a Python number) gives the constant
-    a zero tangent (an "efficient zero tensor"), whose kernels size their
-    output through the Python meta registrations (``torch._refs``): ``x * c``
-    costs ~1.5 ms under ``torch.func.jvp`` against ~80 us for ``x * x`` and
-    ~20 us without AD; plain ``torch.autograd.forward_ad`` dual tensors behave
-    the same (1.7 ms, 60 us with ``c`` made dual). Nearly every op of a step
-    has a constant operand.
+    graph to store, P tangents in one batched pass). On the torch engine, eager
+    forward-mode AD pays Python decompositions for every op with a constant
+    operand (a World tensor, a Python number: its zero tangent is sized through
+    ``torch._refs``), so reverse mode is faster there, and on the native engine
+    the adjoint reverse pass is (numbers: ``docs/benchmarks.md``, "Forward-mode
+    cost on the torch engine" and the engine benchmarks). Reverse mode is
+    therefore the default for every size; forward mode stays available
+    (``gradient="forward"``) and gives the same gradients.
     """
     del num_params
     return "reverse"
