@@ -6,6 +6,7 @@ Modules (import them directly; this package imports nothing, so that
 * ``dejaview.geometry.mesh``: ``load_mesh``, ``primitive_mesh``,
   ``mass_properties``, ``primitive_mass_properties``, ``file_hash``;
 * ``dejaview.geometry.packing``: ``SpherePacking``, ``load_or_build_packing``;
+  it builds with ``greedy_cover`` (meshes) and ``box_spheres`` (primitive boxes);
 * ``dejaview.geometry.sdf``: ``SignedDistanceGrid``, ``load_or_build_sdf``;
 * ``dejaview.geometry.distance``: inside tests and exact distances on lattices;
 * ``dejaview.geometry.collision``: ``SceneCollision`` (exact interpenetration

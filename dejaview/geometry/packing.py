@@ -9,6 +9,11 @@ minimum radius or the coverage target stops it. The radius of every chosen
 sphere is then set from the exact distance of its centre to the surface, so no
 sphere reaches more than ``tolerance`` outside the mesh.
 
+Primitive boxes are packed from their shape instead
+(``dejaview.geometry.box_spheres``): spheres touching faces, edges and corners,
+mirror-symmetric. The lattice and the greedy cover are in
+``dejaview.geometry.greedy_cover``.
+
 Packings live in ``.spheres`` files (see the scene format): ``#`` comments, one
 ``x y z r`` line per sphere, in the mesh's frame, metres.
 """
@@ -31,6 +36,8 @@ from scipy.spatial import cKDTree
 
 from dejaview.errors import GeometryError
 from dejaview.geometry import distance
+from dejaview.geometry.box_spheres import box_spheres
+from dejaview.geometry.greedy_cover import greedy_cover, interior_lattice
 from dejaview.geometry.mesh import (
     cache_folder,
     check_primitive,
@@ -43,16 +50,9 @@ from dejaview.geometry.mesh import (
 
 # Bump when the algorithm changes so that cached packings are rebuilt.
 ALGORITHM = "greedy-coverage-1"
+BOX_ALGORITHM = "box-faces-1"  # the primitive box's packing (box_spheres)
 MAX_TOLERANCE = 0.002  # metres: no sphere may reach further outside its mesh
 
-# Automatic lattice: a trial with about _TRIAL_NODES interior nodes measures the
-# work of the greedy cover; the final lattice aims at _COVER_WORK node visits
-# with _MIN_NODES to _MAX_NODES interior nodes, _MAX_LATTICE_NODES in all.
-_TRIAL_NODES = 20_000
-_COVER_WORK = 20e6
-_MIN_NODES = 20_000
-_MAX_NODES = 300_000
-_MAX_LATTICE_NODES = 6_000_000
 
 
 @dataclass
@@ -155,8 +155,8 @@ class SpherePacking:
         solid = watertight_mesh(mesh, name)
         triangles = distance.triangle_array(solid)
 
-        spacing, origin, shape, inside, values = _interior_lattice(triangles, solid, resolution,
-                                                                   tolerance, name)
+        spacing, origin, shape, inside, values = interior_lattice(triangles, solid, resolution,
+                                                                  tolerance, name)
         if values is None:
             values = distance.lattice_signed_distance(triangles, origin, spacing, shape,
                                                       band=spacing)
@@ -164,8 +164,8 @@ class SpherePacking:
         points = origin + np.stack(np.unravel_index(index, shape), axis=1) * spacing
         reach = -values.ravel()[index] + tolerance
 
-        chosen = _greedy_cover(points, reach, spacing, settings["max_spheres"],
-                               min_radius or 0.0, coverage, progress)
+        chosen = greedy_cover(points, reach, spacing, settings["max_spheres"],
+                              min_radius or 0.0, coverage, progress)
         centers = points[chosen]
         # exact radii: the lattice distances far from the surface are upper bounds
         exact, _ = distance.unsigned_distance(triangles, centers)
@@ -190,24 +190,42 @@ class SpherePacking:
                        **params) -> "SpherePacking":
         """Packing of a scene primitive centred at the origin.
 
-        A sphere is exactly one sphere; a box or cylinder is packed from its mesh
-        with ``from_mesh(**params)``.
+        A sphere is exactly one sphere. A box gets spheres touching its faces,
+        edges and corners, mirror-symmetric about its three mid-planes, with the
+        box's extent (``dejaview.geometry.box_spheres``), as many as
+        ``max_spheres`` allows; ``min_radius`` sets the radius of its edges'
+        spheres, ``tolerance`` does not apply (no sphere reaches outside), and
+        ``resolution`` or ``coverage``, or a budget too small for that
+        construction, pack it from its mesh like a cylinder. A cylinder is
+        packed from its mesh with ``from_mesh(**params)``.
 
         Args:
             shape: ``"box"``, ``"sphere"`` or ``"cylinder"`` (axis z).
             size: (3,) box extents; radius, height: as in the scene format.
-            **params: passed to :meth:`from_mesh`.
+            **params: as in :meth:`from_mesh`.
         Returns:
             The packing.
+        Raises:
+            GeometryError: bad dimensions or parameters.
         """
         check_primitive(shape, size, radius, height)
         if shape == "sphere":
             return cls(np.zeros((1, 3)), [float(radius)],
                        {"generator": "dejaview primitive", "mesh": f"sphere r={radius}"})
+        name = (f"box size={' '.join(str(float(v)) for v in size)}"
+                if shape == "box" else f"cylinder r={radius} h={height}")
+        if shape == "box" and params.get("resolution") is None and params.get("coverage") is None:
+            settings = _settings(params.get("max_spheres", 256), min_radius=params.get("min_radius"),
+                                 tolerance=params.get("tolerance", 0.001))
+            built = box_spheres(size, settings["max_spheres"],
+                                edge_radius=settings["min_radius"] or None)
+            if built is not None:
+                header = {"generator": f"dejaview {BOX_ALGORITHM}", "mesh": name,
+                          "spheres": str(len(built[1])), "max_spheres": str(settings["max_spheres"])}
+                return cls(built[0], built[1], header)
         packing = cls.from_mesh(primitive_mesh(shape, size=size, radius=radius, height=height),
                                 **params)
-        packing.header["mesh"] = (f"box size={' '.join(str(float(v)) for v in size)}"
-                                  if shape == "box" else f"cylinder r={radius} h={height}")
+        packing.header["mesh"] = name
         return packing
 
     # -------------------------------------------------------------- file format
@@ -486,134 +504,3 @@ def _is_float(text: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def _lattice(triangles, solid, spacing):
-    """Lattice centred on the mesh's bounding box (a node at its centre), one node
-    layer outside on every side.
-
-    Returns:
-        origin (3,), shape (3,) tuple and inside (nx, ny, nz) bool.
-    """
-    lo, hi = solid.bounds
-    shape = np.floor((hi - lo) / spacing).astype(np.int64) + 3
-    shape += 1 - shape % 2  # odd counts put a node at the centre of symmetric shapes
-    origin = 0.5 * (lo + hi) - 0.5 * (shape - 1) * spacing
-    inside = distance.lattice_inside(triangles, origin, spacing, shape)
-    return origin, tuple(int(n) for n in shape), inside
-
-
-def _interior_lattice(triangles, solid, resolution, tolerance, name):
-    """Lattice for packing, at ``resolution`` or an automatic spacing.
-
-    The automatic spacing balances accuracy against the cost of the greedy
-    cover, which grows like (interior nodes) x (nodes per sphere), i.e. like
-    spacing^-6: a coarse trial lattice measures that cost, and the spacing is
-    chosen to meet ``_COVER_WORK``, within 20 000 to 300 000 interior nodes.
-    Thin shapes that the trial lattice misses get finer trials.
-
-    Returns:
-        spacing, origin (3,), shape (3,), inside (nx, ny, nz) bool, and the signed
-        distances (nx, ny, nz) if already computed, else None.
-    """
-    lo, hi = solid.bounds
-    finest = (float(np.prod(hi - lo + 1e-9)) / _MAX_LATTICE_NODES) ** (1.0 / 3.0)
-    if resolution is not None:
-        spacing = float(resolution)
-        if spacing < finest * 0.999:
-            raise GeometryError(
-                f"{name}: resolution {spacing:g} m needs more than {_MAX_LATTICE_NODES} "
-                f"lattice nodes; use at least {finest:.3g} m"
-            )
-        origin, shape, inside = _lattice(triangles, solid, spacing)
-        values = None
-    else:
-        spacing = max((float(solid.volume) / _TRIAL_NODES) ** (1.0 / 3.0), finest)
-        for _ in range(4):
-            origin, shape, inside = _lattice(triangles, solid, spacing)
-            if inside.sum() >= _TRIAL_NODES // 4 or spacing / 2 < finest:
-                break
-            spacing /= 2
-        count = int(inside.sum())
-        values = None
-        if count:
-            values = distance.lattice_signed_distance(triangles, origin, spacing, shape,
-                                                      band=spacing)
-            reach = np.maximum(-values[inside] + tolerance, 0.0)
-            # work(h) = sum over nodes of nodes per ball = work_coefficient / h^6
-            work = float(np.sum(4.0 / 3.0 * np.pi * reach**3)) * spacing**3
-            chosen = (work / _COVER_WORK) ** (1.0 / 6.0) if work > 0 else spacing
-            coarsest = spacing * (count / _MIN_NODES) ** (1.0 / 3.0)
-            finest_nodes = spacing * (count / _MAX_NODES) ** (1.0 / 3.0)
-            chosen = max(min(chosen, coarsest), finest_nodes, finest)
-            if abs(chosen - spacing) > 0.02 * spacing:
-                spacing = chosen
-                origin, shape, inside = _lattice(triangles, solid, spacing)
-                values = None
-    if not inside.any():
-        raise GeometryError(
-            f"{name}: no lattice node falls inside the mesh at spacing {spacing:g} m; "
-            "the shape is thinner than that: pass a smaller resolution"
-        )
-    return spacing, origin, shape, inside, values
-
-
-def _greedy_cover(points: np.ndarray, reach: np.ndarray, spacing: float, budget: int,
-                  min_radius: float, coverage: float | None, progress) -> np.ndarray:
-    """Greedy maximum coverage of interior nodes by spheres centred on them.
-
-    Args:
-        points: (N, 3) interior nodes; each is a candidate centre and a node to cover.
-        reach: (N,) largest allowed radius at each node.
-        spacing: lattice spacing of ``points``.
-        budget: most spheres.
-        min_radius: candidates with a smaller reach are not used.
-        coverage: stop once this fraction of nodes is covered (None: never).
-        progress: optional callable(done, total).
-    Returns:
-        (M,) indices of the chosen centres, M <= budget, in insertion order.
-    """
-    tree = cKDTree(points)
-    usable = np.flatnonzero((reach >= min_radius) & (reach > 0))
-    gain = np.zeros(len(points), dtype=np.int64)
-    if len(usable):
-        gain[usable] = tree.query_ball_point(points[usable], reach[usable],
-                                             return_length=True, workers=-1)
-    widest = float(reach[usable].max()) if len(usable) else 0.0
-    active = usable
-    covered = np.zeros(len(points), dtype=bool)
-    goal = len(points) if coverage is None else math.ceil(coverage * len(points))
-    done = 0
-    chosen: list[int] = []
-    while len(chosen) < budget:
-        best = int(np.argmax(gain))
-        if gain[best] <= 0:
-            break
-        members = np.asarray(tree.query_ball_point(points[best], reach[best],
-                                                   return_sorted=False), dtype=np.int64)
-        fresh = members[~covered[members]]
-        covered[fresh] = True
-        done += len(fresh)
-        chosen.append(best)
-        if progress is not None:
-            progress(len(chosen), budget)
-        if done >= goal:
-            break
-        # only candidates whose ball meets the new one lose gain; small
-        # neighbourhoods come from the tree, large ones from a scan
-        span = reach[best] + widest
-        if 4.2 * (span / spacing) ** 3 < len(active) / 2:
-            near = np.asarray(tree.query_ball_point(points[best], span, return_sorted=False),
-                              dtype=np.int64)
-            near = near[gain[near] > 0]
-        else:
-            active = active[gain[active] > 0]
-            near = active
-        offset = points[near] - points[best]
-        gap2 = np.einsum("ij,ij->i", offset, offset)
-        near = near[gap2 <= (reach[near] + reach[best]) ** 2]
-        if len(near):
-            gain[near] -= cKDTree(points[fresh]).query_ball_point(
-                points[near], reach[near], return_length=True
-            )
-    return np.asarray(chosen, dtype=np.int64)
