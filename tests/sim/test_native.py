@@ -239,7 +239,7 @@ def test_simulate_runs_natively_in_chunks_with_progress_and_stop():
 def test_grid_lipschitz_bound_holds():
     """|d(p) - d(q)| <= L |p - q| for the grid field, inside and outside the grid."""
     shape = _box_grid()
-    lip = native._grid_lipschitz(shape.grid, shape.grid_spacing)
+    lip = native.schema.grid_lipschitz(shape.grid, shape.grid_spacing)
     assert 1.0 <= lip <= 3.0
     g = torch.Generator().manual_seed(1)
     p = (torch.rand(4000, 3, generator=g, dtype=torch.float64) - 0.5) * 1.4

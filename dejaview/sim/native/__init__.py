@@ -1,7 +1,9 @@
 """Native (C++) rollouts of the sphere-packing simulator, with exact state Jacobians.
 
 The same model as ``dejaview.sim.contacts`` and ``dejaview.sim.integrate``,
-written once in C++ (``rollout.cpp``) as templates over the number type:
+written once in C++ (``rollout.cpp`` with ``dual.h``, ``contacts.h``,
+``integrate.h``; what it reads is ``dejaview.sim.native.schema``, by name
+through the generated ``schema.h``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
 contacts with 13 tangents, a touching body pair with 26, the integration with
@@ -50,11 +52,10 @@ from pathlib import Path
 import torch
 
 from dejaview.errors import SimulationError
+from dejaview.sim.native import schema
 from dejaview.sim.state import State
 
 SOURCE = Path(__file__).with_name("rollout.cpp")
-KINDS = {"plane": 0, "box": 1, "sphere": 2, "cylinder": 3, "grid": 4}
-SHAPE_FIELDS = 32
 
 ENGINES = ("auto", "native", "torch")
 """``auto``: native where it applies (float64 on the CPU, the extension builds), else torch."""
@@ -150,30 +151,6 @@ def use_native(engine: str, world) -> bool:
     return False
 
 
-def _grid_lipschitz(values: torch.Tensor, spacing: float) -> float:
-    """Lipschitz bound of ``dejaview.sim.sdf.sdf_grid`` over all space.
-
-    Inside a cell the trilinear interpolant's derivative along an axis is a
-    blend of the differences along the cell's four edges of that axis, so its
-    gradient norm is at most ``sqrt(sum_axes max_edges diff^2) / spacing``;
-    ``L_g`` is the largest over the cells. Outside the grid the field is the
-    value at the clamped point plus the distance to the grid box: clamp and
-    remainder split every coordinate change between them, which bounds the
-    whole field by ``sqrt(2) max(L_g, 1)``.
-    """
-    if min(values.shape) < 2:
-        return float("inf")
-    edge = []
-    for axis in range(3):
-        d = values.diff(dim=axis).abs()
-        for a in (a for a in range(3) if a != axis):  # max over the cell's 4 edges along ``axis``
-            d = torch.maximum(d.narrow(a, 0, d.shape[a] - 1), d.narrow(a, 1, d.shape[a] - 1))
-        edge.append(d)  # (nx - 1, ny - 1, nz - 1): one number per cell
-    sq = edge[0] ** 2 + edge[1] ** 2 + edge[2] ** 2
-    lg = float(sq.max().sqrt()) / spacing
-    return 2.0 ** 0.5 * max(lg, 1.0)
-
-
 _PACKED: dict = {}
 
 
@@ -200,39 +177,7 @@ def _pack(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
     if world.dtype != torch.float64 or world.device.type != "cpu":
         raise SimulationError("the native simulator runs in float64 on the CPU; this world is "
                               f"{world.dtype} on {world.device}")
-    f64 = dict(dtype=torch.float64)
-    shapes = torch.zeros(max(len(world.statics), 1), SHAPE_FIELDS, **f64)[:len(world.statics)]
-    grids, offset = [], 0
-    for k, s in enumerate(world.statics):
-        row = shapes[k]
-        row[0] = KINDS[s.kind]
-        row[1:10] = s.rotation.reshape(9)
-        row[10:13] = s.translation
-        row[13:16] = s.half
-        row[16] = s.radius
-        row[17] = s.half_height
-        row[18:21] = s.grid_origin
-        row[21] = s.grid_spacing
-        row[22] = 1.0
-        if s.kind == "grid":
-            row[22] = _grid_lipschitz(s.grid, s.grid_spacing)
-            row[23:26] = torch.tensor(s.grid.shape, **f64)
-            row[26] = offset
-            grids.append(s.grid.reshape(-1))
-            offset += s.grid.numel()
-    grid = torch.cat(grids) if grids else torch.zeros(1, **f64)
-    k = len(world.statics)
-    counts = world.mask.sum(-1).round().to(torch.int64)
-    tensors = [world.mass, world.inertia, world.inv_inertia, world.centers, world.radii, world.bound,
-               world.inv_inertia_min, counts, world.mu_static.reshape(world.num_bodies, k),
-               world.unload_static.reshape(world.num_bodies, k), world.pairs.reshape(-1, 2),
-               world.mu_pair, world.unload_pair, world.mass_pair, shapes, grid]
-    tensors = [t.contiguous() for t in tensors]
-    h = world.dt / world.substeps
-    floats = [float(g) for g in world.gravity] + [h, float(world.contact.frequency),
-                                                  float(world.contact.unload_velocity)]
-    ints = [world.substeps, world.contact.max_static_contacts, world.contact.max_pair_contacts]
-    return tensors, floats, ints
+    return schema.pack(world)
 
 
 class _Rollout(torch.autograd.Function):

@@ -73,10 +73,13 @@ def _cpu_signature() -> str:
 
 
 def build_key(source: Path, cflags: list[str]) -> str:
-    """16 hex digits naming a build of ``source`` with ``cflags`` for this Python, torch and CPU."""
+    """16 hex digits naming a build of ``source`` (and the headers beside it) with ``cflags`` for this
+    Python, torch and CPU."""
     import torch
 
     h = hashlib.sha256(Path(source).read_bytes())
+    for header in sorted(Path(source).parent.glob("*.h")):  # the headers it includes (schema.h, ...)
+        h.update(b"\0" + header.name.encode() + b"\0" + header.read_bytes())
     for part in (torch.__version__, str(getattr(torch.version, "git_version", "")),
                  sys.implementation.cache_tag, str(sysconfig.get_config_var("SOABI")), platform.machine(),
                  os.environ.get("CXX", "c++"), " ".join(cflags), _cpu_signature()):

@@ -1,0 +1,502 @@
+// The world as the engine reads it, static shapes' distances and the contact model: forces and
+// torques of static contacts and body pairs (dejaview/sim/contacts.py in C++; dejaview.sim.native).
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#include "dual.h"
+#include "schema.h"
+
+namespace dv {
+
+// ------------------------------------------------------------------ world
+template <typename S>
+struct Shape {
+  int kind;  // schema::KIND_*
+  S rot[9], trans[3], half[3], radius, half_height, origin[3], spacing, lipschitz;
+  const S* grid;
+  int64_t nx, ny, nz;
+};
+
+template <typename S>
+struct World {
+  int n, s_max, k, p;
+  std::vector<int> count;  // real spheres per body
+  std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body
+  const S *mass, *inertia, *inv_inertia, *centers, *radii, *bound, *inv_i_min;
+  std::vector<Shape<S>> shapes;
+  const S *mu_static, *unload_static;  // (N, K)
+  const int64_t* pairs;                 // (P, 2)
+  const S *mu_pair, *unload_pair, *mass_pair;
+  S gravity[3];
+  S h, omega, unload_velocity;
+  int substeps, cap_static, cap_pair;
+};
+
+// signed distance and outward normal of a world point, as StaticShape.distance (values, or a
+// dual number of any width through distance() below)
+static_assert(schema::KIND_COUNT == 5, "distance_direct has a branch per kind: add the new kind's");
+
+template <typename T, typename S>
+void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
+  T rel[3] = {pw[0] - sh.trans[0], pw[1] - sh.trans[1], pw[2] - sh.trans[2]};
+  T p[3];
+  for (int j = 0; j < 3; ++j) p[j] = rel[0] * sh.rot[j] + rel[1] * sh.rot[3 + j] + rel[2] * sh.rot[6 + j];
+  T n[3];
+  const S tiny2 = S(1e-24);
+  if (sh.kind == schema::KIND_PLANE) {  // plane z <= 0
+    dist = p[2];
+    n[0] = T(0); n[1] = T(0); n[2] = T(1);
+  } else if (sh.kind == schema::KIND_BOX) {  // box
+    T q[3], out[3];
+    S sign[3];
+    for (int c = 0; c < 3; ++c) {
+      sign[c] = val(p[c]) < 0 ? S(-1) : S(1);
+      q[c] = abs(p[c]) - sh.half[c];
+      out[c] = clamp_min0(q[c]);
+    }
+    T len = sqrt(dot3(out, out) + tiny2);
+    int axis = 0;
+    for (int c = 1; c < 3; ++c)
+      if (val(q[c]) > val(q[axis])) axis = c;
+    if (val(q[axis]) > 0) {
+      for (int c = 0; c < 3; ++c) n[c] = out[c] / len * sign[c];
+      dist = len;
+    } else {
+      for (int c = 0; c < 3; ++c) n[c] = T(c == axis ? sign[c] : S(0));
+      dist = clamp_max0(q[axis]);
+    }
+  } else if (sh.kind == schema::KIND_SPHERE) {  // sphere
+    T len = sqrt(dot3(p, p) + tiny2);
+    for (int c = 0; c < 3; ++c) n[c] = p[c] / len;
+    dist = len - sh.radius;
+  } else if (sh.kind == schema::KIND_CYLINDER) {  // cylinder along z
+    T rlen = sqrt(p[0] * p[0] + p[1] * p[1] + tiny2);
+    T radial[3] = {p[0] / rlen, p[1] / rlen, T(0)};
+    T dr = rlen - sh.radius;
+    T dz = abs(p[2]) - sh.half_height;
+    S zs = val(p[2]) < 0 ? S(-1) : S(1);
+    bool is_out = val(dr) > 0 || val(dz) > 0;
+    if (is_out) {
+      T c0 = clamp_min0(dr), c1 = clamp_min0(dz);
+      T clen = sqrt(c0 * c0 + c1 * c1 + tiny2);
+      T d0 = c0 / clen, d1 = c1 / clen;
+      n[0] = radial[0] * d0; n[1] = radial[1] * d0; n[2] = d1 * zs;
+      dist = clen;
+    } else {
+      dist = clamp_max0(vmax(dr, dz));
+      if (val(dr) > val(dz)) {
+        n[0] = radial[0]; n[1] = radial[1]; n[2] = T(0);
+      } else {
+        n[0] = T(0); n[1] = T(0); n[2] = T(zs);
+      }
+    }
+  } else {  // grid (schema::KIND_GRID), trilinear
+    const S size[3] = {S(sh.nx - 1), S(sh.ny - 1), S(sh.nz - 1)};
+    T u_in[3], excess[3];
+    int64_t i0[3];
+    for (int c = 0; c < 3; ++c) {
+      T u = (p[c] - sh.origin[c]) / sh.spacing;
+      u_in[c] = vmin(vmax(u, T(0)), T(size[c]));
+      excess[c] = (u - u_in[c]) * sh.spacing;
+      S f0 = std::min(std::floor(val(u_in[c])), size[c] - 1);
+      i0[c] = static_cast<int64_t>(std::max(f0, S(0)));
+    }
+    T f[3] = {u_in[0] - S(i0[0]), u_in[1] - S(i0[1]), u_in[2] - S(i0[2])};
+    T g[3] = {T(0), T(0), T(0)};
+    T d = T(0);
+    const int64_t sy = sh.nz, sx = sh.ny * sh.nz;
+    for (int a = 0; a < 2; ++a) {
+      T wx = a ? f[0] : 1.0 - f[0];
+      for (int b = 0; b < 2; ++b) {
+        T wy = b ? f[1] : 1.0 - f[1];
+        for (int c = 0; c < 2; ++c) {
+          T wz = c ? f[2] : 1.0 - f[2];
+          const S v = sh.grid[(i0[0] + a) * sx + (i0[1] + b) * sy + (i0[2] + c)];
+          d = d + v * wx * wy * wz;
+          g[0] = g[0] + v * S(2 * a - 1) * wy * wz;
+          g[1] = g[1] + v * wx * S(2 * b - 1) * wz;
+          g[2] = g[2] + v * wx * wy * S(2 * c - 1);
+        }
+      }
+    }
+    T elen = sqrt(dot3(excess, excess) + tiny2);
+    if (val(elen) > S(1e-9)) {
+      for (int c = 0; c < 3; ++c) n[c] = excess[c] / elen;
+    } else {
+      for (int c = 0; c < 3; ++c) n[c] = g[c] / sh.spacing;
+    }
+    dist = d + elen;
+  }
+  for (int i = 0; i < 3; ++i) normal[i] = n[0] * sh.rot[3 * i] + n[1] * sh.rot[3 * i + 1] + n[2] * sh.rot[3 * i + 2];
+}
+
+template <typename S>
+inline void distance(const Shape<S>& sh, const S* pw, S& dist, S* normal) {
+  distance_direct<S, S>(sh, pw, dist, normal);
+}
+
+// dual numbers: the field is a function of the 3 world coordinates only, so it runs on 3-wide
+// duals and the 4 results are chained to the W tangents of the point (chain rule)
+template <typename S, int W>
+void distance(const Shape<S>& sh, const Dual<S, W>* pw, Dual<S, W>& dist, Dual<S, W>* normal) {
+  using D3 = Dual<S, 3>;
+  D3 p3[3], d3, n3[3];
+  for (int c = 0; c < 3; ++c) {
+    p3[c] = D3(pw[c].v);
+    p3[c].d[c] = S(1);
+  }
+  distance_direct<D3, S>(sh, p3, d3, n3);
+  auto chain3 = [&](const D3& x, Dual<S, W>& out) {
+    out.v = x.v;
+    for (int i = 0; i < Dual<S, W>::P; ++i)
+      out.d[i] = x.d[0] * pw[0].d[i] + x.d[1] * pw[1].d[i] + x.d[2] * pw[2].d[i];
+  };
+  chain3(d3, dist);
+  for (int c = 0; c < 3; ++c) chain3(n3[c], normal[c]);
+}
+
+// ------------------------------------------------------------------ contact model pieces
+using schema::SLIP_EPS;
+using schema::SMOOTH_MIN_POWER;
+
+// x^8 and x^(1/8) (SMOOTH_MIN_POWER) by squarings and square roots: the values of std::pow to
+// round-off, several times cheaper
+static_assert(SMOOTH_MIN_POWER == 8.0, "pow8 and root8 implement SMOOTH_MIN_POWER = 8");
+template <typename S> inline S pow8(S x) { const S x2 = x * x, x4 = x2 * x2; return x4 * x4; }
+template <typename S> inline S root8(S x) { return std::sqrt(std::sqrt(std::sqrt(x))); }
+template <typename S, int W> inline Dual<S, W> pow8(const Dual<S, W>& a) {
+  const S x = a.v, x2 = x * x, x4 = x2 * x2;
+  return chain(a, x4 * x4, S(8) * x4 * x2 * x);
+}
+template <typename S, int W> inline Dual<S, W> root8(const Dual<S, W>& a) {
+  const S r = root8(a.v);
+  return chain(a, r, S(0.125) * r / a.v);
+}
+
+// per-thread scratch arrays of the wrench passes (no allocation per call); slot: which one
+template <typename T> inline std::vector<T>& scratch(int slot) {
+  thread_local std::vector<T> v[8];
+  return v[slot];
+}
+
+// friction force (contacts.friction_force)
+template <typename T, typename S>
+void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
+  T speed = sqrt(dot3(vt, vt) + S(1e-30));
+  T b = stick * speed;
+  T scale = vmax(coulomb, b) + S(1e-30);
+  T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(1e-30)) * scale;
+  T k = coulomb * stick / den;
+  for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
+}
+
+// rotational inverse-mass term (contacts._inverse_mass) of one arm
+template <typename T, typename S>
+T inverse_mass(const T* arm, const T* t, const T* inv_w, S inv_i_min) {
+  T u[3], iu[3];
+  cross3(arm, t, u);
+  matvec(inv_w, u, iu);
+  T along = dot3(u, iu);
+  T rest = (1.0 - dot3(t, t)) * dot3(arm, arm);
+  return along + rest * inv_i_min;
+}
+
+template <typename T>
+void slip_direction(const T* vt, T* t) {
+  T den = sqrt(dot3(vt, vt) + SLIP_EPS * SLIP_EPS);
+  for (int c = 0; c < 3; ++c) t[c] = vt[c] / den;
+}
+
+// the 13 state numbers of a body as duals, seeded as tangents offset..offset+12
+template <typename S, int W>
+void seed_state(const S* s, Dual<S, W>* out, int offset) {
+  for (int i = 0; i < 13; ++i) {
+    out[i] = Dual<S, W>(s[i]);
+    out[i].d[offset + i] = S(1);
+  }
+}
+
+// world centre of a body's sphere: x + R c
+template <typename T, typename R, typename S>
+inline void sphere_center(const T* x, const R* rot, const S* c, T* p) {
+  for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
+}
+
+// hysteretic spring normal force of one contact (contacts.normal_force)
+template <typename T, typename S>
+inline T normal_force(const T& depth, const T& weight, const T& vn, S stiff, S unload, S unload_velocity) {
+  T loading = sigmoid(-vn / unload_velocity);
+  return weight * stiff * depth * (unload + (1.0 - unload) * loading);
+}
+
+struct Pick {
+  int shape, sphere;
+  double depth;
+};
+
+// which spheres of body a touch the static shapes: per shape its cap deepest.
+//
+// clear (K x s_max) holds a lower bound on every sphere's clearance d - r to every shape, valid at
+// the previous call; move bounds how far any sphere centre of the body moved since. A shape's
+// distance field is L-Lipschitz, so the bound drops by at most L * move: a sphere whose bound stays
+// above CLEAR_MARGIN cannot touch and is not looked at (the result is exactly that of a full scan).
+using schema::CLEAR_MARGIN;
+
+template <typename S>
+void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vector<Pick>& picks, S* clear,
+                   S move) {
+  picks.clear();
+  const int cnt = w.count[a];
+  const S* x = s;
+  thread_local std::vector<Pick> cand;
+  for (int k = 0; k < w.k; ++k) {
+    const Shape<S>& sh = w.shapes[k];
+    S* cl = clear + static_cast<int64_t>(k) * w.s_max;
+    S dc, nc[3];
+    distance<S>(sh, x, dc, nc);
+    const S far = dc - sh.lipschitz * w.bound[a];
+    if (far >= 0) {  // no sphere can reach the shape: d_i - r_i >= d_c - L (|c_i| + r_i) >= far
+      for (int i = 0; i < cnt; ++i) cl[i] = far;
+      continue;
+    }
+    const S drop = sh.lipschitz * move;
+    cand.clear();
+    for (int i = 0; i < cnt; ++i) {
+      cl[i] -= drop;
+      if (cl[i] > S(CLEAR_MARGIN)) continue;
+      const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
+      S p[3];
+      sphere_center(x, rot, c, p);
+      S d, n[3];
+      distance<S>(sh, p, d, n);
+      const S r = w.radii[a * w.s_max + i];
+      cl[i] = d - r;
+      const S depth = r - d;
+      if (depth > 0) cand.push_back({k, i, static_cast<double>(depth)});
+    }
+    if (static_cast<int>(cand.size()) > w.cap_static && w.s_max > w.cap_static) {
+      std::nth_element(cand.begin(), cand.begin() + w.cap_static, cand.end(),
+                       [](const Pick& u, const Pick& v) { return u.depth > v.depth; });
+      cand.resize(w.cap_static);
+    }
+    picks.insert(picks.end(), cand.begin(), cand.end());
+  }
+}
+
+// force and torque on body a from its picked static contacts; st = its 13 state numbers as T
+template <typename T, typename S>
+void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick>& picks, T* out) {
+  for (int i = 0; i < 6; ++i) out[i] = T(0);
+  // a NaN anywhere in the state makes the torch model's forces NaN (0 * NaN in every candidate
+  // contact, touching or not): the same here, so a broken candidate reads as broken everywhere
+  for (int i = 0; i < 13 && w.k > 0; ++i)
+    if (std::isnan(val(st[i]))) {
+      for (int j = 0; j < 6; ++j) out[j] = T(std::numeric_limits<S>::quiet_NaN());
+      return;
+    }
+  const int m = static_cast<int>(picks.size());
+  if (m == 0) return;
+  const T* x = st;
+  const T* q = st + 3;
+  const T* v = st + 7;
+  const T* om = st + 10;
+  T rot[9], inv_w[9];
+  quat_to_matrix(q, rot);
+  rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
+  std::vector<T>& depth = scratch<T>(0);
+  std::vector<T>& nrm = scratch<T>(1);
+  std::vector<T>& arm = scratch<T>(2);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm.resize(3 * m);
+  T total = T(0);
+  for (int j = 0; j < m; ++j) {
+    const Pick& pk = picks[j];
+    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + pk.sphere) * 3;
+    const S r = w.radii[a * w.s_max + pk.sphere];
+    T p[3];
+    sphere_center(x, rot, c, p);
+    T d;
+    distance(w.shapes[pk.shape], p, d, &nrm[3 * j]);
+    depth[j] = relu(r - d);
+    for (int i = 0; i < 3; ++i) arm[3 * j + i] = (p[i] - x[i]) - nrm[3 * j + i] * r;
+    total = total + depth[j];
+  }
+  const S tiny = std::numeric_limits<S>::min();
+  const S mass = w.mass[a];
+  const S stiff = mass * w.omega * w.omega;
+  const S inv_m = S(1) / mass;
+  for (int j = 0; j < m; ++j) {
+    const int k = picks[j].shape;
+    const T* n = &nrm[3 * j];
+    const T* r = &arm[3 * j];
+    T wr[3], vel[3], vt[3], t[3], ft[3];
+    cross3(om, r, wr);
+    for (int i = 0; i < 3; ++i) vel[i] = v[i] + wr[i];
+    T vn = dot3(vel, n);
+    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
+    T weight = depth[j] / (total + tiny);
+    T fn = normal_force(depth[j], weight, vn, stiff, w.unload_static[a * w.k + k], w.unload_velocity);
+    slip_direction(vt, t);
+    T inv_mass = inv_m + inverse_mass(r, t, inv_w, w.inv_i_min[a]);
+    T stick = weight / (inv_mass * w.h);
+    friction<T, S>(vt, w.mu_static[a * w.k + k] * fn, stick, ft);
+    T f[3], tq[3];
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] + ft[i];
+    cross3(r, f, tq);
+    for (int i = 0; i < 3; ++i) {
+      out[i] = out[i] + f[i];
+      out[3 + i] = out[3 + i] + tq[i];
+    }
+  }
+}
+
+// per-thread scratch of select_pair (no allocation per call)
+template <typename S> std::vector<int>& pair_ids_a() { thread_local std::vector<int> v; return v; }
+template <typename S> std::vector<int>& pair_ids_b() { thread_local std::vector<int> v; return v; }
+template <typename S> std::vector<S>& pair_pts_a() { thread_local std::vector<S> v; return v; }
+template <typename S> std::vector<S>& pair_pts_b() { thread_local std::vector<S> v; return v; }
+
+struct PairPick {
+  int i, j;
+  double depth;
+};
+
+// Returns a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair (exact
+// distances for the pairs looked at, the mid phase's margin for the others).
+template <typename S>
+S select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
+              std::vector<PairPick>& picks) {
+  picks.clear();
+  S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
+  const S centres = std::sqrt(dot3(dx, dx));
+  if (!(centres < w.bound[a] + w.bound[b])) return centres - (w.bound[a] + w.bound[b]);
+  // mid phase: sphere i of a can touch some sphere j of b only if |p_i - x_b| < r_i + bound_b
+  // (|p_i - p_j| < r_i + r_j and |p_j - x_b| + r_j <= bound_b); likewise for b's spheres. A
+  // sphere left out is at least |p_i - x_b| - r_i - bound_b >= 0 clear of every sphere of b.
+  S bound = std::numeric_limits<S>::infinity();
+  auto near = [&](int body, const S* st, const S* rot, const S* other, S other_bound,
+                  std::vector<int>& ids, std::vector<S>& pts) {
+    ids.clear();
+    pts.clear();
+    for (int i = 0; i < w.count[body]; ++i) {
+      const S* c = w.centers + (static_cast<int64_t>(body) * w.s_max + i) * 3;
+      S p[3], d[3];
+      sphere_center(st, rot, c, p);
+      for (int k = 0; k < 3; ++k) d[k] = p[k] - other[k];
+      const S gap = std::sqrt(dot3(d, d)) - (w.radii[body * w.s_max + i] + other_bound);
+      if (gap < 0) {
+        ids.push_back(i);
+        pts.insert(pts.end(), p, p + 3);
+      } else {
+        bound = std::min(bound, gap);
+      }
+    }
+  };
+  std::vector<int>& ia = pair_ids_a<S>();
+  std::vector<int>& ib = pair_ids_b<S>();
+  std::vector<S>& pa = pair_pts_a<S>();
+  std::vector<S>& pb = pair_pts_b<S>();
+  near(a, sa, ra, sb, w.bound[b], ia, pa);
+  if (ia.empty()) return bound;
+  near(b, sb, rb, sa, w.bound[a], ib, pb);
+  for (size_t u = 0; u < ia.size(); ++u) {
+    const S r_i = w.radii[a * w.s_max + ia[u]];
+    for (size_t v = 0; v < ib.size(); ++v) {
+      S df[3] = {pb[3 * v] - pa[3 * u], pb[3 * v + 1] - pa[3 * u + 1], pb[3 * v + 2] - pa[3 * u + 2]};
+      const S depth = r_i + w.radii[b * w.s_max + ib[v]] - std::sqrt(dot3(df, df));
+      if (depth > 0) picks.push_back({ia[u], ib[v], static_cast<double>(depth)});
+      bound = std::min(bound, -depth);
+    }
+  }
+  if (static_cast<int>(picks.size()) > w.cap_pair &&
+      static_cast<int64_t>(w.s_max) * w.s_max > w.cap_pair) {
+    std::nth_element(picks.begin(), picks.begin() + w.cap_pair, picks.end(),
+                     [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
+    picks.resize(w.cap_pair);
+  }
+  return bound;
+}
+
+// wrench on a (out[0..5]) and on b (out[6..11]) from pair index pi's picked sphere pairs
+template <typename T, typename S>
+void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const std::vector<PairPick>& picks,
+                 T* out) {
+  for (int i = 0; i < 12; ++i) out[i] = T(0);
+  const int m = static_cast<int>(picks.size());
+  if (m == 0) return;
+  const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
+  T rot_a[9], rot_b[9], iw_a[9], iw_b[9];
+  quat_to_matrix(st_a + 3, rot_a);
+  quat_to_matrix(st_b + 3, rot_b);
+  rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
+  rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
+  std::vector<T>& depth = scratch<T>(3);
+  std::vector<T>& nrm = scratch<T>(4);
+  std::vector<T>& arm_a = scratch<T>(5);
+  std::vector<T>& arm_b = scratch<T>(6);
+  depth.resize(m);
+  nrm.resize(3 * m);
+  arm_a.resize(3 * m);
+  arm_b.resize(3 * m);
+  T total = T(0);
+  for (int k = 0; k < m; ++k) {
+    const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
+    const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
+    const S r_a = w.radii[a * w.s_max + picks[k].i], r_b = w.radii[b * w.s_max + picks[k].j];
+    T pa[3], pb[3], diff[3];
+    sphere_center(st_a, rot_a, ca, pa);
+    sphere_center(st_b, rot_b, cb, pb);
+    for (int i = 0; i < 3; ++i) diff[i] = pb[i] - pa[i];
+    T dist = sqrt(dot3(diff, diff) + S(1e-24));
+    for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;
+    depth[k] = relu((r_a + r_b) - dist);
+    for (int i = 0; i < 3; ++i) {
+      T point = pa[i] + nrm[3 * k + i] * r_a;
+      arm_a[3 * k + i] = point - st_a[i];
+      arm_b[3 * k + i] = point - st_b[i];
+    }
+    total = total + depth[k];
+  }
+  const S tiny = std::numeric_limits<S>::min();
+  const S stiff = w.mass_pair[pi] * w.omega * w.omega;
+  const S unload = w.unload_pair[pi];
+  const S inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
+  for (int k = 0; k < m; ++k) {
+    const T* n = &nrm[3 * k];
+    const T* ra = &arm_a[3 * k];
+    const T* rb = &arm_b[3 * k];
+    T wa[3], wb[3], vrel[3], vt[3], t[3], ft[3];
+    cross3(st_a + 10, ra, wa);
+    cross3(st_b + 10, rb, wb);
+    for (int i = 0; i < 3; ++i) vrel[i] = (st_b[7 + i] + wb[i]) - (st_a[7 + i] + wa[i]);
+    T vn = dot3(vrel, n);
+    for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn * n[i];
+    T weight = depth[k] / (total + tiny);
+    T fn = normal_force(depth[k], weight, vn, stiff, unload, w.unload_velocity);
+    slip_direction(vt, t);
+    T inv_mass = inv_m + inverse_mass(ra, t, iw_a, w.inv_i_min[a]) + inverse_mass(rb, t, iw_b, w.inv_i_min[b]);
+    T stick = weight / (inv_mass * w.h);
+    friction<T, S>(vt, w.mu_pair[pi] * fn, stick, ft);
+    T f[3], neg[3], ta[3], tb[3];
+    for (int i = 0; i < 3; ++i) {
+      f[i] = fn * n[i] + ft[i];
+      neg[i] = -f[i];
+    }
+    cross3(ra, neg, ta);
+    cross3(rb, f, tb);
+    for (int i = 0; i < 3; ++i) {
+      out[i] = out[i] - f[i];
+      out[3 + i] = out[3 + i] + ta[i];
+      out[6 + i] = out[6 + i] + f[i];
+      out[9 + i] = out[9 + i] + tb[i];
+    }
+  }
+}
+
+}  // namespace dv
