@@ -184,6 +184,16 @@ def profile(scene, steps, use_compile, mode, rows):
                                 print_fn=click.echo)
 
 
+@command.command("micro")
+@click.option("--poses", default=100, show_default=True, type=click.IntRange(min=1),
+              help="Random poses per scene for the collision queries.")
+@csv_option
+def micro(poses, csv_path):
+    """Eager forward-mode AD per op, and one exact interpenetration query per pose (fcl)."""
+    rows = bench_module("micro").run(print_fn=click.echo, poses=poses)
+    _finish(rows, csv_path, False, [])
+
+
 @command.command("optimizers")
 @click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
               help="Comma-separated iteration counts to report the best loss at.")

@@ -166,3 +166,14 @@ def test_peers_quick_compares_both_engines_and_writes_csv(tmp_path):
             assert math.isfinite(float(r[key])) and float(r[key]) > 0, (key, r)
     assert {r["section"] for r in rows} == {"boxes", "mug", "memory", "target"}
     assert [r for r in rows if r["section"] == "memory"][0]["finite"] == "True"
+
+
+def test_cli_micro_writes_both_sections(tmp_path):
+    path = tmp_path / "micro.csv"
+    result = CliRunner().invoke(command, ["micro", "--poses", "3", "--csv", str(path)])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader(path.open()))
+    assert {r["section"] for r in rows} == {"forward-ops", "collision"}
+    collision = [r for r in rows if r["section"] == "collision"]
+    assert len(collision) == 4 and all(r["poses"] == "3" and 0 <= int(r["overlapping"]) <= 3 for r in collision)
+    assert all(float(r["seconds"]) > 0 for r in rows)
