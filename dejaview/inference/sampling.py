@@ -33,7 +33,9 @@ bridge starts from the mixture q below instead of the prior).
   - ``RW_MOVES`` random-walk moves whose step covariance is that of the
     particle's nearest neighbours in the population (it follows ridges, curved
     valleys and separate modes alike; the step scale adapts towards
-    ``TARGET_ACCEPTANCE``).
+    ``TARGET_ACCEPTANCE``), every other one a differential-evolution step
+    ``x + g (x_a - x_b)`` between two other particles, whose length follows the
+    population's extent (long along a ridge the end leaves free).
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 
 Tempering from the prior reaches branches of the posterior the search did not
@@ -61,7 +63,8 @@ SCALE_INFLATION = 1.5
 ESS_FRACTION = 0.7
 """Effective sample size kept by each tempering step, as a fraction of the particles."""
 RW_MOVES = 4
-"""Random-walk Metropolis moves per tempering step (after one independence move)."""
+"""Random-walk Metropolis moves per tempering step (after one independence move), every other one
+a differential-evolution step."""
 FINAL_MOVES = 8
 """Moves (independence and random walk) run at beta = 1 before the samples are returned."""
 TARGET_ACCEPTANCE = 0.3
@@ -80,6 +83,9 @@ DISTINCT_FRACTION = 0.9
 """A tempering step's moves go on until this fraction of the particles are distinct ..."""
 MAX_MOVES = 8
 """... or this many moves have run."""
+DIFFERENCE_MOVES = True
+"""Every other random-walk move is a differential-evolution step (``_SMC.difference_move``);
+measured on the calibration bench: ``docs/benchmarks.md``, "Posterior: calibration and speed"."""
 
 
 def prior_draws(post, n: int, gen: torch.Generator) -> torch.Tensor:
@@ -477,6 +483,29 @@ class _SMC:
         self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
+    def difference_move(self) -> float:
+        """Differential-evolution step (ter Braak 2006): y = x + g (x_a - x_b) + e, a and b two
+        other distinct members of the current population (never x itself), g = 2.38 / sqrt(2 P),
+        e a jitter of 1e-4 of the population's spread: the step follows
+        the population's own extent and direction (along a ridge the end leaves free, where the
+        nearest-neighbour steps are short). Symmetric given the population."""
+        population = torch.unique(self.x, dim=0)
+        m, p = population.shape
+        if m < 3:
+            return self.random_walk_move()
+        scores = torch.rand(self.n, m, generator=self.gen, dtype=torch.float64)
+        scores[torch.cdist(self.x, population) < 1e-12] = -1.0  # never the particle itself
+        a = scores.argmax(1)
+        scores[torch.arange(self.n), a] = -2.0
+        b = scores.argmax(1)
+        gamma = 2.38 / math.sqrt(2 * p)
+        jitter = 1e-4 * population.std(0).clamp_min(1e-12)
+        e = jitter * torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
+        y = self.x + gamma * (population[a] - population[b]) + e
+        values = self.evaluate(y)
+        log_ratio = self.target(values[0], values[2]) - self.target(self.lr, self.lp)
+        return self.accept(y, values, log_ratio)
+
     def distinct(self) -> float:
         return torch.unique(self.x, dim=0).shape[0] / self.n
 
@@ -488,7 +517,8 @@ class _SMC:
         while done < count or (done < MAX_MOVES and self.distinct() < DISTINCT_FRACTION):
             if self.stopped():
                 return
-            self.acceptance.append(self.random_walk_move())
+            self.acceptance.append(self.difference_move() if DIFFERENCE_MOVES and done % 2 == 0
+                                   else self.random_walk_move())
             done += 1
 
     def run(self) -> None:

@@ -95,6 +95,28 @@ def test_a_linear_gaussian_posterior_is_sampled_exactly():
     assert torch.allclose(q[1] - q[0], 2 * 1.6449 * sd, rtol=0.15)
 
 
+def test_a_long_thin_ridge_is_sampled_along_its_whole_length():
+    """x0 + x1 = 1 observed to 0.01, each parameter's prior N(0, 1) (the ``linear_velocity`` block):
+    the posterior is a ridge 70x longer than wide, the prior alone setting its extent (the ball's
+    start x against its x velocity); the marginal spread along the ridge is the normal's."""
+    a = torch.tensor([[100.0, 100.0]], dtype=torch.float64)  # (x0 + x1 - 1) / 0.01
+
+    def res(x):
+        return torch.cat([x @ a.T - 100.0, x], -1)  # observation, then the prior's residuals
+
+    post = FakePosterior(2, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
+    prec = a.T @ a + torch.eye(2, dtype=torch.float64)
+    cov = torch.linalg.inv(prec)
+    mean = cov @ (a.T @ torch.tensor([100.0], dtype=torch.float64))
+    start = Mode(mean + torch.tensor([0.2, -0.2], dtype=torch.float64), 0.0, 0.0, 0.0)
+    smp = sample_posterior(post, [start], 1000, seed=3)
+    along = (smp.x - mean) @ torch.tensor([1.0, -1.0], dtype=torch.float64) / math.sqrt(2)
+    true_sd = math.sqrt(float(torch.tensor([1.0, -1.0], dtype=torch.float64) @ cov
+                              @ torch.tensor([1.0, -1.0], dtype=torch.float64)) / 2)
+    assert float(along.std()) == pytest.approx(true_sd, rel=0.15)
+    assert abs(float(along.mean())) < 0.25 * true_sd
+
+
 def test_every_mode_is_covered_in_proportion_to_its_mass():
     """Two separated normal modes holding 0.7 and 0.3 of the mass (different widths, so their
     densities at the peaks differ from their masses): the samples split 0.7 / 0.3."""
