@@ -495,12 +495,14 @@ inline void check_world(const std::vector<torch::Tensor>& t, const std::vector<d
     TORCH_CHECK(x.dim() == spec.ndim, "native world field '", spec.name, "': expected ", spec.ndim,
                 " dimensions, got shape ", x.sizes());
     for (int d = 0; d < spec.ndim; ++d) {
-      const int want = spec.dims[d];
-      int64_t& size = want < 0 ? sizes[-want - 1] : sizes[5];
-      const int64_t expected = want < 0 ? size : want;
-      if (want < 0 && size < 0) size = x.size(d);
-      else TORCH_CHECK(x.size(d) == expected, "native world field '", spec.name, "': dimension ", d, " is ",
-                       x.size(d), ", expected ", expected, " (shape ", x.sizes(), ")");
+      const int want = spec.dims[d];  // a size, or -1 - the index of a named dimension
+      if (want < 0 && sizes[-want - 1] < 0) {  // the first array to name it sets it
+        sizes[-want - 1] = x.size(d);
+        continue;
+      }
+      const int64_t expected = want < 0 ? sizes[-want - 1] : want;
+      TORCH_CHECK(x.size(d) == expected, "native world field '", spec.name, "': dimension ", d, " is ",
+                  x.size(d), ", expected ", expected, " (shape ", x.sizes(), ")");
     }
   }
   TORCH_CHECK(iv[I_SUBSTEPS] >= 1 && iv[I_MAX_STATIC_CONTACTS] >= 1 && iv[I_MAX_PAIR_CONTACTS] >= 1,
