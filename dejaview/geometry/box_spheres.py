@@ -40,8 +40,7 @@ MAX_SPACING = 0.75
 
 
 def _axis_points(half: float, spacing: float) -> np.ndarray:
-    """(M,) points from -half to half, ``spacing`` apart from
-    each end inwards, the middle gap
+    """(M,) points from -half to half, ``spacing`` apart from each end inwards, the middle gap
     between 0.5 and 1.5 ``spacing`` (0 included when that needs it), exactly mirror-symmetric.
 
     Points at the same distances from the ends on every axis make spheres near an edge, built
