@@ -337,9 +337,20 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
             raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
     elif _needs_jacobian(init) and _reverse_only(init) and gradient_path() == "adjoint":
         states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
+    elif not _needs_jacobian(init):  # values only: no autograd.Function to pass through
+        tensors, floats, ints = packed
+        states, _, _ = extension().rollout(init.detach().contiguous(), int(steps), int(record_every), 0,
+                                           tensors, floats, ints, threads())
     else:
-        states, _ = _Rollout.apply(init, int(steps), int(record_every), _needs_jacobian(init), packed)
+        states, _ = _Rollout.apply(init, int(steps), int(record_every), True, packed)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
-    recorded = [0] + [i for i in range(1, steps + 1) if i % record_every == 0 or i == steps]
     return Trajectory(State(seq[..., :3], seq[..., 3:7], seq[..., 7:10], seq[..., 10:]),
-                      torch.tensor(recorded), world.dt)
+                      record_steps(steps, record_every), world.dt)
+
+
+def record_steps(steps: int, record_every: int) -> torch.Tensor:
+    """(R + 1,) step numbers of a rollout's records: 0, the multiples of ``record_every``, ``steps``."""
+    recorded = torch.arange(0, steps + 1, record_every)
+    if steps % record_every:
+        recorded = torch.cat([recorded, torch.tensor([steps])])
+    return recorded

@@ -38,7 +38,8 @@ struct World {
 };
 
 // signed distance and outward normal of a world point, as StaticShape.distance (values, or a
-// dual number of any width through distance() below)
+// dual number of any width through distance() below); normal may be null: the distance alone
+// (the same value, without the normal's divisions: contact selection)
 static_assert(schema::KIND_COUNT == 5, "distance_direct has a branch per kind: add the new kind's");
 
 template <typename T, typename S>
@@ -64,7 +65,8 @@ void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
     for (int c = 1; c < 3; ++c)
       if (val(q[c]) > val(q[axis])) axis = c;
     if (val(q[axis]) > 0) {
-      for (int c = 0; c < 3; ++c) n[c] = out[c] / len * sign[c];
+      if (normal != nullptr)
+        for (int c = 0; c < 3; ++c) n[c] = out[c] / len * sign[c];
       dist = len;
     } else {
       for (int c = 0; c < 3; ++c) n[c] = T(c == axis ? sign[c] : S(0));
@@ -72,7 +74,8 @@ void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
     }
   } else if (sh.kind == schema::KIND_SPHERE) {  // sphere
     T len = sqrt(dot3(p, p) + tiny2);
-    for (int c = 0; c < 3; ++c) n[c] = p[c] / len;
+    if (normal != nullptr)
+      for (int c = 0; c < 3; ++c) n[c] = p[c] / len;
     dist = len - sh.radius;
   } else if (sh.kind == schema::KIND_CYLINDER) {  // cylinder along z
     T rlen = sqrt(p[0] * p[0] + p[1] * p[1] + tiny2);
@@ -132,6 +135,7 @@ void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
     }
     dist = d + elen;
   }
+  if (normal == nullptr) return;
   for (int i = 0; i < 3; ++i) normal[i] = n[0] * sh.rot[3 * i] + n[1] * sh.rot[3 * i + 1] + n[2] * sh.rot[3 * i + 2];
 }
 
@@ -241,44 +245,56 @@ struct Pick {
 
 // which spheres of body a touch the static shapes: per shape its cap deepest.
 //
-// clear (K x s_max) holds a lower bound on every sphere's clearance d - r to every shape, valid at
-// the previous call; move bounds how far any sphere centre of the body moved since. A shape's
-// distance field is L-Lipschitz, so the bound drops by at most L * move: a sphere whose bound stays
-// above CLEAR_MARGIN cannot touch and is not looked at (the result is exactly that of a full scan).
+// Clearance bounds, in a frame that moves with the body's travel (the sum of how far any sphere
+// centre of the body moved, substep after substep): key (K x s_max) holds, per shape and sphere,
+// a lower bound on the clearance d - r when it was last looked at plus L * travel then (L the
+// shape's Lipschitz bound), so key - L * travel is a lower bound now: a distance field drops by
+// at most L times how far the point moved. A sphere whose bound stays above CLEAR_MARGIN cannot
+// touch and is not looked at; floor (K) is a bound of the same kind for every sphere at once
+// (from the body's centre), keymin (K) the smallest key. The picks are exactly those of a full
+// scan.
 using schema::CLEAR_MARGIN;
 
 template <typename S>
-void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vector<Pick>& picks, S* clear,
-                   S move) {
+void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vector<Pick>& picks, S* key,
+                   S* floor, S* keymin, S travel) {
   picks.clear();
   const int cnt = w.count[a];
   const S* x = s;
   thread_local std::vector<Pick> cand;
   for (int k = 0; k < w.k; ++k) {
     const Shape<S>& sh = w.shapes[k];
-    S* cl = clear + static_cast<int64_t>(k) * w.s_max;
-    S dc, nc[3];
-    distance<S>(sh, x, dc, nc);
+    const S shift = sh.lipschitz * travel;
+    const S thr = S(CLEAR_MARGIN) + shift;  // a key above this cannot touch now
+    if (floor[k] > thr || keymin[k] > thr) continue;
+    S dc;
+    distance<S>(sh, x, dc, nullptr);
     const S far = dc - sh.lipschitz * w.bound[a];
     if (far >= 0) {  // no sphere can reach the shape: d_i - r_i >= d_c - L (|c_i| + r_i) >= far
-      for (int i = 0; i < cnt; ++i) cl[i] = far;
+      floor[k] = far + shift;
       continue;
     }
-    const S drop = sh.lipschitz * move;
+    S* kk = key + static_cast<int64_t>(k) * w.s_max;
+    const S fl = floor[k];
+    S low = std::numeric_limits<S>::infinity();
     cand.clear();
     for (int i = 0; i < cnt; ++i) {
-      cl[i] -= drop;
-      if (cl[i] > S(CLEAR_MARGIN)) continue;
+      if (std::max(kk[i], fl) > thr) {
+        low = std::min(low, kk[i]);
+        continue;
+      }
       const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
       S p[3];
       sphere_center(x, rot, c, p);
-      S d, n[3];
-      distance<S>(sh, p, d, n);
+      S d;
+      distance<S>(sh, p, d, nullptr);
       const S r = w.radii[a * w.s_max + i];
-      cl[i] = d - r;
+      kk[i] = (d - r) + shift;
+      low = std::min(low, kk[i]);
       const S depth = r - d;
       if (depth > 0) cand.push_back({k, i, static_cast<double>(depth)});
     }
+    keymin[k] = low;
     if (static_cast<int>(cand.size()) > w.cap_static && w.s_max > w.cap_static) {
       std::nth_element(cand.begin(), cand.begin() + w.cap_static, cand.end(),
                        [](const Pick& u, const Pick& v) { return u.depth > v.depth; });

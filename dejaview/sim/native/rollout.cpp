@@ -49,12 +49,14 @@ struct Scratch {
   std::vector<S> wrench;                          // (N, 6)
   std::vector<S> next;                            // (N, 13)
   std::vector<S> jac, dws;                        // substep Jacobian (13N)^2, dW/ds (6N x 13N)
-  std::vector<S> clear;                           // (N, K, s_max) clearance bounds (select_static)
+  std::vector<S> key;                             // (N, K, s_max) clearance bounds (select_static)
+  std::vector<S> floor, keymin;                   // (N, K) ... of every sphere, the smallest key
   std::vector<S> last;                            // (N, 12) position and rotation at the last selection
   std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
   std::vector<S> pair_jac;                        // (P, 12, 26) pair blocks (substep_adjoint)
   std::vector<S> move;                            // (N) how far a sphere of each body moved this substep
-  std::vector<S> static_move;                     // (N) ... since its last select_static
+  std::vector<S> travel;                          // (N) the sum of move over the substeps
+  std::vector<char> placed;                       // (N) selected before (last holds its pose)
   std::vector<S> pair_clear;                      // (P) clearance bound of each pair (select_pair)
 };
 
@@ -77,18 +79,20 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     for (int i = 0; i < 3; ++i) dx += (state[13 * a + i] - last[i]) * (state[13 * a + i] - last[i]);
     for (int i = 0; i < 9; ++i) dr += (rot[i] - last[3 + i]) * (rot[i] - last[3 + i]);
     // |p_i' - p_i| <= |x' - x| + |R' - R|_F |c_i|
-    const S move = std::sqrt(dx) + std::sqrt(dr) * w.reach[a];
+    // (no previous selection: every bound is -inf, nothing to lower)
+    const S move = sc.placed[a] ? std::sqrt(dx) + std::sqrt(dr) * w.reach[a] : S(0);
+    sc.placed[a] = 1;
     for (int i = 0; i < 3; ++i) last[i] = state[13 * a + i];
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
     sc.move[a] = move;
-    sc.static_move[a] += move;  // since this body's last select_static
+    sc.travel[a] += move;
     if (need != nullptr && !need[a]) {
       sc.picks[a].clear();
       continue;
     }
-    select_static(w, a, state + 13 * a, rot, sc.picks[a],
-                  &sc.clear[static_cast<int64_t>(a) * w.k * w.s_max], sc.static_move[a]);
-    sc.static_move[a] = S(0);
+    select_static(w, a, state + 13 * a, rot, sc.picks[a], &sc.key[static_cast<int64_t>(a) * w.k * w.s_max],
+                  &sc.floor[static_cast<int64_t>(a) * w.k], &sc.keymin[static_cast<int64_t>(a) * w.k],
+                  sc.travel[a]);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
@@ -353,10 +357,13 @@ void init_scratch(const World<S>& w, Scratch<S>& sc) {
   sc.rot.resize(9 * n);
   sc.wrench.resize(6 * n);
   sc.next.resize(13 * n);
-  sc.clear.assign(static_cast<size_t>(n) * w.k * w.s_max, -std::numeric_limits<S>::infinity());
+  sc.key.assign(static_cast<size_t>(n) * w.k * w.s_max, -std::numeric_limits<S>::infinity());
+  sc.floor.assign(static_cast<size_t>(n) * w.k, -std::numeric_limits<S>::infinity());
+  sc.keymin.assign(static_cast<size_t>(n) * w.k, -std::numeric_limits<S>::infinity());
   sc.last.assign(static_cast<size_t>(12) * n, std::numeric_limits<S>::infinity());
   sc.move.assign(n, S(0));
-  sc.static_move.assign(n, S(0));
+  sc.travel.assign(n, S(0));
+  sc.placed.assign(n, 0);
   sc.pair_clear.assign(w.p, -std::numeric_limits<S>::infinity());
 }
 
