@@ -10,13 +10,20 @@ checkout has: a batch of two initial states (the scene's and a perturbed copy), 
 the native engine recording every 10th, and a scalar loss of the recorded states; stored are
 the states ``(16, 2, N, 13)``, the loss's reverse-mode gradient with respect to the initial
 state ``(2, N, 13)`` and its forward-mode derivative along a fixed direction ``()``.
-``compare`` prints, per array, ``identical`` or the largest difference, and exits 1 when any
-array present in both differs by more than ``--atol`` (default 0: bit for bit).
+Each scene's XML is fingerprinted too (``NAME/scene_sha256``): ``compare`` skips a scene whose
+file changed between the two records. ``compare`` prints, per array, ``identical`` or the
+largest difference, and exits 1 when any array present in both differs by more than ``--atol``
+(default 0: bit for bit).
+
+``tests/fixtures/native/fingerprint-30cf17f.npz`` is the record of the engine when issue 25
+was filed (commit 30cf17f, full state Jacobians); ``tests/sim/test_native_fingerprint.py``
+holds today's engine to it within 1e-9.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 from pathlib import Path
 
@@ -40,6 +47,7 @@ def record(out: Path, scenes_dir: Path) -> None:
         path = scenes_dir / f"{name}.xml"
         if not path.exists():
             continue
+        arrays[f"{name}/scene_sha256"] = np.array(hashlib.sha256(path.read_bytes()).hexdigest())
         scene = read_scene_file(path)
         world = World.from_scene(scene)
         x0 = torch.cat(initial_state(world, scene, batch_size=2).tensors(), -1)  # (2, N, 13)
@@ -63,18 +71,36 @@ def record(out: Path, scenes_dir: Path) -> None:
     print(f"wrote {len(arrays)} arrays to {out}")
 
 
-def compare(before: Path, after: Path, atol: float) -> int:
+def differences(before: Path, after: Path) -> dict[str, float | None]:
+    """Per array of ``before``: the largest difference to ``after`` (0.0 when bit for bit equal;
+    inf when the shapes differ; None when ``after`` lacks it or the scene's XML changed)."""
     a, b = np.load(before), np.load(after)
-    worst = 0.0
+    out: dict[str, float | None] = {}
     for key in a.files:
-        if key not in b.files:
-            print(f"{key}: only in {before}")
+        if key.endswith("/scene_sha256"):
             continue
-        diff = float(np.abs(a[key] - b[key]).max()) if a[key].shape == b[key].shape else float("inf")
-        worst = max(worst, diff)
-        print(f"{key} {a[key].shape}: " + ("identical" if np.array_equal(a[key], b[key]) else f"max diff {diff:.3g}"))
-    for key in sorted(set(b.files) - set(a.files)):
+        sha = key.split("/")[0] + "/scene_sha256"
+        changed = sha in a.files and sha in b.files and str(a[sha]) != str(b[sha])
+        if key not in b.files or changed:
+            out[key] = None
+        elif a[key].shape != b[key].shape:
+            out[key] = float("inf")
+        else:
+            out[key] = float(np.abs(a[key] - b[key]).max())
+    return out
+
+
+def compare(before: Path, after: Path, atol: float) -> int:
+    diffs = differences(before, after)
+    shapes = np.load(before)
+    for key, diff in diffs.items():
+        if diff is None:
+            print(f"{key}: not compared (missing from {after}, or the scene changed)")
+        else:
+            print(f"{key} {shapes[key].shape}: " + ("identical" if diff == 0 else f"max diff {diff:.3g}"))
+    for key in sorted(set(np.load(after).files) - set(shapes.files)):
         print(f"{key}: only in {after}")
+    worst = max((d for d in diffs.values() if d is not None), default=0.0)
     return 0 if worst <= atol else 1
 
 

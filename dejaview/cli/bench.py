@@ -366,7 +366,7 @@ def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_
 @command.command("peers")
 @click.option("--quick", is_flag=True, help="N = 1, 2 over 50 steps, small batches (smoke test).")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1),
-              help="Timings are the best of this many runs.")
+              help="Timings are the best of at least this many runs (short calls repeat for 0.3 s).")
 @click.option("--memory-batch", default=1024, show_default=True, type=click.IntRange(min=1),
               help="Candidates of the mug loss + gradient whose peak memory is reported.")
 @csv_option

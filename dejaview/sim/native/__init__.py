@@ -2,7 +2,7 @@
 
 The same model as ``dejaview.sim.contacts`` and ``dejaview.sim.integrate``,
 written once in C++ (``rollout.cpp`` with ``dual.h``, ``contacts.h``,
-``integrate.h``; what it reads is ``dejaview.sim.native.schema``, by name
+``integrate.h``, ``adjoint.h``; what it reads is ``dejaview.sim.native.schema``, by name
 through the generated ``schema.h``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
@@ -12,9 +12,10 @@ contacts with 13 tangents, a touching body pair with 26, the integration with
 
 - reverse mode (autograd alone): the rollout keeps its substep states (a
   trace, O(steps * substeps * N)), and ``backward`` runs the adjoint
-  ``lam <- J^T lam`` back through them from the same dual passes, without
-  forming any Jacobian; bodies the adjoint has not reached through contacts
-  cost no dual pass (``_Traced``, issue 25);
+  ``lam <- J^T lam`` back through them by hand-written vector-Jacobian
+  products of the same three pieces (``adjoint.h``; the dual passes are
+  their reference), without forming any Jacobian; bodies the adjoint has
+  not reached through contacts cost nothing there (``_Traced``, issue 25);
 - forward mode (``torch.func.jvp``/``jacfwd``, vmap included, or any
   ``torch.func`` transform): the rollout carries the product of the substep
   Jacobians ``Phi_t = d state_t / d state_0`` (13N x 13N) to every record and

@@ -9,10 +9,12 @@
 //   body pair (a, b) W_p(s_a, s_b)     Dual<26>: d W_p / d (s_a, s_b)     (12 x 26)
 //   integration      s_a' = I(s_a, W_a) Dual<19>: d s_a' / d (s_a, W_a)   (13 x 19)
 //
-// with s = (x, q, v, w) (13 numbers) and W = (F, tau). The rollout carries the product of the
-// substep Jacobians, Phi = d s_t / d s_0 (13N x 13N), and returns it at every recorded step: a
-// vector-Jacobian product (reverse mode) is then sum_t Phi_t^T g_t and a Jacobian-vector product
-// (forward mode) Phi_t v, both one small contraction in torch.
+// with s = (x, q, v, w) (13 numbers) and W = (F, tau). Forward mode: the rollout carries the
+// product of the substep Jacobians, Phi = d s_t / d s_0 (13N x 13N), and returns it at every
+// recorded step; a Jacobian-vector product is Phi_t v (and sum_t Phi_t^T g_t a vector-Jacobian
+// product, DEJAVIEW_NATIVE_GRADIENT=phi). Reverse mode: the rollout keeps its substep states (the
+// trace) and adjoint() runs lam <- J^T lam back through them (substep_adjoint) by the
+// hand-written vector-Jacobian products of adjoint.h, which the dual passes hold to account.
 //
 // Contact selection (which spheres touch) is made on values, as the torch code's topk on detached
 // depths; spheres that do not touch carry exactly zero force and zero derivative there, so they are
@@ -33,6 +35,7 @@
 #include <limits>
 #include <vector>
 
+#include "adjoint.h"
 #include "contacts.h"
 #include "dual.h"
 #include "integrate.h"
@@ -53,7 +56,8 @@ struct Scratch {
   std::vector<S> floor, keymin;                   // (N, K) ... of every sphere, the smallest key
   std::vector<S> last;                            // (N, 12) position and rotation at the last selection
   std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
-  std::vector<S> pair_jac;                        // (P, 12, 26) pair blocks (substep_adjoint)
+  std::vector<StaticAdjoint<S>> static_adj;       // (N) static contacts' values for the way back
+  std::vector<PairAdjoint<S>> pair_adj;           // (P) ... body pairs'
   std::vector<S> move;                            // (N) how far a sphere of each body moved this substep
   std::vector<S> travel;                          // (N) the sum of move over the substeps
   std::vector<char> placed;                       // (N) selected before (last holds its pose)
@@ -194,8 +198,9 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
 }
 
 // Reverse mode, one substep: lam <- J(state)^T lam, J = d state' / d state the substep's Jacobian,
-// from the same dual passes as substep(..., jac) but without assembling J: with
-// s_a' = I(s_a, W_a) and W_a = W_s(s_a) + sum over touching pairs W_p(s_a, s_b),
+// by the hand-written vector-Jacobian products of adjoint.h (the dual passes of substep(..., jac)
+// are its reference): with s_a' = I(s_a, W_a) and W_a = W_s(s_a) + sum over touching pairs
+// W_p(s_a, s_b),
 //   mu_a = (dI/dW_a)^T lam_a,  lam_a <- (dI/ds_a)^T lam_a + (dW_s/ds_a)^T mu_a + pair terms.
 // A body whose adjoint lam_a is zero has mu_a = 0: its integration and static contacts are then
 // skipped, and a pair only when both of its bodies are (bodies no contact chain connects to the
@@ -209,88 +214,44 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
     for (int i = 0; i < 13; ++i)
       if (lam[13 * a + i] != S(0)) { live[a] = 1; break; }
   select_contacts(w, state, sc, live.data());
-  // wrench values of every live body (pairs: duals where a live body takes part)
+  // wrench values of every live body, keeping what the way back needs
   std::fill(sc.wrench.begin(), sc.wrench.end(), S(0));
   sc.next.assign(13 * n, S(0));  // the new adjoint
   std::vector<S>& mu = sc.dws;   // (N, 6)
   mu.assign(6 * n, S(0));
-  std::vector<S>& dstatic = sc.jac;  // (N, 6, 13) static contacts' d W_s / d s_a
-  dstatic.resize(static_cast<size_t>(78) * n);
-  for (int a = 0; a < n; ++a) {
-    if (!live[a]) continue;
-    using D = Dual<S, 13>;
-    D st[13], o[6];
-    seed_state(state + 13 * a, st, 0);
-    static_wrench<D, S>(w, a, st, sc.picks[a], o);
-    for (int i = 0; i < 6; ++i) {
-      sc.wrench[6 * a + i] = o[i].v;
-      for (int j = 0; j < 13; ++j) dstatic[78 * a + 13 * i + j] = o[i].d[j];
-    }
-  }
-  std::vector<S>& dpair = sc.pair_jac;  // per touching pair with a live body: (12, 26)
-  dpair.resize(static_cast<size_t>(312) * w.p);
+  sc.static_adj.resize(n);
+  sc.pair_adj.resize(w.p);
+  for (int a = 0; a < n; ++a)
+    if (live[a]) sc.static_adj[a].forward(w, a, state + 13 * a, sc.picks[a], &sc.wrench[6 * a]);
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
     if (!live[a] && !live[b]) continue;
-    using D = Dual<S, 26>;
-    D sa[13], sb[13], o[12];
-    seed_state(state + 13 * a, sa, 0);
-    seed_state(state + 13 * b, sb, 13);
-    pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
+    S o[12];
+    sc.pair_adj[pi].forward(w, pi, state + 13 * a, state + 13 * b, sc.pair_picks[pi], o);
     for (int i = 0; i < 6; ++i) {
-      sc.wrench[6 * a + i] += o[i].v;
-      sc.wrench[6 * b + i] += o[6 + i].v;
+      sc.wrench[6 * a + i] += o[i];
+      sc.wrench[6 * b + i] += o[6 + i];
     }
-    S* blk = &dpair[312 * static_cast<size_t>(pi)];
-    for (int i = 0; i < 12; ++i)
-      for (int j = 0; j < 26; ++j) blk[26 * i + j] = o[i].d[j];
   }
-  // integration of each live body: its own adjoint and mu
+  // integration of each live body: its own adjoint and mu, then its static contacts
   for (int a = 0; a < n; ++a) {
     if (!live[a]) continue;
-    using D = Dual<S, 19>;
-    D st[13], wr[6], o[13];
-    seed_state(state + 13 * a, st, 0);
-    for (int i = 0; i < 6; ++i) {
-      S value = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
-      wr[i] = D(value);
-      wr[i].d[13 + i] = S(1);
-    }
-    integrate<D, S>(w, a, st, wr, o);
-    const S* la = lam + 13 * a;
-    S* na = &sc.next[13 * a];
-    for (int i = 0; i < 13; ++i) {
-      const S l = la[i];
-      if (l == S(0)) continue;
-      for (int j = 0; j < 13; ++j) na[j] += l * o[i].d[j];
-      for (int k = 0; k < 6; ++k) mu[6 * a + k] += l * o[i].d[13 + k];
-    }
-    const S* ds = &dstatic[78 * a];
-    for (int k = 0; k < 6; ++k) {
-      const S m = mu[6 * a + k];
-      if (m == S(0)) continue;
-      for (int j = 0; j < 13; ++j) na[j] += m * ds[13 * k + j];
-    }
+    S wr[6];
+    for (int i = 0; i < 6; ++i) wr[i] = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
+    integrate_vjp(w, a, state + 13 * a, wr, lam + 13 * a, &sc.next[13 * a], &mu[6 * a]);
+    sc.static_adj[a].backward(w, a, &mu[6 * a], &sc.next[13 * a]);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
     if (!live[a] && !live[b]) continue;
-    const S* blk = &dpair[312 * static_cast<size_t>(pi)];
-    S* na = &sc.next[13 * a];
-    S* nb = &sc.next[13 * b];
-    for (int half = 0; half < 2; ++half) {
-      const S* m = &mu[6 * (half ? b : a)];
-      for (int k = 0; k < 6; ++k) {
-        if (m[k] == S(0)) continue;
-        const S* row = blk + 26 * (6 * half + k);
-        for (int j = 0; j < 13; ++j) {
-          na[j] += m[k] * row[j];
-          nb[j] += m[k] * row[13 + j];
-        }
-      }
+    S m[12];
+    for (int i = 0; i < 6; ++i) {
+      m[i] = mu[6 * a + i];
+      m[6 + i] = mu[6 * b + i];
     }
+    sc.pair_adj[pi].backward(w, state + 13 * a, state + 13 * b, m, &sc.next[13 * a], &sc.next[13 * b]);
   }
   std::copy(sc.next.begin(), sc.next.end(), lam);
 }

@@ -1,0 +1,640 @@
+// Reverse mode of one substep's pieces, written by hand (dejaview.sim.native; issue 25): vector-
+// Jacobian products of the static contacts' wrench, a body pair's wrench and the integration, for
+// the adjoint lam <- J^T lam of rollout.cpp's substep_adjoint.
+//
+// The forward-mode dual passes of contacts.h and integrate.h (Dual<13>, <26>, <19>) compute whole
+// Jacobians, 13 to 26 tangents per operation; the adjoint needs only their product with one
+// cotangent, which reverse mode gets in a few times the cost of the values. Each piece below runs
+// its values forward (the same formulas as the templates, on doubles), keeps what the way back
+// needs, and walks back from the cotangent. The dual passes stay the reference: forward mode uses
+// them, and the adjoint must agree with them (tests/sim/test_native_gradients.py,
+// tests/sim/test_native_schema.py).
+//
+// Notation: for y = f(x), xb (x-bar) is the cotangent d L / d x; a function's "vjp" adds
+// (d f / d x)^T yb to xb. Kinks follow the dual code (relu passes nothing at 0, vmax sends the
+// derivative to the larger argument, b on a tie).
+#pragma once
+
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include "contacts.h"
+#include "dual.h"
+
+namespace dv {
+
+// ------------------------------------------------------------------ small pieces
+template <typename S> inline void add_cross(const S* a, const S* b, S* out) {  // out += a x b
+  out[0] += a[1] * b[2] - a[2] * b[1];
+  out[1] += a[2] * b[0] - a[0] * b[2];
+  out[2] += a[0] * b[1] - a[1] * b[0];
+}
+
+template <typename S> inline S pow7(S x) { const S x2 = x * x, x4 = x2 * x2; return x4 * x2 * x; }
+
+// qb (4) += (d R(q) / d q)^T rb, R = quat_to_matrix(q) (dual.h)
+template <typename S> inline void quat_to_matrix_vjp(const S* q, const S* rb, S* qb) {
+  const S w = q[0], x = q[1], y = q[2], z = q[3];
+  qb[0] += 2 * (-z * rb[1] + y * rb[2] + z * rb[3] - x * rb[5] - y * rb[6] + x * rb[7]);
+  qb[1] += 2 * (y * rb[1] + z * rb[2] + y * rb[3] - 2 * x * rb[4] - w * rb[5] + z * rb[6] + w * rb[7] -
+                2 * x * rb[8]);
+  qb[2] += 2 * (-2 * y * rb[0] + x * rb[1] + w * rb[2] + x * rb[3] + z * rb[5] - w * rb[6] + z * rb[7] -
+                2 * y * rb[8]);
+  qb[3] += 2 * (-2 * z * rb[0] - w * rb[1] + x * rb[2] + w * rb[3] - 2 * z * rb[4] + y * rb[5] + x * rb[6] +
+                y * rb[7]);
+}
+
+// rb (9) += d (R A R^T) / d R contracted with ob (9): ob R A^T + ob^T R A (A body-frame, constant)
+template <typename S> inline void rotate_tensor_vjp(const S* r, const S* a, const S* ob, S* rb) {
+  S rat[9], ra[9];
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      rat[3 * i + j] = r[3 * i] * a[3 * j] + r[3 * i + 1] * a[3 * j + 1] + r[3 * i + 2] * a[3 * j + 2];
+      ra[3 * i + j] = r[3 * i] * a[j] + r[3 * i + 1] * a[3 + j] + r[3 * i + 2] * a[6 + j];
+    }
+  for (int m = 0; m < 3; ++m)
+    for (int n = 0; n < 3; ++n) {
+      S acc = 0;
+      for (int j = 0; j < 3; ++j) acc += ob[3 * m + j] * rat[3 * j + n] + ob[3 * j + m] * ra[3 * j + n];
+      rb[3 * m + n] += acc;
+    }
+}
+
+// ------------------------------------------------------------------ the contact law
+// One contact's force f (3) from its normal n (pointing from the body that gets -f to the one that
+// gets +f), depth, weight, relative velocity vel of the +f side, and the inverse-mass terms of its
+// one or two arms (contacts.h: normal_force, slip_direction, inverse_mass, friction), with the
+// values the way back needs.
+template <typename S>
+struct ContactLaw {
+  int arms;  // 1: a static contact, 2: a body pair
+  S n[3], depth, weight, vel[3], stiff, unload, mu, inv_m, h, unload_velocity;
+  const S* arm[2];
+  const S* inv_w[2];
+  S inv_i_min[2];
+  // forward values
+  S vn, vt[3], loading, g, fn, tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
+  S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
+  bool b_wins;
+  S f[3];
+
+  void forward() {
+    vn = dot3(vel, n);
+    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
+    loading = sigmoid(-vn / unload_velocity);
+    g = unload + (S(1) - unload) * loading;
+    fn = weight * stiff * depth * g;
+    tden = std::sqrt(dot3(vt, vt) + SLIP_EPS * SLIP_EPS);
+    for (int i = 0; i < 3; ++i) t[i] = vt[i] / tden;
+    im = inv_m;
+    const S rest_t = S(1) - dot3(t, t);
+    for (int s = 0; s < arms; ++s) {
+      cross3(arm[s], t, u[s]);
+      matvec(inv_w[s], u[s], iu[s]);
+      arm2[s] = dot3(arm[s], arm[s]);
+      im += dot3(u[s], iu[s]) + rest_t * arm2[s] * inv_i_min[s];
+    }
+    stick = weight / (im * h);
+    coulomb = mu * fn;
+    speed = std::sqrt(dot3(vt, vt) + S(1e-30));
+    b = stick * speed;
+    b_wins = b > coulomb;
+    scale = (b_wins ? b : coulomb) + S(1e-30);
+    uu = coulomb / scale;
+    vv = b / scale;
+    pp = pow8(uu) + pow8(vv) + S(1e-30);
+    rt = root8(pp);
+    den = rt * scale;
+    k = coulomb * stick / den;
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] - k * vt[i];
+  }
+
+  // from fb (3): nb, velb, armb[s] (3 each, added to), ginv_w[s] (9, added to); returns through
+  // depthb and weightb (set)
+  void backward(const S* fb, S* nb, S* velb, S* const* armb, S* const* ginv_w, S& depthb, S& weightb) const {
+    S fnb = dot3(fb, n);
+    for (int i = 0; i < 3; ++i) nb[i] += fn * fb[i];
+    S vtb[3];
+    const S kb = -dot3(fb, vt);
+    for (int i = 0; i < 3; ++i) vtb[i] = -k * fb[i];
+    // friction: k = coulomb * stick / den, den = root8(pp) * scale, pp = uu^8 + vv^8 + 1e-30
+    S cb = kb * stick / den;
+    S stickb = kb * coulomb / den;
+    const S denb = -kb * k / den;
+    const S rtb = denb * scale;
+    S scaleb = denb * rt;
+    const S ppb = rtb * S(0.125) * rt / pp;
+    const S uub = ppb * S(8) * pow7(uu);
+    const S vvb = ppb * S(8) * pow7(vv);
+    cb += uub / scale;
+    scaleb -= uub * uu / scale;
+    S bb = vvb / scale;
+    scaleb -= vvb * vv / scale;
+    if (b_wins) bb += scaleb; else cb += scaleb;
+    stickb += bb * speed;
+    const S speedb = bb * stick;
+    for (int i = 0; i < 3; ++i) vtb[i] += speedb * vt[i] / speed;
+    fnb += cb * mu;
+    // stick = weight / (im h)
+    weightb = stickb / (im * h);
+    const S imb = -stickb * stick / im;
+    // inverse mass: sum over arms of u.(inv_w u) + (1 - t.t) |arm|^2 inv_i_min, u = arm x t
+    S tb[3] = {0, 0, 0};
+    const S rest_t = S(1) - dot3(t, t);
+    for (int s = 0; s < arms; ++s) {
+      S ub[3], wtu[3];
+      matvec_t(inv_w[s], u[s], wtu);
+      for (int i = 0; i < 3; ++i) ub[i] = imb * (iu[s][i] + wtu[i]);
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) ginv_w[s][3 * i + j] += imb * u[s][i] * u[s][j];
+      const S restb = imb * inv_i_min[s];
+      for (int i = 0; i < 3; ++i) {
+        tb[i] -= restb * arm2[s] * S(2) * t[i];
+        armb[s][i] += restb * rest_t * S(2) * arm[s][i];
+      }
+      add_cross(t, ub, armb[s]);  // u = arm x t: armb += t x ub, tb += ub x arm
+      add_cross(ub, arm[s], tb);
+    }
+    // t = vt / sqrt(vt.vt + eps^2)
+    const S tv = dot3(tb, vt) / (tden * tden * tden);
+    for (int i = 0; i < 3; ++i) vtb[i] += tb[i] / tden - vt[i] * tv;
+    // fn = weight stiff depth g, g = unload + (1 - unload) sigmoid(-vn / uv)
+    weightb += fnb * stiff * depth * g;
+    depthb = fnb * weight * stiff * g;
+    const S loadingb = fnb * weight * stiff * depth * (S(1) - unload);
+    S vnb = -loadingb * loading * (S(1) - loading) / unload_velocity;
+    // vt = vel - vn n, vn = vel . n
+    vnb -= dot3(vtb, n);
+    for (int i = 0; i < 3; ++i) {
+      nb[i] += -vn * vtb[i] + vnb * vel[i];
+      velb[i] += vtb[i] + vnb * n[i];
+    }
+  }
+};
+
+// ------------------------------------------------------------------ static contacts
+// wrench W_s (6) of body a's picked static contacts (static_wrench in contacts.h) and its vjp
+template <typename S>
+struct StaticAdjoint {
+  struct Contact {
+    ContactLaw<S> law;
+    int shape, sphere;
+    S r, c[3], p[3], d, gd[3], jn[9], arm[3];
+    S pb[3], depthb;  // the way back
+  };
+  std::vector<Contact> contacts;
+  S rot[9], inv_w[9], total, x[3], q[4], v[3], om[3];
+  bool broken = false, empty = true;
+
+  void forward(const World<S>& w, int a, const S* st, const std::vector<Pick>& picks, S* out) {
+    for (int i = 0; i < 6; ++i) out[i] = S(0);
+    broken = false;
+    for (int i = 0; i < 13 && w.k > 0; ++i)
+      if (std::isnan(st[i])) broken = true;
+    if (broken) {  // as static_wrench: NaN wrench, no derivative
+      for (int j = 0; j < 6; ++j) out[j] = std::numeric_limits<S>::quiet_NaN();
+      return;
+    }
+    const int m = static_cast<int>(picks.size());
+    contacts.resize(m);
+    empty = m == 0;
+    if (empty) return;
+    for (int i = 0; i < 3; ++i) {
+      x[i] = st[i];
+      v[i] = st[7 + i];
+      om[i] = st[10 + i];
+    }
+    for (int i = 0; i < 4; ++i) q[i] = st[3 + i];
+    quat_to_matrix(q, rot);
+    rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
+    total = 0;
+    using D3 = Dual<S, 3>;
+    for (int j = 0; j < m; ++j) {
+      Contact& ct = contacts[j];
+      ct.shape = picks[j].shape;
+      ct.sphere = picks[j].sphere;
+      const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + ct.sphere) * 3;
+      for (int i = 0; i < 3; ++i) ct.c[i] = c[i];
+      ct.r = w.radii[a * w.s_max + ct.sphere];
+      sphere_center(x, rot, c, ct.p);
+      D3 p3[3], d3, n3[3];
+      for (int i = 0; i < 3; ++i) {
+        p3[i] = D3(ct.p[i]);
+        p3[i].d[i] = S(1);
+      }
+      distance_direct<D3, S>(w.shapes[ct.shape], p3, d3, n3);
+      ct.d = d3.v;
+      ContactLaw<S>& law = ct.law;
+      for (int i = 0; i < 3; ++i) {
+        ct.gd[i] = d3.d[i];
+        law.n[i] = n3[i].v;
+        for (int k = 0; k < 3; ++k) ct.jn[3 * i + k] = n3[i].d[k];
+      }
+      law.depth = relu(ct.r - ct.d);
+      for (int i = 0; i < 3; ++i) ct.arm[i] = (ct.p[i] - x[i]) - law.n[i] * ct.r;
+      total += law.depth;
+    }
+    const S tiny = std::numeric_limits<S>::min();
+    const S mass = w.mass[a];
+    for (int j = 0; j < m; ++j) {
+      Contact& ct = contacts[j];
+      ContactLaw<S>& law = ct.law;
+      law.arms = 1;
+      law.weight = law.depth / (total + tiny);
+      S wr[3];
+      cross3(om, ct.arm, wr);
+      for (int i = 0; i < 3; ++i) law.vel[i] = v[i] + wr[i];
+      law.stiff = mass * w.omega * w.omega;
+      law.unload = w.unload_static[a * w.k + ct.shape];
+      law.mu = w.mu_static[a * w.k + ct.shape];
+      law.inv_m = S(1) / mass;
+      law.h = w.h;
+      law.unload_velocity = w.unload_velocity;
+      law.arm[0] = ct.arm;
+      law.inv_w[0] = inv_w;
+      law.inv_i_min[0] = w.inv_i_min[a];
+      law.forward();
+      S tq[3];
+      cross3(ct.arm, law.f, tq);
+      for (int i = 0; i < 3; ++i) {
+        out[i] += law.f[i];
+        out[3 + i] += tq[i];
+      }
+    }
+  }
+
+  // gs (13) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent
+  void backward(const World<S>& w, int a, const S* mu, S* gs) {
+    if (broken || empty) return;
+    const S tiny = std::numeric_limits<S>::min();
+    S xb[3] = {0, 0, 0}, rb[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, vb[3] = {0, 0, 0}, omb[3] = {0, 0, 0};
+    S iwb[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+    S totalb = 0;
+    const S* mf = mu;
+    const S* mt = mu + 3;
+    for (Contact& ct : contacts) {
+      const ContactLaw<S>& law = ct.law;
+      // W += (f, arm x f)
+      S fb[3] = {mf[0], mf[1], mf[2]};
+      add_cross(mt, ct.arm, fb);
+      S armb[3] = {0, 0, 0};
+      add_cross(law.f, mt, armb);
+      S nb[3] = {0, 0, 0}, velb[3] = {0, 0, 0};
+      S* armbs[1] = {armb};
+      S* iwbs[1] = {iwb};
+      S depthb, weightb;
+      law.backward(fb, nb, velb, armbs, iwbs, depthb, weightb);
+      // vel = v + om x arm
+      for (int i = 0; i < 3; ++i) vb[i] += velb[i];
+      add_cross(ct.arm, velb, omb);
+      add_cross(velb, om, armb);
+      // weight = depth / (total + tiny)
+      const S tt = total + tiny;
+      depthb += weightb / tt;
+      totalb -= weightb * law.depth / (tt * tt);
+      // arm = (p - x) - n r
+      for (int i = 0; i < 3; ++i) {
+        ct.pb[i] = armb[i];
+        xb[i] -= armb[i];
+        nb[i] -= ct.r * armb[i];
+      }
+      for (int k = 0; k < 3; ++k) ct.pb[k] += nb[0] * ct.jn[k] + nb[1] * ct.jn[3 + k] + nb[2] * ct.jn[6 + k];
+      ct.depthb = depthb;
+    }
+    for (Contact& ct : contacts) {
+      const S depthb = ct.depthb + totalb;
+      if (ct.r - ct.d > 0)  // depth = relu(r - d)
+        for (int i = 0; i < 3; ++i) ct.pb[i] -= depthb * ct.gd[i];
+      // p = x + R c
+      for (int i = 0; i < 3; ++i) {
+        xb[i] += ct.pb[i];
+        for (int k = 0; k < 3; ++k) rb[3 * i + k] += ct.pb[i] * ct.c[k];
+      }
+    }
+    rotate_tensor_vjp(rot, w.inv_inertia + 9 * a, iwb, rb);
+    S qb[4] = {0, 0, 0, 0};
+    quat_to_matrix_vjp(q, rb, qb);
+    for (int i = 0; i < 3; ++i) {
+      gs[i] += xb[i];
+      gs[7 + i] += vb[i];
+      gs[10 + i] += omb[i];
+    }
+    for (int i = 0; i < 4; ++i) gs[3 + i] += qb[i];
+  }
+};
+
+// ------------------------------------------------------------------ body pairs
+// wrench (12: on a, then on b) of pair pi's picked sphere pairs (pair_wrench in contacts.h) and
+// its vjp
+template <typename S>
+struct PairAdjoint {
+  struct Contact {
+    ContactLaw<S> law;
+    S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
+    S pab[3], pbb[3], depthb;
+  };
+  std::vector<Contact> contacts;
+  S rot_a[9], rot_b[9], iw_a[9], iw_b[9], total;
+  int a = 0, b = 0;
+
+  void forward(const World<S>& w, int pi, const S* st_a, const S* st_b, const std::vector<PairPick>& picks,
+               S* out) {
+    for (int i = 0; i < 12; ++i) out[i] = S(0);
+    const int m = static_cast<int>(picks.size());
+    contacts.resize(m);
+    if (m == 0) return;
+    a = static_cast<int>(w.pairs[2 * pi]);
+    b = static_cast<int>(w.pairs[2 * pi + 1]);
+    quat_to_matrix(st_a + 3, rot_a);
+    quat_to_matrix(st_b + 3, rot_b);
+    rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
+    rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
+    total = 0;
+    for (int k = 0; k < m; ++k) {
+      Contact& ct = contacts[k];
+      const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
+      const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
+      for (int i = 0; i < 3; ++i) {
+        ct.ca[i] = ca[i];
+        ct.cb[i] = cb[i];
+      }
+      ct.r_a = w.radii[a * w.s_max + picks[k].i];
+      const S r_b = w.radii[b * w.s_max + picks[k].j];
+      S pa[3], pb[3];
+      sphere_center(st_a, rot_a, ca, pa);
+      sphere_center(st_b, rot_b, cb, pb);
+      for (int i = 0; i < 3; ++i) ct.diff[i] = pb[i] - pa[i];
+      ct.dist = std::sqrt(dot3(ct.diff, ct.diff) + S(1e-24));
+      ContactLaw<S>& law = ct.law;
+      for (int i = 0; i < 3; ++i) law.n[i] = ct.diff[i] / ct.dist;
+      law.depth = relu((ct.r_a + r_b) - ct.dist);
+      for (int i = 0; i < 3; ++i) {
+        const S point = pa[i] + law.n[i] * ct.r_a;
+        ct.arm_a[i] = point - st_a[i];
+        ct.arm_b[i] = point - st_b[i];
+      }
+      total += law.depth;
+    }
+    const S tiny = std::numeric_limits<S>::min();
+    for (int k = 0; k < m; ++k) {
+      Contact& ct = contacts[k];
+      ContactLaw<S>& law = ct.law;
+      law.arms = 2;
+      law.weight = law.depth / (total + tiny);
+      S wa[3], wb[3];
+      cross3(st_a + 10, ct.arm_a, wa);
+      cross3(st_b + 10, ct.arm_b, wb);
+      for (int i = 0; i < 3; ++i) law.vel[i] = (st_b[7 + i] + wb[i]) - (st_a[7 + i] + wa[i]);
+      law.stiff = w.mass_pair[pi] * w.omega * w.omega;
+      law.unload = w.unload_pair[pi];
+      law.mu = w.mu_pair[pi];
+      law.inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
+      law.h = w.h;
+      law.unload_velocity = w.unload_velocity;
+      law.arm[0] = ct.arm_a;
+      law.arm[1] = ct.arm_b;
+      law.inv_w[0] = iw_a;
+      law.inv_w[1] = iw_b;
+      law.inv_i_min[0] = w.inv_i_min[a];
+      law.inv_i_min[1] = w.inv_i_min[b];
+      law.forward();
+      const S* f = law.f;
+      S neg[3] = {-f[0], -f[1], -f[2]}, ta[3], tb[3];
+      cross3(ct.arm_a, neg, ta);
+      cross3(ct.arm_b, f, tb);
+      for (int i = 0; i < 3; ++i) {
+        out[i] -= f[i];
+        out[3 + i] += ta[i];
+        out[6 + i] += f[i];
+        out[9 + i] += tb[i];
+      }
+    }
+  }
+
+  // ga, gb (13 each) += (d W_p / d (st_a, st_b))^T mu, mu (12) the cotangent of (wrench on a, on b)
+  void backward(const World<S>& w, const S* st_a, const S* st_b, const S* mu, S* ga, S* gb) {
+    if (contacts.empty()) return;
+    const S tiny = std::numeric_limits<S>::min();
+    S xab[3] = {0, 0, 0}, xbb[3] = {0, 0, 0}, vab[3] = {0, 0, 0}, vbb[3] = {0, 0, 0};
+    S omab[3] = {0, 0, 0}, ombb[3] = {0, 0, 0};
+    S rab[9] = {}, rbb[9] = {}, iwab[9] = {}, iwbb[9] = {};
+    S totalb = 0;
+    const S *mfa = mu, *mta = mu + 3, *mfb = mu + 6, *mtb = mu + 9;
+    const S* om_a = st_a + 10;
+    const S* om_b = st_b + 10;
+    for (Contact& ct : contacts) {
+      const ContactLaw<S>& law = ct.law;
+      const S* f = law.f;
+      // on a: (-f, arm_a x -f); on b: (f, arm_b x f)
+      S fb[3];
+      for (int i = 0; i < 3; ++i) fb[i] = mfb[i] - mfa[i];
+      S armab[3] = {0, 0, 0}, armbb[3] = {0, 0, 0};
+      S tmp[3] = {0, 0, 0};
+      add_cross(mta, ct.arm_a, tmp);
+      for (int i = 0; i < 3; ++i) fb[i] -= tmp[i];
+      add_cross(mtb, ct.arm_b, fb);
+      S negf[3] = {-f[0], -f[1], -f[2]};
+      add_cross(negf, mta, armab);
+      add_cross(f, mtb, armbb);
+      S nb[3] = {0, 0, 0}, velb[3] = {0, 0, 0};
+      S* armbs[2] = {armab, armbb};
+      S* iwbs[2] = {iwab, iwbb};
+      S depthb, weightb;
+      law.backward(fb, nb, velb, armbs, iwbs, depthb, weightb);
+      // vel = (v_b + om_b x arm_b) - (v_a + om_a x arm_a)
+      for (int i = 0; i < 3; ++i) {
+        vbb[i] += velb[i];
+        vab[i] -= velb[i];
+      }
+      add_cross(ct.arm_b, velb, ombb);
+      add_cross(velb, om_b, armbb);
+      S nvelb[3] = {-velb[0], -velb[1], -velb[2]};
+      add_cross(ct.arm_a, nvelb, omab);
+      add_cross(nvelb, om_a, armab);
+      const S tt = total + tiny;
+      depthb += weightb / tt;
+      totalb -= weightb * law.depth / (tt * tt);
+      // arm_a = point - x_a, arm_b = point - x_b, point = p_a + n r_a
+      for (int i = 0; i < 3; ++i) {
+        const S pointb = armab[i] + armbb[i];
+        xab[i] -= armab[i];
+        xbb[i] -= armbb[i];
+        ct.pab[i] = pointb;
+        ct.pbb[i] = 0;
+        nb[i] += ct.r_a * pointb;
+      }
+      // n = diff / dist (dist's own dependence on diff: below, with the depth's)
+      const S ndot = dot3(nb, ct.diff) / (ct.dist * ct.dist);
+      S diffb[3];
+      for (int i = 0; i < 3; ++i) diffb[i] = nb[i] / ct.dist;
+      ct.depthb = depthb;
+      // keep dist's cotangent from n in depthb's place: distb = -ndot - depthb (relu active)
+      for (int i = 0; i < 3; ++i) {
+        diffb[i] -= ndot * ct.diff[i] / ct.dist;
+        ct.pbb[i] += diffb[i];
+        ct.pab[i] -= diffb[i];
+      }
+    }
+    for (Contact& ct : contacts) {
+      const S depthb = ct.depthb + totalb;
+      if (ct.law.depth > 0) {  // depth = relu(r_a + r_b - dist), dist = sqrt(diff.diff + 1e-24)
+        for (int i = 0; i < 3; ++i) {
+          const S diffb = -depthb * ct.diff[i] / ct.dist;
+          ct.pbb[i] += diffb;
+          ct.pab[i] -= diffb;
+        }
+      }
+      // p_a = x_a + R_a c_a, p_b = x_b + R_b c_b
+      for (int i = 0; i < 3; ++i) {
+        xab[i] += ct.pab[i];
+        xbb[i] += ct.pbb[i];
+        for (int k = 0; k < 3; ++k) {
+          rab[3 * i + k] += ct.pab[i] * ct.ca[k];
+          rbb[3 * i + k] += ct.pbb[i] * ct.cb[k];
+        }
+      }
+    }
+    rotate_tensor_vjp(rot_a, w.inv_inertia + 9 * a, iwab, rab);
+    rotate_tensor_vjp(rot_b, w.inv_inertia + 9 * b, iwbb, rbb);
+    S qab[4] = {0, 0, 0, 0}, qbb[4] = {0, 0, 0, 0};
+    quat_to_matrix_vjp(st_a + 3, rab, qab);
+    quat_to_matrix_vjp(st_b + 3, rbb, qbb);
+    for (int i = 0; i < 3; ++i) {
+      ga[i] += xab[i];
+      gb[i] += xbb[i];
+      ga[7 + i] += vab[i];
+      gb[7 + i] += vbb[i];
+      ga[10 + i] += omab[i];
+      gb[10 + i] += ombb[i];
+    }
+    for (int i = 0; i < 4; ++i) {
+      ga[3 + i] += qab[i];
+      gb[3 + i] += qbb[i];
+    }
+  }
+};
+
+// ------------------------------------------------------------------ integration
+// s' = I(s, W) of integrate.h: gs (13) += (d s' / d s)^T lam, wb (6) = (d s' / d W)^T lam
+template <typename S>
+void integrate_vjp(const World<S>& w, int a, const S* st, const S* wr, const S* lam, S* gs, S* wb) {
+  const S* q = st + 3;
+  const S* om0 = st + 10;
+  S rot[9];
+  quat_to_matrix(q, rot);
+  const S hm = w.h / w.mass[a];
+  const S* inertia = w.inertia + 9 * a;
+  const S* inv_inertia = w.inv_inertia + 9 * a;
+  // forward
+  S body[3], tmp[3], lw[3], gyro[3], rhs[3], body2[3], tmp2[3], acc[3], om[3];
+  matvec_t(rot, om0, body);
+  matvec(inertia, body, tmp);
+  matvec(rot, tmp, lw);
+  cross3(om0, lw, gyro);
+  for (int i = 0; i < 3; ++i) rhs[i] = wr[3 + i] - gyro[i];
+  matvec_t(rot, rhs, body2);
+  matvec(inv_inertia, body2, tmp2);
+  matvec(rot, tmp2, acc);
+  for (int i = 0; i < 3; ++i) om[i] = om0[i] + w.h * acc[i];
+  S r[3] = {om[0] * w.h, om[1] * w.h, om[2] * w.h};
+  const S eps = sizeof(S) == 8 ? S(1e-4) : S(1e-2);
+  const S sq = dot3(r, r);
+  const bool small = sq < eps * eps;
+  S sinc, co, norm = 0, half = 0, sh = 0, ch = 0;
+  if (small) {
+    sinc = 0.5 - sq / S(48);
+    co = 1.0 - sq / S(8);
+  } else {
+    norm = std::sqrt(sq);
+    half = 0.5 * norm;
+    sh = std::sin(half);
+    ch = std::cos(half);
+    sinc = sh / norm;
+    co = ch;
+  }
+  const S e[4] = {co, sinc * r[0], sinc * r[1], sinc * r[2]};
+  S qn[4];
+  qn[0] = e[0] * q[0] - e[1] * q[1] - e[2] * q[2] - e[3] * q[3];
+  qn[1] = e[0] * q[1] + e[1] * q[0] + e[2] * q[3] - e[3] * q[2];
+  qn[2] = e[0] * q[2] - e[1] * q[3] + e[2] * q[0] + e[3] * q[1];
+  qn[3] = e[0] * q[3] + e[1] * q[2] - e[2] * q[1] + e[3] * q[0];
+  const S len = std::sqrt(qn[0] * qn[0] + qn[1] * qn[1] + qn[2] * qn[2] + qn[3] * qn[3]);
+  S qo[4];
+  for (int i = 0; i < 4; ++i) qo[i] = qn[i] / len;
+  // back: out x = x + h v', v' = v + hm F, out q = qn / |qn|, out om = om
+  const S* lx = lam;
+  const S* lq = lam + 3;
+  const S* lv = lam + 7;
+  const S* lo = lam + 10;
+  S vnb[3];
+  for (int i = 0; i < 3; ++i) {
+    gs[i] += lx[i];
+    vnb[i] = lv[i] + w.h * lx[i];
+    gs[7 + i] += vnb[i];
+    wb[i] = hm * vnb[i];
+  }
+  const S qdot = qo[0] * lq[0] + qo[1] * lq[1] + qo[2] * lq[2] + qo[3] * lq[3];
+  S qnb[4];
+  for (int i = 0; i < 4; ++i) qnb[i] = (lq[i] - qo[i] * qdot) / len;
+  S eb[4];
+  eb[0] = qnb[0] * q[0] + qnb[1] * q[1] + qnb[2] * q[2] + qnb[3] * q[3];
+  eb[1] = -qnb[0] * q[1] + qnb[1] * q[0] - qnb[2] * q[3] + qnb[3] * q[2];
+  eb[2] = -qnb[0] * q[2] + qnb[1] * q[3] + qnb[2] * q[0] - qnb[3] * q[1];
+  eb[3] = -qnb[0] * q[3] - qnb[1] * q[2] + qnb[2] * q[1] + qnb[3] * q[0];
+  S qb[4];
+  qb[0] = qnb[0] * e[0] + qnb[1] * e[1] + qnb[2] * e[2] + qnb[3] * e[3];
+  qb[1] = -qnb[0] * e[1] + qnb[1] * e[0] + qnb[2] * e[3] - qnb[3] * e[2];
+  qb[2] = -qnb[0] * e[2] - qnb[1] * e[3] + qnb[2] * e[0] + qnb[3] * e[1];
+  qb[3] = -qnb[0] * e[3] + qnb[1] * e[2] - qnb[2] * e[1] + qnb[3] * e[0];
+  // e = (co, sinc r)
+  const S cob = eb[0];
+  const S sincb = eb[1] * r[0] + eb[2] * r[1] + eb[3] * r[2];
+  S rb[3] = {sinc * eb[1], sinc * eb[2], sinc * eb[3]};
+  S sqb;
+  if (small) {
+    sqb = -sincb / S(48) - cob / S(8);
+  } else {
+    const S normb = sincb * (ch * S(0.5) * norm - sh) / (norm * norm) - cob * sh * S(0.5);
+    sqb = normb * S(0.5) / norm;
+  }
+  for (int i = 0; i < 3; ++i) rb[i] += S(2) * sqb * r[i];
+  // om = om0 + h acc, r = h om
+  S omb[3], accb[3];
+  for (int i = 0; i < 3; ++i) {
+    omb[i] = lo[i] + w.h * rb[i];
+    accb[i] = w.h * omb[i];
+  }
+  S om0b[3] = {omb[0], omb[1], omb[2]};
+  S rotb[9] = {};
+  // acc = R tmp2, tmp2 = Iinv body2, body2 = R^T rhs
+  S tmp2b[3], body2b[3], rhsb[3];
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k) rotb[3 * i + k] += accb[i] * tmp2[k];
+  matvec_t(rot, accb, tmp2b);
+  matvec_t(inv_inertia, tmp2b, body2b);
+  matvec(rot, body2b, rhsb);
+  for (int j = 0; j < 3; ++j)
+    for (int i = 0; i < 3; ++i) rotb[3 * j + i] += rhs[j] * body2b[i];
+  // rhs = tau - gyro, gyro = om0 x lw
+  for (int i = 0; i < 3; ++i) wb[3 + i] = rhsb[i];
+  S gyrob[3] = {-rhsb[0], -rhsb[1], -rhsb[2]};
+  S lwb[3] = {0, 0, 0};
+  add_cross(lw, gyrob, om0b);
+  add_cross(gyrob, om0, lwb);
+  // lw = R tmp, tmp = I body, body = R^T om0
+  S tmpb[3], bodyb[3], viab[3];
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k) rotb[3 * i + k] += lwb[i] * tmp[k];
+  matvec_t(rot, lwb, tmpb);
+  matvec_t(inertia, tmpb, bodyb);
+  matvec(rot, bodyb, viab);
+  for (int i = 0; i < 3; ++i) om0b[i] += viab[i];
+  for (int j = 0; j < 3; ++j)
+    for (int i = 0; i < 3; ++i) rotb[3 * j + i] += om0[j] * bodyb[i];
+  quat_to_matrix_vjp(q, rotb, qb);
+  for (int i = 0; i < 4; ++i) gs[3 + i] += qb[i];
+  for (int i = 0; i < 3; ++i) gs[10 + i] += om0b[i];
+}
+
+}  // namespace dv
