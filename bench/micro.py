@@ -11,12 +11,18 @@ interpenetration query (python-fcl) per candidate pose.
 - ``collision``: ``SceneCollision.penetration`` of each bundled scene's source at random poses
   around its scene pose (within 10 cm, any orientation), one pose per call, median and 90th
   percentile, and how many of the poses overlap something.
+- ``threads``: ``THREAD_STEPS`` eager torch-engine steps of the mug scene at B = 1, with
+  torch's intra-op pool at 1 thread and at one per core, on idle cores and with every core
+  kept busy by another process (a Python spin loop per core): why ``DEJAVIEW_THREADS``
+  defaults to 1 (``dejaview.cli.options.configure_torch``).
 """
 
 from __future__ import annotations
 
 import os
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -83,6 +89,52 @@ def collision(poses: int = 100, seed: int = 0) -> list[dict]:
     return rows
 
 
+THREAD_STEPS = 20
+
+
+def threads(steps: int = THREAD_STEPS, repeats: int = 5, batch: int = 1) -> list[dict]:
+    """Seconds per eager torch-engine step (mug, B = ``batch``) at 1 and ``os.cpu_count()`` intra-op
+    threads, idle and with every core busy (one spinning process per core)."""
+    import torch
+
+    from dejaview.scene import Scene
+    from dejaview.sim.build import initial_state
+    from dejaview.sim.integrate import step
+    from dejaview.sim.world import World
+
+    scene = Scene.from_xml(ROOT / "examples" / "scenes" / "mug_off_counter.xml")
+    world = World.from_scene(scene)
+    state = initial_state(world, scene, batch_size=batch)
+
+    def rollout():
+        s = state
+        with torch.no_grad():
+            for _ in range(steps):
+                s = step(world, s)
+
+    cores = os.cpu_count() or 1
+    before = torch.get_num_threads()
+    rows = []
+    try:
+        for busy in (False, True):
+            spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(cores)] \
+                if busy else []
+            try:
+                if busy:
+                    time.sleep(0.5)  # the spinners are running
+                for n in sorted({1, cores}):
+                    torch.set_num_threads(n)
+                    rows.append({"section": "threads", "case": f"{n} thread(s), {'busy' if busy else 'idle'} cores",
+                                 "threads": n, "busy": busy, "seconds": _per_call(rollout, repeats) / steps})
+            finally:
+                for proc in spinners:
+                    proc.kill()
+                    proc.wait()
+    finally:
+        torch.set_num_threads(before)
+    return rows
+
+
 def run(print_fn=print, poses: int = 100) -> list[dict]:
     """Both sections; prints a table of each."""
     import torch
@@ -101,7 +153,13 @@ def run(print_fn=print, poses: int = 100) -> list[dict]:
     for r in crows:
         say(f"{r['case']:<28} {r['seconds'] * 1e3:>7.1f}ms {r['p90_seconds'] * 1e3:>7.1f}ms "
             f"{r['overlapping']:>5} of {r['poses']:<4} {r['build_seconds']:>7.1f}s")
-    return rows + crows
+    trows = threads()
+    say(f"\n{'eager torch step, mug, B = 1':<44} {'per step':>10} {'vs 1 thread':>12}")
+    for r in trows:
+        one = next(t for t in trows if t["busy"] == r["busy"] and t["threads"] == 1)["seconds"]
+        say(f"{r['case']:<44} {r['seconds'] * 1e3:>8.2f}ms {r['seconds'] / one:>11.2f}x")
+    torch.set_num_threads(1)
+    return rows + crows + trows
 
 
 if __name__ == "__main__":

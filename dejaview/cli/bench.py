@@ -194,6 +194,29 @@ def micro(poses, csv_path):
     _finish(rows, csv_path, False, [])
 
 
+@command.command("warp-limits")
+@click.option("--scenes", default="ball_rolled,ball_off_table", show_default=True,
+              help="Bundled scenes (names under examples/scenes) whose gradients are checked.")
+@click.option("--eps", default=1e-3, show_default=True, type=click.FloatRange(min=0.0, min_open=True),
+              help="Central-difference step, in the parameters' own units.")
+@click.option("--quick", is_flag=True, help="20 steps per scene and 0.1 s of rolling (smoke test).")
+@csv_option
+def warp_limits(scenes, eps, quick, csv_path):
+    """Warp 1.9.1's gradients against central differences, and a rolling ball, beside DejaView's."""
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    import dejaview
+
+    scenes_dir = Path(dejaview.__file__).resolve().parent.parent / "examples" / "scenes"
+    names = tuple(s.strip() for s in scenes.split(",") if s.strip())
+    missing = [n for n in names if not (scenes_dir / f"{n}.xml").is_file()]
+    if missing:
+        raise click.BadParameter(f"no bundled scene {', '.join(missing)}", param_hint="--scenes")
+    rows = bench_module("warp_limits").run(print_fn=click.echo, scenes=names, eps=eps, quick=quick)
+    _finish(rows, csv_path, False, [])
+
+
 @command.command("optimizers")
 @click.option("--iterations", default="100,500,1000", show_default=True, callback=_iterations,
               help="Comma-separated iteration counts to report the best loss at.")

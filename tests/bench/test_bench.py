@@ -173,7 +173,31 @@ def test_cli_micro_writes_both_sections(tmp_path):
     result = CliRunner().invoke(command, ["micro", "--poses", "3", "--csv", str(path)])
     assert result.exit_code == 0, result.output
     rows = list(csv.DictReader(path.open()))
-    assert {r["section"] for r in rows} == {"forward-ops", "collision"}
+    assert {r["section"] for r in rows} == {"forward-ops", "collision", "threads"}
+    threads = [r for r in rows if r["section"] == "threads"]
+    assert {(r["threads"], r["busy"]) for r in threads} >= {("1", "False"), ("1", "True")}
     collision = [r for r in rows if r["section"] == "collision"]
     assert len(collision) == 4 and all(r["poses"] == "3" and 0 <= int(r["overlapping"]) <= 3 for r in collision)
     assert all(float(r["seconds"]) > 0 for r in rows)
+
+
+def test_cli_warp_limits_checks_both_backends_gradients_and_rolling(tmp_path):
+    pytest.importorskip("warp", reason="the Warp backend is an extra")
+    path = tmp_path / "warp.csv"
+    result = CliRunner().invoke(command, ["warp-limits", "--quick", "--scenes", "ball_rolled", "--csv", str(path)])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader(path.open()))
+    grads = {r["backend"]: r for r in rows if r["section"] == "gradients"}
+    assert set(grads) == {"spheres", "warp"}
+    spheres = grads["spheres"]
+    # the control: DejaView's exact gradient is its central difference, component by component
+    assert spheres["wrong_signs"] == "0" and float(spheres["worst_ratio"]) < 1.05
+    assert len(spheres["exact"].split()) == len(spheres["params"].split()) == 11
+    rolling = [r for r in rows if r["section"] == "rolling"]
+    assert {r["backend"] for r in rolling} == {"spheres", "warp"}
+    assert all(0.5 < float(r["speed_from"]) < 1.0 for r in rolling)  # slipped into rolling below 1 m/s
+
+
+def test_cli_warp_limits_names_an_unknown_scene():
+    result = CliRunner().invoke(command, ["warp-limits", "--scenes", "no_such_scene"])
+    assert result.exit_code == 2 and "no_such_scene" in result.output
