@@ -47,6 +47,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.sim.rotation import normalize_quat, quat_conjugate, quat_multiply, quat_rotate, quat_to_rotvec
+from dejaview.sim.state import State
 
 DEFAULT_SIGMA = 0.005
 """Metres: default standard deviation of the observed end position (a robot's pose estimate)."""
@@ -203,6 +204,13 @@ class Posterior:
 
         p, s = self.problem, self.settings
         body, world, st = p.source, p.world, traj.states
+        fixed = None  # the one record compared, where it does not depend on the candidate
+        if p.target.time is not None:
+            fixed = nearest_record(traj, p.target.time)
+        elif p.evaluate != "best":
+            fixed = st.position.shape[0] - 1
+        if fixed is not None:  # the residuals of that record only (the same numbers, T times cheaper)
+            st = State(*(t[fixed:fixed + 1] for t in st.tensors()))
         pos, q = st.position[..., body, :], st.orientation[..., body, :]  # (T, B, 3/4)
         if p.loss_kind == "position":
             origin = pos - quat_rotate(q, world.com[body].expand_as(pos))
@@ -221,12 +229,10 @@ class Posterior:
             parts.append(DEFAULT_VELOCITY_WEIGHT * (st.angular_velocity[..., body, :] - w) / s.angle_sigma)
         r = torch.cat(parts, -1)  # (T, B, M)
         b = torch.arange(r.shape[1])
-        if p.target.time is not None:
-            k = torch.full_like(b, nearest_record(traj, p.target.time))
-        elif p.evaluate == "best":
+        if fixed is not None:
+            k = torch.zeros_like(b)
+        else:  # evaluate="best": the record that fits best, per candidate
             k = (r.detach() ** 2).sum(-1).argmin(0)
-        else:
-            k = torch.full_like(b, r.shape[0] - 1)
         loss = LOSSES[p.loss_kind](world, body, st, self._target_origin, self._target_q,
                                    orientation_weight=p.orientation_weight, points=p.points)
         return r[k, b], loss.detach()[k, b]
