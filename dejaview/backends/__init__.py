@@ -8,6 +8,8 @@ trajectory CSV; a backend supplies the rollout. The inference loop (``dejaview.s
 heatmap, the CLI (``--backend``) and the service reach backends through this module only:
 
 - ``get_backend(name)``: the registered ``Backend`` (``BACKENDS``: the names);
+- ``BackendOptions.of(name, **settings)``: a backend with its own settings (the engine, the
+  integrator, ...), checked once and passed through solve, heatmap, CLI and service unread;
 - ``make_problem(scene, backend, **options)``: its problem;
 - ``simulate(scene, backend, ...)``: the scene forward, a ``SimulationRun``.
 
@@ -22,6 +24,7 @@ Backends:
 from __future__ import annotations
 
 from dejaview.backends.base import Backend, Problem
+from dejaview.backends.options import BackendOptions
 from dejaview.backends.spheres import SpheresBackend
 from dejaview.errors import DejaViewError, InferenceError
 
@@ -43,9 +46,23 @@ class WarpBackend:
     name = "warp"
     gradient_modes = ("reverse",)
     simulate_options = frozenset({"max_steps", "device", "integrator", "substeps", "iterations", "restitution"})
+    problem_options = frozenset({"device", "integrator", "substeps", "iterations", "restitution", "max_envs",
+                                 "orientation_weight", "max_speed", "max_spin"})
 
     def available(self) -> str | None:
         return None if warp_available() else WARP_MISSING
+
+    def option_problem(self, options: dict) -> str | None:
+        """Why ``options`` cannot run (``integrator`` one of ``xpbd``/``semi-implicit``; ``substeps``,
+        ``iterations`` positive integers), or None; the scene's own are checked with the scene."""
+        integrator = options.get("integrator")
+        if integrator is not None and integrator not in ("xpbd", "semi-implicit"):
+            return f"unknown warp integrator {integrator!r}; choose one of xpbd, semi-implicit"
+        for key in ("substeps", "iterations"):
+            value = options.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                return f"warp {key} must be a positive integer, got {value!r}"
+        return None
 
     def make_problem(self, scene, **options) -> Problem:
         """``WarpProblem.from_scene(scene, **options)`` (``integrator``, ``device``, ``substeps``, ...)."""
@@ -87,12 +104,14 @@ REGISTRY: dict[str, Backend] = {b.name: b for b in (SpheresBackend(), WarpBacken
 BACKENDS = tuple(REGISTRY)
 
 
-def check_options(backend: Backend, options, error: type[DejaViewError] = InferenceError) -> None:
-    """Raise ``error`` naming the first of ``options`` that ``backend.simulate`` does not take (and
-    which backends do take it)."""
-    unknown = sorted(set(options) - backend.simulate_options)
+def check_options(backend: Backend, options, error: type[DejaViewError] = InferenceError,
+                  known: frozenset[str] | None = None) -> None:
+    """Raise ``error`` naming the first of ``options`` not in ``known`` (default: what
+    ``backend.simulate`` takes), and which backends do take it."""
+    known = backend.simulate_options if known is None else known
+    unknown = sorted(set(options) - known)
     if unknown:
-        owners = [b.name for b in REGISTRY.values() if unknown[0] in b.simulate_options]
+        owners = [b.name for b in REGISTRY.values() if unknown[0] in b.problem_options | b.simulate_options]
         where = f"an option of the {' and '.join(owners)} backend" if owners else "no backend's option"
         raise error(f"{unknown[0].replace('_', '-')} is {where}, not of {backend.name}")
 
@@ -113,12 +132,12 @@ def get_backend(name: str, error: type[DejaViewError] = InferenceError) -> Backe
     return backend
 
 
-def make_problem(scene, backend: str = "spheres", **options) -> Problem:
+def make_problem(scene, backend: "str | BackendOptions" = "spheres", **options) -> Problem:
     """The inference problem of a scene's ``<inference>`` on one backend.
 
     Args:
         scene: a ``Scene`` or a path to a scene file.
-        backend: a name of ``BACKENDS``.
+        backend: a name of ``BACKENDS``, or ``BackendOptions`` (its settings, then ``options``).
         options: the backend's own (``SpheresProblem.from_scene``: ``world``, ``dtype``,
             ``checkpoint_every``, ``engine``, ...; ``WarpProblem.from_scene``: ``integrator``,
             ``device``, ``substeps``, ...).
@@ -129,6 +148,8 @@ def make_problem(scene, backend: str = "spheres", **options) -> Problem:
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
+    if isinstance(backend, BackendOptions):
+        return backend.make_problem(scene, **options)
     return get_backend(backend).make_problem(scene, **options)
 
 
@@ -155,5 +176,5 @@ def as_problem(problem) -> Problem:
     return problem
 
 
-__all__ = ["BACKENDS", "REGISTRY", "WARP_MISSING", "Backend", "Problem", "as_problem", "check_options", "get_backend", "make_problem",
+__all__ = ["BACKENDS", "REGISTRY", "WARP_MISSING", "Backend", "BackendOptions", "Problem", "as_problem", "check_options", "get_backend", "make_problem",
            "simulate", "warp_available"]

@@ -66,6 +66,13 @@ class Problem:
         """Simulation numbers for result.json."""
         raise NotImplementedError
 
+    def backend_options(self):
+        """``BackendOptions`` that build this problem again from its scene (in a worker process):
+        the backend's name and the settings of its own that the problem was built with."""
+        from dejaview.backends.options import BackendOptions
+
+        return BackendOptions.of(self.backend)
+
     # ------------------------------------------------------------ shared
     @property
     def num_params(self) -> int:

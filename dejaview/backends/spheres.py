@@ -76,8 +76,8 @@ class SpheresProblem(Problem):
     def from_scene(scene, world: World | None = None, *, dtype=torch.float64,
                    orientation_weight: float = DEFAULT_ORIENTATION_WEIGHT,
                    checkpoint_every: int | None = None, max_speed: float = 3.0,
-                   max_spin: float = 10.0, engine: str = "auto") -> "SpheresProblem":
-        """Build the problem of a scene's ``<inference>``.
+                   max_spin: float = 10.0, engine: str = "auto", compile: bool = False) -> "SpheresProblem":
+        """Build the problem of a scene's ``<inference>`` (``engine``, ``compile``: the attributes).
 
         Raises:
             InferenceError: no inference section, nothing free, fixed/unknown source or target.
@@ -108,7 +108,7 @@ class SpheresProblem(Problem):
             target=inf.target, loss_kind=inf.loss, evaluate=inf.evaluate, steps=steps,
             penalties=tuple((p.between[0], p.between[1], p.weight) for p in inf.penalties),
             orientation_weight=orientation_weight, points=points, checkpoint_every=checkpoint_every,
-            engine=engine)
+            engine=engine, compile=compile)
 
     # ----------------------------------------------------------------- rollout
     def initial_state(self, x: torch.Tensor) -> State:
@@ -158,6 +158,13 @@ class SpheresProblem(Problem):
         """Simulation numbers for result.json."""
         return {"dt": self.world.dt, "substeps": self.world.substeps, "steps": self.steps}
 
+    def backend_options(self):
+        """``BackendOptions`` of this problem's engine (a worker rebuilds it with that engine;
+        compiled rollouts stay in this process: each compile takes minutes)."""
+        from dejaview.backends.options import BackendOptions
+
+        return BackendOptions.of(self.backend, engine=self.engine)
+
     def __repr__(self) -> str:
         return f"SpheresProblem({self.world.names}, source={self.source}, P={self.num_params})"
 
@@ -171,8 +178,26 @@ class SpheresBackend:
     name = "spheres"
     gradient_modes = GRADIENT_MODES
     simulate_options = frozenset({"dtype", "engine", "world", "max_steps"})
+    problem_options = frozenset({"dtype", "engine", "compile", "world", "checkpoint_every", "orientation_weight",
+                                 "max_speed", "max_spin"})
 
     def available(self) -> str | None:
+        return None
+
+    def option_problem(self, options: dict) -> str | None:
+        """Why ``options`` cannot run, or None: ``engine`` one of ``dejaview.sim.native.ENGINES``;
+        ``compile`` compiles torch rollouts, so not with the native engine; the native engine
+        runs in float64, so not with ``dtype`` float32."""
+        from dejaview.sim.native import ENGINES
+
+        engine = options.get("engine", "auto")
+        if engine not in ENGINES:
+            return f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}"
+        if options.get("compile") and engine == "native":
+            return ("compile applies to the torch engine; the native engine is compiled C++ already: drop "
+                    "--compile or choose --engine torch")
+        if options.get("dtype") not in (None, torch.float64) and engine == "native":
+            return "the native engine runs in float64; drop --float32 or use --engine torch"
         return None
 
     def make_problem(self, scene, **options) -> SpheresProblem:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import common_options, configure_torch, show_progress
+from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
 
 
 def _cells(ctx, param, value):
@@ -45,7 +45,8 @@ def _cells(ctx, param, value):
                    "(docs/scale.md; default $DEJAVIEW_RAY_ADDRESS); needs pip install 'dejaview[ray]'")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
-def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, no_plot, backend, engine,
+@backend_options()
+def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, no_plot, backend,
             iterations, optimizer, gradient, seed, quiet):
     """Which cells of SCENE's start area could its source have started from? Writes
     heatmap.ppm, heatmap.png, heatmap.json, result.json and trajectory.csv (best solution) to DIR."""
@@ -75,7 +76,7 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
                              batch_size=batch_size, workers=workers, callback=progress, backend=backend,
-                             engine=engine, method=method, ray=ray or None)
+                             method=method, ray=ray or None)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)

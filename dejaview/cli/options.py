@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import sys
 
 import click
@@ -13,12 +14,8 @@ ENGINES = ("auto", "native", "torch")  # dejaview.sim.native.ENGINES
 
 
 def common_options(f):
-    """--backend --engine --iterations --optimizer --gradient --seed --quiet."""
+    """--iterations --optimizer --gradient --seed --quiet."""
     opts = [
-        click.option("--backend", type=click.Choice(BACKENDS), default="spheres", show_default=True,
-                     help="physics backend (warp: pip install 'dejaview[warp]')"),
-        click.option("--engine", type=click.Choice(ENGINES), default="auto", show_default=True,
-                     help="spheres backend: native C++ simulator (auto: where float64 allows) or torch"),
         click.option("--iterations", type=int, default=None, help="optimiser iterations (overrides the scene)"),
         click.option("--optimizer", type=click.Choice(OPTIMIZERS), default=None,
                      help="auto: the most probable past (CMA-ES + Levenberg-Marquardt); or one local "
@@ -31,6 +28,42 @@ def common_options(f):
     for opt in reversed(opts):
         f = opt(f)
     return f
+
+
+def backend_options(*, with_compile: bool = False):
+    """--backend --engine (and with ``with_compile``: --compile), handed to the command as one ``backend``
+    argument: ``dejaview.backends.BackendOptions``, checked (a bad combination is a usage error
+    naming it). The command passes it on without reading it."""
+
+    def decorate(f):
+        @functools.wraps(f)
+        def command(*args, backend, engine, use_compile=False, **kwargs):
+            from dejaview.backends import BackendOptions, get_backend
+            from dejaview.errors import DejaViewError
+
+            get_backend(backend)  # one that cannot run here: its DejaViewError, not a usage error
+            try:
+                chosen = BackendOptions.of(backend, engine=None if engine == "auto" else engine,
+                                           compile=True if use_compile else None)
+            except DejaViewError as exc:
+                raise click.BadParameter(str(exc)) from None
+            return f(*args, backend=chosen, **kwargs)
+
+        opts = [
+            click.option("--backend", type=click.Choice(BACKENDS), default="spheres", show_default=True,
+                         help="physics backend (warp: pip install 'dejaview[warp]')"),
+            click.option("--engine", type=click.Choice(ENGINES), default="auto", show_default=True,
+                         help="spheres backend: native C++ simulator (auto: where float64 allows) or torch"),
+        ]
+        if with_compile:
+            opts.append(click.option("--compile", "use_compile", is_flag=True,
+                                     help="torch.compile the torch engine's rollouts (the native engine "
+                                          "needs no compile)"))
+        for opt in reversed(opts):
+            command = opt(command)
+        return command
+
+    return decorate
 
 
 def show_progress(quiet: bool) -> bool:

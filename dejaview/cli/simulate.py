@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import common_options, configure_torch, show_progress
+from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
 
 
 @click.command("simulate")
@@ -19,13 +19,14 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--max-steps", type=int, default=None,
               help="step budget, steps x substeps (default 2000000 or DEJAVIEW_MAX_STEPS)")
 @common_options
-def command(scene, out_dir, steps, record_every, float32, max_steps, backend, engine, iterations, optimizer,
+@backend_options()
+def command(scene, out_dir, steps, record_every, float32, max_steps, backend, iterations, optimizer,
             gradient, seed, quiet):
     """Simulate SCENE from the objects' given poses and velocities; write DIR/trajectory.csv."""
     import torch
     from tqdm import tqdm
 
-    from dejaview.backends import check_options, get_backend, simulate
+    from dejaview.backends import BackendOptions
     from dejaview.errors import DejaViewError, SimulationError
     from dejaview.scene import Scene, bounds
 
@@ -41,28 +42,18 @@ def command(scene, out_dir, steps, record_every, float32, max_steps, backend, en
         raise click.BadParameter(f"{steps} steps is over the step budget of {max_steps} (--max-steps)",
                                  param_hint="--steps")
     sc = Scene.from_xml(scene, max_steps=max_steps)
-    if float32 and engine == "native":
-        raise click.BadParameter("the native engine runs in float64; drop --float32 or use --engine torch",
-                                 param_hint="--engine")
+    try:  # --float32 is the spheres backend's dtype: another backend, or its native engine, refuses it
+        backend = BackendOptions.of(backend, SimulationError, dtype=torch.float32 if float32 else None)
+    except DejaViewError as exc:
+        raise click.BadParameter(str(exc)) from None
     bar = tqdm(desc="simulate", unit="step", disable=not show_progress(quiet))
 
     def progress(done, total):
         bar.total = total
         bar.update(done - bar.n)
 
-    # the spheres backend's options, passed only where given: another backend refuses them by name
-    options = {"max_steps": max_steps}
-    if engine != "auto":
-        options["engine"] = engine
-    if float32:
-        options["dtype"] = torch.float32
-    chosen = get_backend(backend, SimulationError)
-    try:
-        check_options(chosen, options)
-    except DejaViewError as exc:
-        raise click.BadParameter(str(exc)) from None
-    run = simulate(sc, backend, steps=steps, record_every=record_every,
-                   callback=None if bar.disable else progress, **options)
+    run = backend.simulate(sc, steps=steps, record_every=record_every, max_steps=max_steps,
+                           callback=None if bar.disable else progress)
     bar.close()
     path = run.write(out_dir)["trajectory"]
     if not quiet:

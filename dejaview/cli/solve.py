@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import common_options, configure_torch, show_progress
+from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
 
 
 @click.command("solve")
@@ -23,8 +23,6 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
 @click.option("--samples", type=int, default=None,
               help="draw N samples of the posterior (posterior.csv; default: <posterior samples>, else 0)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
-@click.option("--compile", "use_compile", is_flag=True,
-              help="torch.compile the torch engine's rollouts (the native engine needs no compile)")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @click.option("--model-uncertainty", "model_uncertainty", nargs=2, default=None,
@@ -32,8 +30,9 @@ from dejaview.cli.options import common_options, configure_torch, show_progress
               help="relative standard deviations the likelihood averages over (overrides the scene's "
                    "<model-uncertainty>; 0 0: none)")
 @common_options
-def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_compile, tolerance,
-            model_uncertainty, backend, engine, iterations, optimizer, gradient, seed, quiet):
+@backend_options(with_compile=True)
+def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, tolerance,
+            model_uncertainty, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the most probable initial state of SCENE's source object (its <prior> and
     <observation>); write result.json, iterations.csv and trajectory.csv (the answer
     re-simulated) to DIR, and posterior.csv with --samples N."""
@@ -65,9 +64,7 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, use_c
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, screen=screen, budget=budget, samples=samples,
-                   callback=progress, tolerance=tolerance,
-                   compile=use_compile, backend=backend,
-                   engine=None if engine == "auto" and backend != "spheres" else engine)
+                   callback=progress, tolerance=tolerance, backend=backend)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:

@@ -60,7 +60,7 @@ def choose_method(method: str | None, optimizer: str | None, backend: str | None
 
 
 def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations=None, seed=None,
-                      callback=None, should_stop=None, problem=None, engine: str = "auto"):
+                      callback=None, should_stop=None, problem=None, backend=None):
     """Heatmap of the posterior's start-position marginal (module docstring).
 
     Args:
@@ -72,7 +72,8 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
         callback: called with a ``HeatmapProgress`` (``cells_done`` of ``cells_total`` tells how
             far the whole run is; ``phase`` search, refine or sample).
         should_stop: polled between iterations and sampler moves; True raises InferenceError.
-        problem: reuse a spheres problem of this scene; engine: its engine otherwise.
+        problem: reuse a spheres problem of this scene; backend: else the spheres backend's
+            ``BackendOptions`` (e.g. its engine) or None.
     Returns:
         HeatmapResult (``best``: the solve, with its posterior samples).
     """
@@ -121,7 +122,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
                                  cells_total=cells_total, chunk=0, chunks=1, phase=p.phase))
 
     result = solve(scene, optimizer="auto", iterations=iterations, seed=seed, samples=n, callback=progress,
-                   should_stop=should_stop, problem=problem, engine=None if problem is not None else engine)
+                   should_stop=should_stop, problem=problem, backend=backend)
     if result.posterior is None:
         raise InferenceError("stopped before the posterior was sampled: no heatmap to report")
     layout = result.problem.layout

@@ -80,8 +80,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     workers: int = 1,
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
-                    callback=None, should_stop=None, problem=None, backend: str = "spheres",
-                    engine: str = "auto", method: str | None = None, ray: str | None = None) -> HeatmapResult:
+                    callback=None, should_stop=None, problem=None, backend=None,
+                    method: str | None = None, ray: str | None = None) -> HeatmapResult:
     """Start-position heatmap of a scene's source.
 
     ``method="posterior"`` (the default where the spheres backend runs, no local optimiser is
@@ -89,7 +89,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     histograms the samples' start positions (``dejaview.heatmap.posterior``): the cells'
     probabilities are the posterior's marginal. Of the arguments below it takes cells, samples (per
     cell), sigma (the observation's), iterations and seed (the search's), callback, should_stop,
-    problem, engine. ``method="basins"`` runs the per-cell optimisations of this module's docstring.
+    problem, backend. ``method="basins"`` runs the per-cell optimisations of this module's docstring.
 
     The steps: the settings (``_settings``), the problem (``_with_problem``), every chunk's
     first guesses (``_first_guesses``), the batched optimisations (``_optimise_chunks``), the
@@ -118,9 +118,9 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         should_stop: polled every iteration; True stops the run (raises InferenceError).
         problem: reuse a problem of this scene (``dejaview.backends``; a bare InferenceProblem is
             wrapped).
-        backend: ``spheres`` | ``warp`` (``dejaview.backends.make_problem``); ignored with ``problem``.
-        engine: the spheres backend's simulation engine (``InferenceProblem.engine``); ignored
-            with ``problem``.
+        backend: a backend's name (``spheres``, the default, | ``warp``) or ``BackendOptions``
+            (with its own settings, e.g. the spheres backend's engine; ``dejaview.backends``); not
+            with ``problem``. Worker processes and Ray actors rebuild the problem from it.
         method: ``posterior`` | ``basins`` | None (above).
         ray: optimise the chunks on Ray (``dejaview.parallel``): ``"local"`` or a cluster address,
             ``workers`` actors; each builds the problem from the scene. Same results as in processes.
@@ -133,9 +133,15 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     from dejaview.heatmap.posterior import choose_method, posterior_heatmap
     from dejaview.heatmap.weighting import deduplicate
 
+    from dejaview.backends import BackendOptions
+
+    if problem is not None and backend is not None:
+        raise InferenceError("backend options build a problem; the heatmap got a built problem as well: "
+                             "pass one of backend and problem")
+    options = BackendOptions.of(backend) if problem is None else BackendOptions.of(problem.backend)
     if ray is not None and method is None:
         method = "basins"  # Ray distributes the per-cell optimisations' chunks
-    if choose_method(method, optimizer, backend if problem is None else problem.backend) == "posterior":
+    if choose_method(method, optimizer, options.name) == "posterior":
         if ray is not None:
             raise InferenceError("ray distributes the basins heatmap's chunks; the posterior heatmap runs "
                                  "in this process: drop ray or use method basins")
@@ -145,14 +151,14 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                                      f"not to the posterior's")
         return posterior_heatmap(scene, cells=cells, samples=samples, sigma=sigma, iterations=iterations,
                                  seed=seed, callback=callback, should_stop=should_stop, problem=problem,
-                                 engine=engine)
+                                 backend=None if problem is not None else options)
     t_start = time.perf_counter()
     run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
                     radii, directions)
-    run = replace(_with_problem(run, problem, backend, engine, gradient, lr), ray=ray)
+    run = replace(_with_problem(run, problem, options, gradient, lr), ray=ray)
     gen = torch.Generator().manual_seed(int(run.seed))
     guesses = _first_guesses(run, gen)
-    results, history, state = _optimise_chunks(run, guesses, engine, callback, should_stop, t_start)
+    results, history, state = _optimise_chunks(run, guesses, options, callback, should_stop, t_start)
     cand = _candidates(run, guesses, results)
     keep = deduplicate(cand.cell, cand.loss, cand.start, velocity_tol=velocity_tol, spin_tol=spin_tol,
                        position_tol=position_tol)
@@ -258,14 +264,14 @@ def _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_s
                 directions=directions, chunks=split_cells(nx * ny, samples, batch_size, workers))
 
 
-def _with_problem(run: _Run, problem, backend: str, engine: str, gradient: str | None,
-                  lr: float | None) -> _Run:
-    """``run`` with its problem (``problem`` reused, or built), gradient mode and learning rate, checked."""
-    from dejaview.backends import as_problem, make_problem
+def _with_problem(run: _Run, problem, options, gradient: str | None, lr: float | None) -> _Run:
+    """``run`` with its problem (``problem`` reused, or built from ``BackendOptions`` ``options``),
+    gradient mode and learning rate, checked."""
+    from dejaview.backends import as_problem
     from dejaview.inference.solve import default_gradient
 
     problem = (as_problem(problem) if problem is not None
-               else make_problem(run.scene, backend, **_engine_option(backend, engine)))
+               else options.make_problem(run.scene))
     layout = problem.layout
     if not layout.free["position"] or 0 not in layout.position_axes or 1 not in layout.position_axes:
         raise InferenceError("a heatmap needs the start position free with x and y extent in <start-area> "
@@ -304,9 +310,10 @@ def _first_guesses(run: _Run, gen: torch.Generator) -> list[tuple[torch.Tensor, 
     return guesses
 
 
-def _optimise_chunks(run: _Run, guesses: list, engine: str, callback, should_stop,
+def _optimise_chunks(run: _Run, guesses: list, options, callback, should_stop,
                      t_start: float) -> tuple[list, list, dict]:
-    """Optimise every chunk (in this process, in ``run.workers`` processes or on Ray), reporting progress.
+    """Optimise every chunk (in this process, in ``run.workers`` processes or on Ray, which build
+    their problem from ``options``, ``BackendOptions``), reporting progress.
 
     Returns:
         (per chunk (candidate_x (K, P), candidate_loss (K,), stopped), history (one ``Progress``
@@ -332,8 +339,7 @@ def _optimise_chunks(run: _Run, guesses: list, engine: str, callback, should_sto
                 seed=run.seed)
     problem = run.problem
     if run.ray is not None or (run.workers > 1 and len(chunks) > 1):
-        results = _chunks_in_processes(run.scene, problem.backend, getattr(problem, "engine", engine),
-                                       guesses, opts, run.workers, progress, should_stop,
+        results = _chunks_in_processes(run.scene, _options_of(problem, options), guesses, opts, run.workers, progress, should_stop,
                                        state, chunks, run.ray)
     else:
         results = []
@@ -469,25 +475,20 @@ def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, sho
     return opt.candidate_x, opt.candidate_loss, opt.stopped
 
 
-def _engine_option(backend: str, engine: str) -> dict:
-    """``make_problem`` options for ``engine`` (the spheres backend's; the default elsewhere)."""
-    if backend == "spheres":
-        return {"engine": engine}
-    if engine != "auto":
-        raise InferenceError(f"engine is an option of the spheres backend, not of {backend}")
-    return {}
+def _options_of(problem, options):
+    """``options``, or where a built problem was reused, the options that rebuild it in a worker
+    (``Problem.backend_options``: its backend's settings that matter there)."""
+    return problem.backend_options() if problem is not None else options
 
 
-def _worker_init(scene, backend: str, engine: str):
+def _worker_init(scene, options):
     """A worker's setup (``dejaview.parallel``): one thread (torch's and the native simulator's),
     the scene's problem built once per worker."""
     import os
 
     torch.set_num_threads(1)
     os.environ["DEJAVIEW_NATIVE_THREADS"] = "1"
-    from dejaview.backends import make_problem
-
-    return make_problem(scene, backend, **_engine_option(backend, engine))
+    return options.make_problem(scene)
 
 
 def _worker_chunk(problem, item, report, stopped):
@@ -496,7 +497,7 @@ def _worker_chunk(problem, item, report, stopped):
     return optimise_chunk(chunk, x0, ci, opts, report, stopped)
 
 
-def _chunks_in_processes(scene, backend, engine, guesses, opts, workers, progress, should_stop, state,
+def _chunks_in_processes(scene, options, guesses, opts, workers, progress, should_stop, state,
                          chunks, ray=None):
     """Optimise the chunks in ``workers`` spawned processes or Ray actors (``dejaview.parallel``; each
     builds the problem from the scene once); progress is reported from this thread."""
@@ -506,7 +507,7 @@ def _chunks_in_processes(scene, backend, engine, guesses, opts, workers, progres
         state["cells_done"] += len(chunks[ci])
 
     items = [(ci, layout.lo, layout.hi, x0, opts) for ci, (_, layout, x0) in enumerate(guesses)]
-    return map_chunks(_worker_chunk, items, setup=_worker_init, setup_args=(scene, backend, engine),
+    return map_chunks(_worker_chunk, items, setup=_worker_init, setup_args=(scene, options),
                       workers=workers, ray=ray, on_report=progress, on_done=done, should_stop=should_stop)
 
 

@@ -157,17 +157,6 @@ def default_gradient(num_params: int) -> str:
     return "reverse"
 
 
-def _check_engine(engine: str, compile: bool) -> str:
-    from dejaview.sim.native import ENGINES
-
-    if engine not in ENGINES:
-        raise InferenceError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
-    if compile and engine == "native":
-        raise InferenceError("compile applies to the torch engine; the native engine is compiled C++ "
-                             "already: drop --compile or choose --engine torch")
-    return engine
-
-
 LOCAL_ONLY = ("multistart", "screen", "screen_rounds", "screen_near", "epsilon", "patience", "lr", "gradient",
               "x0")
 """Settings of the local optimisers with restarts (``gd|adam|lbfgs|bfgs``) that the default search
@@ -285,7 +274,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           multistart: int | None = None, epsilon: float | None = None, patience: int | None = None,
           callback=None, should_stop=None, world=None, problem=None,
           x0: torch.Tensor | None = None, tolerance: float | None = None,
-          compile: bool = False, backend: str | None = None, engine: str | None = None,
+          backend=None,
           screen: int | None = None, screen_rounds: int | None = None,
           screen_near: float | None = None, budget: int | None = None,
           samples: int | None = None) -> SolveResult:
@@ -310,11 +299,11 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         should_stop: polled every iteration; True stops early (cancellation).
         world / problem: reuse an already built World (spheres) / problem (any backend's,
             ``dejaview.backends.make_problem``, or a bare ``InferenceProblem``).
-        compile: compiled rollouts (see ``InferenceProblem.compile``; spheres only).
-        backend: ``spheres`` (default) | ``warp`` (``dejaview.backends``); ignored with ``problem``.
-            The ``auto`` search needs the spheres backend's residual Jacobians; with another
-            backend ``auto`` runs ``lbfgs``.
-        engine: simulation engine of the spheres backend, ``auto`` | ``native`` | ``torch``.
+        backend: a backend's name, ``spheres`` (default) | ``warp``, or ``BackendOptions`` (a
+            backend with its own settings: the spheres backend's engine and compile, Warp's
+            integrator, ...; ``dejaview.backends``); not with ``problem``. The ``auto`` search
+            needs the spheres backend's residual Jacobians; with another backend ``auto`` runs
+            ``lbfgs``.
     Returns:
         SolveResult.
     Raises:
@@ -327,7 +316,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
                  screen_near=screen_near, epsilon=epsilon, patience=patience, lr=lr, gradient=gradient,
                  x0=x0)
-    problem = _make_problem(scene, problem, world, backend, compile, engine)
+    problem = _make_problem(scene, problem, world, backend)
     if (optimizer or scene.inference.optimizer) == "auto" and problem.backend != "spheres":
         optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
     settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
@@ -360,24 +349,20 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                        loss=opt.loss, trajectory=traj, settings=info, posterior=samples_drawn)
 
 
-def _make_problem(scene, problem, world, backend, compile, engine):
-    """The backend problem of a solve, with its engine options applied."""
-    from dejaview.backends import as_problem, make_problem
+def _make_problem(scene, problem, world, backend):
+    """The backend problem of a solve: ``problem`` itself, or built from ``backend`` (a name or
+    ``BackendOptions``) and ``world``."""
+    from dejaview.backends import BackendOptions, as_problem
     from dejaview.inference.problem import check_inference
 
     check_inference(scene)
-    if problem is None:
-        options = {} if world is None else {"world": world}
-        problem = make_problem(scene, backend or "spheres", **options)
-    problem = as_problem(problem)
-    if problem.backend == "spheres":
-        problem.compile = compile
-        if engine is not None:
-            problem.engine = _check_engine(engine, compile)
-    elif compile or engine is not None:
-        raise InferenceError(f"{'compile' if compile else 'engine'} is an option of the spheres backend, "
-                             f"not of {problem.backend}")
-    return problem
+    if problem is not None:
+        if backend is not None:
+            raise InferenceError("backend options build a problem; solve got a built problem as well: "
+                                 "pass one of backend and problem")
+        return as_problem(problem)
+    options = BackendOptions.of(backend)
+    return options.make_problem(scene, **({} if world is None else {"world": world}))
 
 
 def _search(scene, problem, settings: SolveSettings, callback, should_stop):
