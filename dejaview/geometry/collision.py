@@ -280,6 +280,17 @@ class SceneCollision:
         self._request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
         self._boolean_request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=False)
         self._exact_request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
+        self._scratch = fcl.CollisionResult()  # of boolean requests: their count of contacts decides
+
+    def _overlap(self, g1, g2) -> bool:
+        """Do two fcl objects (transforms set) overlap? One result object reused: python-fcl
+        builds one per call otherwise, a third of a feasibility check's time."""
+        import fcl
+
+        found = fcl.collide(g1, g2, self._boolean_request, self._scratch) > 0
+        self._scratch.contacts.clear()
+        self._scratch.is_collision = False
+        return found
 
     @property
     def ids(self) -> list[str]:
@@ -287,7 +298,8 @@ class SceneCollision:
         return list(self._bodies)
 
     # -- queries ---------------------------------------------------------------
-    def penetration(self, source_id: str, position, orientation, margin: float = 0.0):
+    def penetration(self, source_id: str, position, orientation, margin: float = 0.0,
+                    decide_only: bool = False):
         """Does the source, placed at each candidate pose, interpenetrate another object?
 
         Every other object stays at its scene pose (fixed and movable alike).
@@ -297,6 +309,9 @@ class SceneCollision:
             position: (B, 3) or (3,) where its object-frame origin goes, world frame, m.
             orientation: (B, 4) or (4,) its orientation, w x y z (normalised here).
             margin: depth (m) up to which an overlap counts as resting contact.
+            decide_only: only ``hit`` matters: the search for a candidate's depth stops at the
+                first overlap that decides it (a feasibility check; ``depth`` is then a lower
+                bound where ``hit``), and ``other_id`` names the first object found.
         Returns:
             hit (B,) bool: deeper than ``margin`` (and than ``TOUCHING``) into
             some object; depth (B,) float: the deepest overlap with any object
@@ -325,15 +340,18 @@ class SceneCollision:
         rot = quaternion_matrices(quat)
         depth = np.zeros(len(pos))
         other: list[str | None] = [None] * len(pos)
+        limit = max(float(margin), TOUCHING)
         for body in self._bodies.values():
             if body.id == source_id:
                 continue
-            d = self._pair_depths(source, rot, pos, body, limit=max(float(margin), TOUCHING))
+            todo = np.flatnonzero(depth <= limit) if decide_only else np.arange(len(pos))
+            d = np.zeros(len(pos))
+            d[todo] = self._pair_depths(source, rot[todo], pos[todo], body, limit=limit, decide_only=decide_only)
             deeper = d > depth
             depth[deeper] = d[deeper]
             for i in np.flatnonzero(deeper):
                 other[i] = body.id
-        hit = depth > max(float(margin), TOUCHING)
+        hit = depth > limit
         if as_torch:
             import torch
 
@@ -371,12 +389,13 @@ class SceneCollision:
         return self._bodies[object_id]
 
     def _pair_depths(self, a: _Body, rot: np.ndarray, pos: np.ndarray, b: _Body,
-                     limit: float | None = None) -> np.ndarray:
+                     limit: float | None = None, decide_only: bool = False) -> np.ndarray:
         """Depth of the overlap of ``a`` at B poses with ``b`` at its own pose.
 
         Args:
             rot: (B, 3, 3), pos: (B, 3): the poses of ``a``.
             limit: only depths above it need be exact (``_piece_depth``).
+            decide_only: only whether a depth exceeds ``limit`` matters (``_solid_depth``).
         Returns:
             (B,) depths in metres (0 where they do not overlap).
         """
@@ -394,34 +413,55 @@ class SceneCollision:
         gap = np.linalg.norm(pos + rot @ centre_a - (b.rotation @ centre_b + b.position), axis=1)
         depths = np.zeros(len(pos))
         for i in np.flatnonzero(gap < reach_a + reach_b):
-            depths[i] = self._solid_depth(a, rot[i], pos[i], b, limit)
+            depths[i] = self._solid_depth(a, rot[i], pos[i], b, limit, decide_only)
         return depths
 
     def _solid_depth(self, a: _Body, rot: np.ndarray, pos: np.ndarray, b: _Body,
-                     limit: float | None = None) -> float:
+                     limit: float | None = None, decide_only: bool = False) -> float:
         """Depth of the overlap of two solids (neither a plane), ``a`` at (rot, pos); ``limit``:
-        see ``_piece_depth``."""
+        see ``_piece_depth``. ``decide_only``: only whether the depth exceeds ``limit`` matters.
+        The piece pairs are then searched until one overlaps deeper than ``limit`` (convex
+        solids) or than ``REFINE_LIMIT`` too (a concave one, whose exact check keeps a pieces'
+        depth that deep as it is): that depth, a lower bound of the deepest, decides. A concave
+        pair whose pieces overlap by at most ``limit`` skips the exact check, which can only
+        make the depth smaller (``_exact_depth``)."""
         import fcl
 
         ca = a.centres @ rot.T + pos
         cb = b.centres @ b.rotation.T + b.position
         close = np.linalg.norm(ca[:, None] - cb[None], axis=2) < a.radii[:, None] + b.radii[None]
-        if not close.any():
+        pairs = np.argwhere(close)
+        if not len(pairs):
             return 0.0
         transform = fcl.Transform(rot, pos)
         deepest = 0.0
-        for p in np.flatnonzero(close.any(axis=1)):
+        concave = a.concave or b.concave
+        enough = np.inf
+        if decide_only and limit is not None:
+            enough = max(limit, REFINE_LIMIT) if concave else limit
+        placed = -1
+        for p, q in pairs.tolist():
             piece = a.pieces[p]
-            piece.setTransform(transform)
-            for q in np.flatnonzero(close[p]):
-                # EPA (a contact) only where a curved piece needs its normal as an axis
-                curved = a.shapes[p] is None or b.shapes[q] is None
+            if p != placed:
+                piece.setTransform(transform)
+                placed = p
+            # EPA (a contact) only where a curved piece needs its normal as an axis
+            curved = a.shapes[p] is None or b.shapes[q] is None
+            if curved:
                 result = fcl.CollisionResult()
-                if fcl.collide(piece, b.pieces[q], self._request if curved else self._boolean_request,
-                               result):
-                    contact = result.contacts[0] if curved else None
-                    deepest = max(deepest, _piece_depth(a, p, rot, pos, b, q, contact, limit))
-        if deepest > TOUCHING and (a.concave or b.concave):
+                if not fcl.collide(piece, b.pieces[q], self._request, result):
+                    continue
+                contact = result.contacts[0]
+            elif self._overlap(piece, b.pieces[q]):
+                contact = None
+            else:
+                continue
+            deepest = max(deepest, _piece_depth(a, p, rot, pos, b, q, contact, limit))
+            if deepest > enough:
+                break
+        if decide_only and limit is not None and deepest <= limit:
+            return deepest
+        if deepest > TOUCHING and concave:
             deepest = self._exact_depth(a, rot, pos, b, deepest)
         return deepest
 
@@ -441,7 +481,7 @@ class SceneCollision:
         geom_b = b.exact if b.concave else b.pieces[0]
         geom_a.setTransform(fcl.Transform(rot, pos))
         geom_b.setTransform(fcl.Transform(b.rotation, b.position))
-        if fcl.collide(geom_a, geom_b, self._boolean_request, fcl.CollisionResult()):
+        if self._overlap(geom_a, geom_b):
             if pieces_depth > REFINE_LIMIT:
                 return pieces_depth
             result = fcl.CollisionResult()

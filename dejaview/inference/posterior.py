@@ -233,9 +233,11 @@ class Posterior:
             k = torch.zeros_like(b)
         else:  # evaluate="best": the record that fits best, per candidate
             k = (r.detach() ** 2).sum(-1).argmin(0)
-        loss = LOSSES[p.loss_kind](world, body, st, self._target_origin, self._target_q,
-                                   orientation_weight=p.orientation_weight, points=p.points)
-        return r[k, b], loss.detach()[k, b]
+        with torch.no_grad():  # the scene's loss at the compared record only: (1, B, N, ...) states
+            at = State(*(t[k, b].unsqueeze(0) for t in st.tensors()))
+            loss = LOSSES[p.loss_kind](world, body, at, self._target_origin, self._target_q,
+                                       orientation_weight=p.orientation_weight, points=p.points)[0]
+        return r[k, b], loss
 
     def prior_residuals(self, x: torch.Tensor) -> torch.Tensor:
         """Prior residuals (B, M_prior) of parameters x (B, P) (module docstring)."""
@@ -350,7 +352,8 @@ def feasibility_check(scene, problem, margin: float = FEASIBILITY_MARGIN):
 
     def feasible(position: torch.Tensor, orientation: torch.Tensor):
         hit, _, _ = collision.penetration(source, position.detach().cpu().numpy(),
-                                          orientation.detach().cpu().numpy(), margin=margin)
+                                          orientation.detach().cpu().numpy(), margin=margin,
+                                          decide_only=True)
         return ~torch.as_tensor(hit, dtype=torch.bool)
 
     return feasible

@@ -269,3 +269,23 @@ def test_pieces_cover_a_nonconvex_mesh_and_are_cached(tmp_path):
     assert [len(p.vertices) for p in again] == [len(p.vertices) for p in pieces]
     # a convex mesh is its own piece
     assert convex_pieces(trimesh.creation.box(extents=(1, 1, 1)))[0].volume == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("scene, centre", [("mug_off_counter", (0.0, 0.0, 0.95)),
+                                           ("box_among_boxes", (0.85, 0.1, 0.1))])
+def test_decide_only_gives_the_same_hits_and_a_lower_bound_of_the_depth(scene, centre):
+    """The feasibility check's shortcut (``decide_only``) stops at the first overlap that decides;
+    on 400 random poses about the objects it decides as the full search does, and where
+    it hits its depth is at most the full depth and over the margin."""
+    sc = Scene.from_xml(ROOT / "examples" / "scenes" / f"{scene}.xml")
+    c = SceneCollision(sc)
+    source = sc.inference.source
+    rng = np.random.default_rng(7)
+    pos = np.asarray(centre) + rng.uniform(-0.25, 0.25, (400, 3))
+    quat = rng.normal(size=(400, 4))
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    hit, depth, _ = c.penetration(source, pos, quat, margin=0.003)
+    fast_hit, fast_depth, _ = c.penetration(source, pos, quat, margin=0.003, decide_only=True)
+    assert 40 < hit.sum() < 360  # both kinds of pose are tried
+    np.testing.assert_array_equal(fast_hit, hit)
+    assert np.all(fast_depth[hit] <= depth[hit] + 1e-12) and np.all(fast_depth[hit] > 0.003)

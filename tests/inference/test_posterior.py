@@ -69,6 +69,26 @@ def test_the_true_start_explains_its_own_end_and_an_other_does_not():
     assert cost[1] == pytest.approx(0.5 * chi2[1])
 
 
+@pytest.mark.parametrize("evaluate", ["best", "final"])
+def test_the_reported_loss_is_the_scenes_loss_at_one_of_the_candidates_records(evaluate):
+    """``observation_residuals``' loss is the scene's per-record loss at the record it compares
+    (computed there only): one of that candidate's per-record losses, the last one for final."""
+    from dejaview.losses import LOSSES
+
+    scene = shelf(duration=0.5, evaluate=evaluate)
+    problem = InferenceProblem.from_scene(scene)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene))
+    x = torch.cat([truth_x(problem), problem.layout.encode().double(),
+                   problem.layout.sample(3, torch.Generator().manual_seed(1)).double()])
+    traj = problem.simulate(x, record_every=5)
+    _, loss = post.observation_residuals(traj)
+    every = LOSSES[problem.loss_kind](problem.world, problem.source, traj.states, post._target_origin,
+                                      post._target_q, orientation_weight=problem.orientation_weight,
+                                      points=problem.points)  # (T, B)
+    gap = (every - loss).abs().min(0).values if evaluate == "best" else (every[-1] - loss).abs()
+    assert loss.shape == (5,) and float(gap.max()) < 1e-12
+
+
 def test_prior_residuals_are_velocities_over_their_deviations_and_flat_inside_the_bounds():
     scene = Scene.from_xml(SCENES / "mug_off_counter.xml")
     problem = InferenceProblem.from_scene(scene)
