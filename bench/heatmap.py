@@ -4,7 +4,9 @@
     python bench/heatmap.py --cells 4x4 --samples 1 --iterations 3 --serial 2   # smoke test
     python bench/heatmap.py --serial 0          # batched only
 
-Batched: ``compute_heatmap`` as the CLI runs it (all candidates of a chunk as
+The per-cell optimisations of the ``basins`` method (``compute_heatmap(method="basins")``; the
+default heatmap, the posterior's marginal, is timed by ``dejaview heatmap`` itself, see
+docs/benchmarks.md, "Posterior"). Batched: ``compute_heatmap`` as the CLI runs it (all candidates of a chunk as
 one batch, ``--batch-size`` candidates per chunk, ``--workers`` processes running
 chunks at once), the whole pipeline (optimisation, deduplication, basin
 measurement, weighting).
@@ -98,7 +100,7 @@ def run(print_fn=print, scene=None, cells=(16, 16), samples=4, iterations=30, wo
         phases.setdefault(p.phase, time.perf_counter())
 
     result = compute_heatmap(sc, cells=cells, samples=samples, iterations=iterations, workers=workers,
-                             batch_size=batch_size, callback=progress)
+                             batch_size=batch_size, callback=progress, method="basins")
     batched = time.perf_counter() - t0
     cpu = time.process_time() - c0
     optimise = phases.get("robustness", time.perf_counter()) - t0

@@ -233,8 +233,8 @@ def optimizers(iterations, scene, optimizers, modes, quick, csv_path):
     """Best loss after N iterations and time per iteration of each optimiser and gradient mode.
 
     One solve per optimiser and mode, from the scene's initial guess, without
-    restarts. On the bundled examples (dt = 2 ms) a loss + gradient takes
-    seconds: give them few --iterations.
+    restarts. Forward mode and the larger bundled scenes cost more per
+    iteration: give those fewer --iterations.
     """
     from dejaview.cli.options import configure_torch
 

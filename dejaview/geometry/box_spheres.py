@@ -31,8 +31,8 @@ EDGE_SPLIT = 2
 # per body and static shape (``dejaview.sim.world.DEFAULT_MAX_STATIC_CONTACTS``, 64),
 # so a box resting on a face keeps every touching sphere. Beyond the capacity the
 # deepest are kept, and among spheres at exactly equal depth that choice breaks the
-# symmetry (measured: 107 face spheres made a box slid straight drift and yaw, and the
-# two engines, whose top-k break ties differently, part by 7 um).
+# symmetry (a box slid straight drifts and yaws, and the two engines, whose top-k break
+# ties differently, part).
 MAX_FACE_SPHERES = 56
 # Face grids coarser than this fraction of the thinnest half extent leave too much of
 # the inside empty (the mid-plane spheres, that radius, too far apart): no packing.

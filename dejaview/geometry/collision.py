@@ -27,8 +27,8 @@ own EPA depth is not used for polytopes: it is wrong by tens of percent in
 plain cases, see ``_piece_depth``.) Since a body that lies entirely inside
 another still overlaps one of its pieces, it is found too; a
 surface-crossing test would miss it. For a non-convex mesh the pieces fill
-its concavities a little (the mug's cavity and handle hole, measured: +4 %
-volume, no piece more than 0.07 mm outside the surface), so an overlap
+its concavities a little (the mug's cavity and handle hole:
+``test_pieces_cover_a_nonconvex_mesh_and_are_cached`` bounds how much), so an overlap
 found between pieces is confirmed on the exact geometry: fcl's collision of
 the true surfaces (a BVH against the other's solid or surface), or, where
 no surfaces cross, whether one object lies inside the other. An overlap

@@ -108,8 +108,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
             small bodies are bound by per-op overhead, so one large batch is much cheaper than
             several small ones; memory grows with it.
         workers: processes optimising chunks at once (1: in this process). Threads do not
-            help (the per-op Python overhead holds the GIL: 2 threads measured 34.5 s vs 36.2 s
-            for 1); each worker process is spawned and rebuilds the problem from the scene with
+            help (the per-op Python overhead holds the GIL); each worker process is spawned and rebuilds the problem from the scene with
             the backend's defaults (a few seconds), so use them for large grids. The cells are
             split into at least this many chunks.
         radii, directions: robustness perturbations (m/s, ascending; directions per radius).

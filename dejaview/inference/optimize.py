@@ -29,11 +29,10 @@ is flagged ``restarted`` and the global best is kept. ``epsilon = 0`` switches
 exploration off: a stalled candidate carries on.
 "Improved" means the candidate's best objective fell by more than
 ``STALL_RATIO`` (relative) in that iteration: an L-BFGS run creeping along the
-floor of a wrong basin (measured on the mug scene: 2e-4 relative per
-iteration for 20 iterations) counts as stalled, not as progress. So does an
-L-BFGS/BFGS batch whose line search failed twice in a row (spent its whole
-budget without improving): on ``box_among_boxes`` such a point cost 12
-evaluations per iteration for 8 iterations before.
+floor of a wrong basin (a small relative gain every iteration) counts as
+stalled, not as progress. So does an L-BFGS/BFGS batch whose line search
+failed twice in a row (spent its whole budget without improving), which
+otherwise costs a full line search per iteration.
 
 Multi-start: ``x0`` may hold K guesses (K, P); they run as one batch, and
 each candidate follows the path it would follow alone (with restarts off).

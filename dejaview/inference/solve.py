@@ -16,9 +16,7 @@ SCREEN_BATCH = 64
 """Candidates per batch while screening (bounds memory; batching amortises the per-op overhead)."""
 SCREEN_NEAR = 0.0
 """Default fraction of the first screening round drawn near the scene's own guess
-(``screen_guesses``). 0: measured on the recovery suite, 0.5 solved the upright-mug case that
-prior-only screening never did (mug_off_counter-2) but lost three others (mug_off_counter-0 and -1,
-box_along_shelf-0): the near draws rank high together, so the best start and the restarts
+(``screen_guesses``). 0: near draws rank high together, so the best start and the restarts
 after it all tell one story, and the search loses the diversity of the prior."""
 SCREEN_SIGMA = 1.0
 """Standard deviation of those draws in scaled parameters (0.1 m / 0.5 rad / 1 m/s / 5 rad/s by
@@ -64,9 +62,9 @@ def screen_rounds_ranked(problem, first: torch.Tensor, count: int, generator: to
     of the given orientation with probability (1/6)^3 = 0.5 %, and 64 draws hold
     a third of a guess that starts upright; the solver would then only try pasts
     that start tumbling. The guesses are simulated in batches of ``batch``
-    without autograd: on the mug scene one batched rollout costs ~0.3 s per
-    candidate against ~4.5 s for one loss + gradient at B = 1 (eager), so
-    screening a few hundred draws costs a handful of gradient evaluations and
+    without autograd, which costs a fraction of a loss + gradient per candidate
+    (docs/benchmarks.md, "Simulator"), so screening a few hundred draws costs a
+    handful of gradient evaluations and
     moves the start into the right basin where the scene's guess tells a
     different story.
 

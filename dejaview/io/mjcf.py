@@ -29,9 +29,8 @@ What carries over, and how (docs/robotics.md has the user-facing version):
   that MuJoCo's contact, which pushes and never pulls, integrated at its time
   step, rebounds with DejaView's restitution e (``damping_ratio``). The
   classic ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` holds for a spring-damper that
-  may pull; MuJoCo's may not, and that formula made a ball with e = 0.3
-  rebound with 0.40 and one with e = 0.9 diverge (zeta 0.03 at a 4 ms time
-  constant is a contact of 7,500 rad/s). Importing inverts the mapping for
+  may pull; MuJoCo's may not, and that formula made balls rebound too high
+  and lively ones diverge (docs/physics-fidelity.md, "Mapping"). Importing inverts the mapping for
   either solref form. MuJoCo combines two geoms' friction by their maximum
   and their solref by the mean, DejaView friction by the geometric mean and
   restitution by the mean: equal values agree.

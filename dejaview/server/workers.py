@@ -3,11 +3,8 @@
 Why processes by default: a rollout is thousands of tiny torch ops, each
 paying Python and dispatcher overhead under the GIL (docs/benchmarks.md, "Service"),
 so worker *threads* mostly take turns on one core, and every one of them
-competes with the event loop for the GIL. Measured on the 2-core machine
-(while two other benchmarks kept it busy): two jobs of 3 x 300-step rollouts
-took 8.3 s one after the other, 8.4 s in two threads, 6.9 s in two
-processes; for the tiny 10-step jobs of ``bench/load.py`` the two are
-alike (20-21 jobs/s with 50 clients), as scene parsing and I/O dominate.
+competes with the event loop for the GIL (processes against threads,
+``dejaview bench load --executor process|thread``: docs/benchmarks.md, "Service").
 Worker processes (``spawn``, one torch thread each) run on separate cores,
 keep the event loop's latency flat
 while they compute, can be restarted when one dies (a crash sends its job

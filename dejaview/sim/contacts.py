@@ -54,10 +54,9 @@ with every m_i at most the true effective mass in any tangent direction,
 lambda_max(H C) <= sum_i h c_i lambda_max(H_ii) <= sum_i w_i = 1: no
 overshoot, in the state and in its linearisation (the gradients). Taken along
 the slip direction alone, the effective mass jumps at v_t = 0 (direction
-undefined; round-off slips of a resting body sat on that jump): measured on
-a resting box, reverse-mode gradients then grew 1.6x per substep (1e20
-after 60 steps where finite differences give 0.007;
-``tests/sim/test_gradients.py``). Written as
+undefined; round-off slips of a resting body sat on that jump): on a resting
+box reverse-mode gradients then grew without bound (``tests/sim/test_gradients.py``;
+docs/benchmarks.md, "Physics measurements"). Written as
 ``-v_t a c / (a^8 + (c |v_t|)^8)^(1/8)`` the friction is smooth in v_t (no
 division by |v_t|), so gradients stay finite at rest.
 

@@ -70,8 +70,8 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
     Eagerly one ``matmul``. Under ``torch.compile`` a broadcast product and a
     sum, which inductor fuses into the surrounding kernels: as a matmul each
-    of these tiny products was an extern ``bmm``/``mm`` call, ~27 per substep
-    and ~10 % of a compiled loss + gradient. (A trace-time branch on the
+    of these tiny products was an extern ``bmm``/``mm`` call, dozens per
+    substep (``dejaview bench profile --compile`` shows them). (A trace-time branch on the
     compile flag, not on tensor values.)
     """
     if torch.compiler.is_compiling():
