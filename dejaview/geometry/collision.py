@@ -311,7 +311,9 @@ class SceneCollision:
             margin: depth (m) up to which an overlap counts as resting contact.
             decide_only: only ``hit`` matters: the search for a candidate's depth stops at the
                 first overlap that decides it (a feasibility check; ``depth`` is then a lower
-                bound where ``hit``), and ``other_id`` names the first object found.
+                bound of the true depth where ``hit``, which may exceed the full search's value
+                from the convex pieces by their tolerance), and ``other_id`` names the first
+                object found.
         Returns:
             hit (B,) bool: deeper than ``margin`` (and than ``TOUCHING``) into
             some object; depth (B,) float: the deepest overlap with any object
@@ -424,7 +426,8 @@ class SceneCollision:
         solids) or than ``REFINE_LIMIT`` too (a concave one, whose exact check keeps a pieces'
         depth that deep as it is): that depth, a lower bound of the deepest, decides. A concave
         pair whose pieces overlap by at most ``limit`` skips the exact check, which can only
-        make the depth smaller (``_exact_depth``)."""
+        make the depth smaller (``_exact_depth``); one whose mesh has a vertex deeper than
+        ``limit`` inside a convex polytope skips it too (``_vertex_depth``)."""
         import fcl
 
         ca = a.centres @ rot.T + pos
@@ -459,8 +462,13 @@ class SceneCollision:
             deepest = max(deepest, _piece_depth(a, p, rot, pos, b, q, contact, limit))
             if deepest > enough:
                 break
-        if decide_only and limit is not None and deepest <= limit:
-            return deepest
+        if decide_only and limit is not None:
+            if deepest <= limit:
+                return deepest
+            if concave:  # a vertex deeper than the limit decides without fcl's contacts
+                bound = _vertex_depth(a, rot, pos, b)
+                if bound > limit:
+                    return bound
         if deepest > TOUCHING and concave:
             deepest = self._exact_depth(a, rot, pos, b, deepest)
         return deepest
@@ -539,6 +547,23 @@ def _piece_depth(a: _Body, p: int, rot: np.ndarray, pos: np.ndarray, b: _Body, q
     if contact is not None and a.kind in ("box", "sphere") and b.kind in ("box", "sphere"):
         depth = min(depth, abs(contact.penetration_depth))
     return max(0.0, depth)
+
+
+def _vertex_depth(a: _Body, rot: np.ndarray, pos: np.ndarray, b: _Body) -> float:
+    """A lower bound of the depth of a concave mesh's overlap with a convex polytope (0 where
+    the pair is not one): the deepest of the mesh's vertices inside the polytope, measured to
+    its nearest face. Every translation that separates the two moves that vertex out."""
+    if a.concave and not b.concave and len(b.shapes) == 1 and b.shapes[0] is not None:
+        mesh, m_rot, m_pos, solid, s_rot, s_pos = a, rot, pos, b, b.rotation, b.position
+    elif b.concave and not a.concave and len(a.shapes) == 1 and a.shapes[0] is not None:
+        mesh, m_rot, m_pos, solid, s_rot, s_pos = b, b.rotation, b.position, a, rot, pos
+    else:
+        return 0.0
+    normals = solid.shapes[0][1] @ s_rot.T  # (K, 3) world frame
+    offsets = _support(solid, 0, s_rot, s_pos, normals)  # (K,)
+    verts = np.asarray(mesh.mesh.vertices) @ m_rot.T + m_pos  # (V, 3)
+    inside = (offsets[None] - verts @ normals.T).min(axis=1)  # (V,) > 0 inside
+    return max(0.0, float(inside.max()))
 
 
 def _below_plane(body: _Body, rot: np.ndarray, pos: np.ndarray, plane_rot: np.ndarray,

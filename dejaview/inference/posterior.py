@@ -301,14 +301,15 @@ class Posterior:
             dec = self.layout.decode(x)
         return torch.as_tensor(self.feasible_fn(dec["position"], dec["orientation"]), dtype=torch.bool)
 
-    def cost(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def cost(self, x: torch.Tensor, feasibility: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Negative log posterior (B,), observation chi-square (B,) and the scene's loss (B,) of
         parameters x (B, P), without gradients. Infeasible starts and non-finite results cost inf
-        (infeasible ones are not simulated)."""
+        (infeasible ones are not simulated). ``feasibility=False``: every start is simulated as
+        if feasible (for a caller that checks only the starts it keeps)."""
         b = x.shape[0]
         inf = torch.full((b,), math.inf, dtype=x.dtype)
         cost, chi2, loss = inf.clone(), inf.clone(), inf.clone()
-        ok = self.feasible(x)
+        ok = self.feasible(x) if feasibility else torch.ones(b, dtype=torch.bool)
         if not bool(ok.any()):
             return cost, chi2, loss
         xs = x[ok]

@@ -176,10 +176,11 @@ def log_base_density(post, x: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def log_density(post, x: torch.Tensor) -> torch.Tensor:
+def log_density(post, x: torch.Tensor, feasibility: bool = True) -> torch.Tensor:
     """Unnormalised log posterior density (B,) of parameters x (B, P): ``-cost + log base``,
-    ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates)."""
-    cost, _, _ = post.cost(x)
+    ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates).
+    ``feasibility=False``: as if every start were feasible (the caller checks those it keeps)."""
+    cost, _, _ = post.cost(x, feasibility=feasibility)
     out = -cost + log_base_density(post, x)
     return torch.where(torch.isfinite(out), out, torch.full_like(out, -math.inf))
 
@@ -411,13 +412,23 @@ class _SMC:
         out = (1.0 - self.beta) * lr + self.beta * lp if self.beta < 1 else lp.clone()
         return torch.where(torch.isfinite(lp) & ~torch.isnan(out), out, torch.full_like(out, -math.inf))
 
-    def evaluate(self, y: torch.Tensor):
-        """(log r, log q, log p) at proposals y (simulates them)."""
-        return self.reference(y), self.q.log_prob(y), log_density(self.post, y)
+    def metropolis(self, y: torch.Tensor, log_ratio_of) -> float:
+        """Accept or reject proposals y (N, P) by Metropolis-Hastings; ``log_ratio_of(log r,
+        log q, log p)`` (each (N,) at y) gives the log acceptance ratio (N,).
 
-    def accept(self, y, values, log_ratio) -> float:
-        lr_y, lq_y, lp_y = values
+        The proposals are simulated as if feasible, and the interpenetration check (fcl, as
+        costly as a rollout) runs only on those the ratio would accept: an infeasible start
+        has density 0, which can only turn an acceptance into a rejection. Same decisions as
+        checking every proposal first (the uniform draws do not depend on the values).
+        Returns the acceptance rate."""
         u = torch.rand(self.n, generator=self.gen, dtype=torch.float64)
+        lr_y, lq_y = self.reference(y), self.q.log_prob(y)
+        lp_y = log_density(self.post, y, feasibility=False)
+        would = torch.isfinite(lp_y) & (torch.log(u) < log_ratio_of(lr_y, lq_y, lp_y))
+        if bool(would.any()):
+            idx = would.nonzero().squeeze(-1)
+            lp_y[idx[~self.post.feasible(y[idx])]] = -math.inf
+        log_ratio = log_ratio_of(lr_y, lq_y, lp_y)
         ok = torch.isfinite(log_ratio) & (torch.log(u) < log_ratio)
         self.x = torch.where(ok[:, None], y, self.x)
         self.lr = torch.where(ok, lr_y, self.lr)
@@ -429,10 +440,8 @@ class _SMC:
     def independence_move(self) -> float:
         """Propose from the mixture q (jumps between the search's modes)."""
         y, _ = self.q.sample(self.n, self.gen)
-        values = self.evaluate(y)
-        lr_y, lq_y, lp_y = values
-        log_ratio = (self.target(lr_y, lp_y) - self.target(self.lr, self.lp)) + (self.lq - lq_y)
-        return self.accept(y, values, log_ratio)
+        return self.metropolis(y, lambda lr_y, lq_y, lp_y: (self.target(lr_y, lp_y) - self.target(self.lr, self.lp))
+                               + (self.lq - lq_y))
 
     def local_chol(self, points: torch.Tensor, population: torch.Tensor, exclude: torch.Tensor) -> torch.Tensor:
         """(N, P, P) Cholesky factors of the covariance of each point's ``2 P + 2`` nearest
@@ -477,9 +486,8 @@ class _SMC:
         logdet_y = torch.log(torch.diagonal(ly, dim1=-2, dim2=-1)).sum(-1)
         log_q_back = -0.5 * (back * back).sum(-1) - logdet_y
         log_q_fwd = -0.5 * (z * z).sum(-1) - logdet_x
-        values = self.evaluate(y)
-        log_ratio = self.target(values[0], values[2]) - self.target(self.lr, self.lp) + log_q_back - log_q_fwd
-        acc = self.accept(y, values, log_ratio)
+        acc = self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp)
+                              + log_q_back - log_q_fwd)
         self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
@@ -502,9 +510,7 @@ class _SMC:
         jitter = 1e-4 * population.std(0).clamp_min(1e-12)
         e = jitter * torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
         y = self.x + gamma * (population[a] - population[b]) + e
-        values = self.evaluate(y)
-        log_ratio = self.target(values[0], values[2]) - self.target(self.lr, self.lp)
-        return self.accept(y, values, log_ratio)
+        return self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp))
 
     def distinct(self) -> float:
         return torch.unique(self.x, dim=0).shape[0] / self.n

@@ -276,7 +276,7 @@ def test_pieces_cover_a_nonconvex_mesh_and_are_cached(tmp_path):
 def test_decide_only_gives_the_same_hits_and_a_lower_bound_of_the_depth(scene, centre):
     """The feasibility check's shortcut (``decide_only``) stops at the first overlap that decides;
     on 400 random poses about the objects it decides as the full search does, and where
-    it hits its depth is at most the full depth and over the margin."""
+    it hits its depth is over the margin and not over the full depth (to the pieces' tolerance)."""
     sc = Scene.from_xml(ROOT / "examples" / "scenes" / f"{scene}.xml")
     c = SceneCollision(sc)
     source = sc.inference.source
@@ -288,4 +288,6 @@ def test_decide_only_gives_the_same_hits_and_a_lower_bound_of_the_depth(scene, c
     fast_hit, fast_depth, _ = c.penetration(source, pos, quat, margin=0.003, decide_only=True)
     assert 40 < hit.sum() < 360  # both kinds of pose are tried
     np.testing.assert_array_equal(fast_hit, hit)
-    assert np.all(fast_depth[hit] <= depth[hit] + 1e-12) and np.all(fast_depth[hit] > 0.003)
+    # a lower bound of the true depth; the full search's depth comes from the convex pieces, which
+    # may lie inside the true surface by a fraction of a millimetre
+    assert np.all(fast_depth[hit] <= depth[hit] + 1e-3) and np.all(fast_depth[hit] > 0.003)

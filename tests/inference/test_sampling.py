@@ -52,15 +52,23 @@ class FakeLayout:
 class FakePosterior:
     """A posterior given by ``neg_log(x) (B,)`` and a residual function for the Laplace step."""
 
-    def __init__(self, size, neg_log, residuals):
+    def __init__(self, size, neg_log, residuals, feasible=None):
         self.layout = FakeLayout(size)
         self.settings = PosteriorSettings(speed=1.0)
         self.neg_log, self.res = neg_log, residuals
+        self.feasible_fn = feasible
         self.rollouts = 0
+        self.checked = 0
 
-    def cost(self, x):
+    def feasible(self, x):
+        self.checked += x.shape[0]
+        return torch.ones(x.shape[0], dtype=torch.bool) if self.feasible_fn is None else self.feasible_fn(x)
+
+    def cost(self, x, feasibility=True):
         self.rollouts += x.shape[0]
         c = self.neg_log(x)
+        if feasibility:
+            c = torch.where(self.feasible(x), c, torch.full_like(c, math.inf))
         return c, c, c
 
     def jacobian(self, x):
@@ -93,6 +101,21 @@ def test_a_linear_gaussian_posterior_is_sampled_exactly():
     assert torch.allclose(torch.sqrt(torch.diagonal(emp)), sd, rtol=0.12), (torch.diagonal(emp), sd ** 2)
     q = weighted_quantiles(x, smp.weights, [0.05, 0.95])
     assert torch.allclose(q[1] - q[0], 2 * 1.6449 * sd, rtol=0.15)
+
+
+def test_infeasible_starts_get_no_sample_and_only_kept_proposals_are_checked():
+    """A standard normal cut at x0 < 0.5 (starts beyond it interpenetrate): no sample beyond the
+    cut, the truncated normal's mean, and the costly check ran on far fewer candidates than were
+    simulated (only on proposals the likelihood would accept)."""
+    post = FakePosterior(2, lambda x: 0.5 * (x * x).sum(-1), lambda x: x, feasible=lambda x: x[:, 0] < 0.5)
+    zero = Mode(torch.zeros(2, dtype=torch.float64), 0.0, 0.0, 0.0)
+    smp = sample_posterior(post, [zero], 2000, seed=4)
+    assert float(smp.x[:, 0].max()) < 0.5
+    # mean of N(0, 1) below 0.5: -pdf(0.5) / cdf(0.5)
+    expected = -math.exp(-0.125) / math.sqrt(2 * math.pi) / (0.5 * (1 + math.erf(0.5 / math.sqrt(2))))
+    mean = float((smp.weights * smp.x[:, 0]).sum())
+    assert abs(mean - expected) < 0.08, (mean, expected)
+    assert post.checked < 0.7 * post.rollouts, (post.checked, post.rollouts)
 
 
 def test_a_long_thin_ridge_is_sampled_along_its_whole_length():
