@@ -209,7 +209,12 @@ class Posterior:
             fixed = nearest_record(traj, p.target.time)
         elif p.evaluate != "best":
             fixed = st.position.shape[0] - 1
-        if fixed is not None:  # the residuals of that record only (the same numbers, T times cheaper)
+        if fixed is None and p.loss_kind == "pose":  # evaluate=best: each candidate's record first,
+            k = self._best_pose_records(st)  # by a cheap chi-square, then its residuals alone
+            b = torch.arange(k.shape[0])
+            st = State(*(t[k, b].unsqueeze(0) for t in st.tensors()))
+            fixed = 0
+        elif fixed is not None:  # the residuals of that record only (the same numbers, T times cheaper)
             st = State(*(t[fixed:fixed + 1] for t in st.tensors()))
         pos, q = st.position[..., body, :], st.orientation[..., body, :]  # (T, B, 3/4)
         if p.loss_kind == "position":
@@ -238,6 +243,29 @@ class Posterior:
             loss = LOSSES[p.loss_kind](world, body, at, self._target_origin, self._target_q,
                                        orientation_weight=p.orientation_weight, points=p.points)[0]
         return r[k, b], loss
+
+    def _best_pose_records(self, st) -> torch.Tensor:
+        """(B,) index of the record (of states (T, B, N, ...)) whose pose residuals' chi-square
+        is least, per candidate: the pose loss's residuals squared and summed, written without
+        the rotation vector (its length is the angle ``2 atan2(|v|, |w|)`` of the relative
+        quaternion, whose parts are a dot and a cross product with the target's)."""
+        p, s = self.problem, self.settings
+        body, tq = p.source, self._target_q
+        with torch.no_grad():
+            pos, q = st.position[..., body, :], st.orientation[..., body, :]
+            chi2 = (((pos - self._target_com) / s.sigma) ** 2).sum(-1)
+            w = (q * tq).sum(-1)  # q * conj(t): w = q_w t_w + q_v . t_v
+            v = tq[0] * q[..., 1:] - q[..., :1] * tq[1:] - torch.linalg.cross(q[..., 1:], tq[1:].expand_as(q[..., 1:]))
+            angle = 2.0 * torch.atan2(v.norm(dim=-1), w.abs())
+            chi2 = chi2 + (angle / s.angle_sigma) ** 2
+            from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
+
+            for target, field, sd in ((p.target.linear_velocity, "linear_velocity", s.sigma),
+                                      (p.target.angular_velocity, "angular_velocity", s.angle_sigma)):
+                if target is not None:
+                    diff = getattr(st, field)[..., body, :] - torch.as_tensor(target, dtype=pos.dtype)
+                    chi2 = chi2 + ((DEFAULT_VELOCITY_WEIGHT * diff / sd) ** 2).sum(-1)
+            return chi2.argmin(0)
 
     def prior_residuals(self, x: torch.Tensor) -> torch.Tensor:
         """Prior residuals (B, M_prior) of parameters x (B, P) (module docstring)."""
