@@ -24,7 +24,7 @@ overlap of their projections onto the face normals of both (and, for a
 sphere or cylinder, EPA's contact normal): exact unless the deepest
 direction is an edge against an edge, where it is a little too deep. (fcl's
 own EPA depth is not used for polytopes: it is wrong by tens of percent in
-plain cases, see ``_piece_depth``.) Since a body that lies entirely inside
+plain cases, see ``overlap.piece_depth``.) Since a body that lies entirely inside
 another still overlaps one of its pieces, it is found too; a
 surface-crossing test would miss it. For a non-convex mesh the pieces fill
 its concavities a little (the mug's cavity and handle hole:
@@ -52,6 +52,7 @@ import trimesh
 
 from dejaview.errors import GeometryError
 from dejaview.geometry.convex_pieces import load_or_build_pieces
+from dejaview.geometry.overlap import below_plane, piece_depth, support, vertex_depth
 
 # Depths up to this count as touching: EPA's noise on touching solids is ~1e-16 m,
 # tessellated curved surfaces rest on each other to within ~1e-7 m.
@@ -178,26 +179,6 @@ def _face_normals(mesh: trimesh.Trimesh) -> np.ndarray:
     return normals[np.sort(first)]
 
 
-def _support(body: _Body, piece: int, rot: np.ndarray, pos: np.ndarray, axes: np.ndarray) -> np.ndarray:
-    """Largest ``axis . x`` over one convex piece placed at (rot, pos).
-
-    Args:
-        axes: (K, 3) unit vectors, world frame.
-    Returns:
-        (K,) support values, metres.
-    """
-    base = axes @ pos
-    local = axes @ rot  # the axes in the object frame
-    shape = body.shapes[piece]
-    if shape is not None:
-        return base + (local @ shape[0].T).max(axis=1)
-    if body.kind == "sphere":
-        return base + body.size[0]
-    radius, height = body.size
-    along = np.abs(local[:, 2])
-    return base + 0.5 * height * along + radius * np.sqrt(np.clip(1.0 - along ** 2, 0.0, None))
-
-
 def _body_from_object(scene, obj) -> _Body | None:
     import fcl
 
@@ -283,8 +264,7 @@ class SceneCollision:
         self._scratch = fcl.CollisionResult()  # of boolean requests: their count of contacts decides
 
     def _overlap(self, g1, g2) -> bool:
-        """Do two fcl objects (transforms set) overlap? One result object reused: python-fcl
-        builds one per call otherwise, a third of a feasibility check's time."""
+        """Do two fcl objects (transforms set) overlap? (One result object, reused.)"""
         import fcl
 
         found = fcl.collide(g1, g2, self._boolean_request, self._scratch) > 0
@@ -309,11 +289,9 @@ class SceneCollision:
             position: (B, 3) or (3,) where its object-frame origin goes, world frame, m.
             orientation: (B, 4) or (4,) its orientation, w x y z (normalised here).
             margin: depth (m) up to which an overlap counts as resting contact.
-            decide_only: only ``hit`` matters: the search for a candidate's depth stops at the
-                first overlap that decides it (a feasibility check; ``depth`` is then a lower
-                bound of the true depth where ``hit``, which may exceed the full search's value
-                from the convex pieces by their tolerance), and ``other_id`` names the first
-                object found.
+            decide_only: only ``hit`` matters (a feasibility check): a candidate's search stops
+                at the first overlap that decides it; where ``hit``, ``depth`` is a lower bound
+                of the true depth and ``other_id`` the first object found.
         Returns:
             hit (B,) bool: deeper than ``margin`` (and than ``TOUCHING``) into
             some object; depth (B,) float: the deepest overlap with any object
@@ -396,7 +374,7 @@ class SceneCollision:
 
         Args:
             rot: (B, 3, 3), pos: (B, 3): the poses of ``a``.
-            limit: only depths above it need be exact (``_piece_depth``).
+            limit: only depths above it need be exact (``overlap.piece_depth``).
             decide_only: only whether a depth exceeds ``limit`` matters (``_solid_depth``).
         Returns:
             (B,) depths in metres (0 where they do not overlap).
@@ -404,11 +382,11 @@ class SceneCollision:
         if a.kind == "plane" and b.kind == "plane":
             return np.zeros(len(pos))
         if b.kind == "plane":
-            return _below_plane(a, rot, pos, b.rotation, b.position)
+            return below_plane(a, rot, pos, b.rotation, b.position)
         if a.kind == "plane":
             below = np.empty(len(pos))
             for i in range(len(pos)):
-                below[i] = _below_plane(b, b.rotation[None], b.position[None], rot[i], pos[i])[0]
+                below[i] = below_plane(b, b.rotation[None], b.position[None], rot[i], pos[i])[0]
             return below
         centre_a, reach_a = a.bound()
         centre_b, reach_b = b.bound()
@@ -421,13 +399,13 @@ class SceneCollision:
     def _solid_depth(self, a: _Body, rot: np.ndarray, pos: np.ndarray, b: _Body,
                      limit: float | None = None, decide_only: bool = False) -> float:
         """Depth of the overlap of two solids (neither a plane), ``a`` at (rot, pos); ``limit``:
-        see ``_piece_depth``. ``decide_only``: only whether the depth exceeds ``limit`` matters.
+        see ``overlap.piece_depth``. ``decide_only``: only whether the depth exceeds ``limit`` matters.
         The piece pairs are then searched until one overlaps deeper than ``limit`` (convex
         solids) or than ``REFINE_LIMIT`` too (a concave one, whose exact check keeps a pieces'
         depth that deep as it is): that depth, a lower bound of the deepest, decides. A concave
         pair whose pieces overlap by at most ``limit`` skips the exact check, which can only
         make the depth smaller (``_exact_depth``); one whose mesh has a vertex deeper than
-        ``limit`` inside a convex polytope skips it too (``_vertex_depth``)."""
+        ``limit`` inside a convex polytope skips it too (``overlap.vertex_depth``)."""
         import fcl
 
         ca = a.centres @ rot.T + pos
@@ -459,14 +437,14 @@ class SceneCollision:
                 contact = None
             else:
                 continue
-            deepest = max(deepest, _piece_depth(a, p, rot, pos, b, q, contact, limit))
+            deepest = max(deepest, piece_depth(a, p, rot, pos, b, q, contact, limit))
             if deepest > enough:
                 break
         if decide_only and limit is not None:
             if deepest <= limit:
                 return deepest
             if concave:  # a vertex deeper than the limit decides without fcl's contacts
-                bound = _vertex_depth(a, rot, pos, b)
+                bound = vertex_depth(a, rot, pos, b)
                 if bound > limit:
                     return bound
         if deepest > TOUCHING and concave:
@@ -503,78 +481,6 @@ class SceneCollision:
         if a.concave and _inside(a, rot, pos, _any_point(b, b.rotation, b.position)):
             return pieces_depth
         return 0.0
-
-
-def _piece_depth(a: _Body, p: int, rot: np.ndarray, pos: np.ndarray, b: _Body, q: int,
-                 contact, limit: float | None = None) -> float:
-    """Penetration depth of two overlapping convex pieces (fcl found them overlapping).
-
-    ``contact`` is fcl's contact where a piece is a sphere or cylinder (its
-    normal is one more axis), None for two polytopes.
-
-    fcl's EPA depth is unreliable for polytopes (measured: two 20 x 15 x 10 cm
-    boxes 3 cm apart, 10 cm deep, reported 17 cm), so the depth is the
-    smallest overlap of the two pieces' projections onto a set of axes: the
-    face normals of both and EPA's normal (curved pieces). Every axis gives an upper bound of
-    the minimum translation that separates them; face normals give it exactly
-    unless the deepest direction is an edge against an edge. Pairs of boxes
-    and spheres keep fcl's own answer (closed-form routines, exact) where smaller.
-
-    ``limit``: only whether the depth exceeds it matters (``penetration``'s margin). The axes
-    are tried a group at a time, the piece with fewer faces first, and the first group that
-    shows an overlap at or below ``limit`` ends the search: the value returned is then an
-    upper bound of the depth, at most ``limit`` (a resting mesh ball of 1000 faces on a
-    table top: one axis instead of 1000).
-    """
-    groups = [] if contact is None else [np.asarray(contact.normal, dtype=np.float64)[None]]
-    pieces = [(body, piece, r) for body, piece, r in ((a, p, rot), (b, q, b.rotation))
-              if body.shapes[piece] is not None]
-    pieces.sort(key=lambda t: len(t[0].shapes[t[1]][1]))
-    groups += [body.shapes[piece][1] @ r.T for body, piece, r in pieces]
-    depth = np.inf
-    for axes in groups:
-        axes = axes[np.linalg.norm(axes, axis=1) > 0.5]
-        if not len(axes):
-            continue
-        overlap = np.minimum(
-            _support(a, p, rot, pos, axes) + _support(b, q, b.rotation, b.position, -axes),
-            _support(b, q, b.rotation, b.position, axes) + _support(a, p, rot, pos, -axes))
-        depth = min(depth, float(overlap.min()))
-        if limit is not None and depth <= limit:
-            break
-    if not np.isfinite(depth):
-        depth = abs(contact.penetration_depth)
-    if contact is not None and a.kind in ("box", "sphere") and b.kind in ("box", "sphere"):
-        depth = min(depth, abs(contact.penetration_depth))
-    return max(0.0, depth)
-
-
-def _vertex_depth(a: _Body, rot: np.ndarray, pos: np.ndarray, b: _Body) -> float:
-    """A lower bound of the depth of a concave mesh's overlap with a convex polytope (0 where
-    the pair is not one): the deepest of the mesh's vertices inside the polytope, measured to
-    its nearest face. Every translation that separates the two moves that vertex out."""
-    if a.concave and not b.concave and len(b.shapes) == 1 and b.shapes[0] is not None:
-        mesh, m_rot, m_pos, solid, s_rot, s_pos = a, rot, pos, b, b.rotation, b.position
-    elif b.concave and not a.concave and len(a.shapes) == 1 and a.shapes[0] is not None:
-        mesh, m_rot, m_pos, solid, s_rot, s_pos = b, b.rotation, b.position, a, rot, pos
-    else:
-        return 0.0
-    normals = solid.shapes[0][1] @ s_rot.T  # (K, 3) world frame
-    offsets = _support(solid, 0, s_rot, s_pos, normals)  # (K,)
-    verts = np.asarray(mesh.mesh.vertices) @ m_rot.T + m_pos  # (V, 3)
-    inside = (offsets[None] - verts @ normals.T).min(axis=1)  # (V,) > 0 inside
-    return max(0.0, float(inside.max()))
-
-
-def _below_plane(body: _Body, rot: np.ndarray, pos: np.ndarray, plane_rot: np.ndarray,
-                 plane_pos: np.ndarray) -> np.ndarray:
-    """How far (m) a solid at B poses reaches below a plane (the half-space z <= 0 of its frame).
-
-    Returns:
-        (B,) depths, 0 where the solid lies above.
-    """
-    normal = plane_rot[:, 2]
-    return np.maximum(0.0, plane_pos @ normal - body.lowest(rot, pos, normal))
 
 
 def _any_point(body: _Body, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
