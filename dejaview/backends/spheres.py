@@ -119,6 +119,8 @@ class SpheresProblem(Problem):
         q = normalize_quat(s["orientation"])
         com = quat_rotate(q, self.world.com[self.source].expand_as(s["position"]))
         src = (s["position"] + com, q, s["linear_velocity"], s["angular_velocity"])
+        if self.world.num_bodies == 1:  # the source alone: its state is the whole state
+            return State(*(t[:, None] for t in src))
         base = self.base.index(slice(0, 1))
         out = []
         for field_name, value in zip(("position", "orientation", "linear_velocity", "angular_velocity"),
