@@ -53,16 +53,12 @@ class WarpBackend:
         return None if warp_available() else WARP_MISSING
 
     def option_problem(self, options: dict) -> str | None:
-        """Why ``options`` cannot run (``integrator`` one of ``xpbd``/``semi-implicit``; ``substeps``,
-        ``iterations`` positive integers), or None; the scene's own are checked with the scene."""
-        integrator = options.get("integrator")
-        if integrator is not None and integrator not in ("xpbd", "semi-implicit"):
-            return f"unknown warp integrator {integrator!r}; choose one of xpbd, semi-implicit"
-        for key in ("substeps", "iterations"):
-            value = options.get(key)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-                return f"warp {key} must be a positive integer, got {value!r}"
-        return None
+        """Why ``options`` cannot run, or None (``dejaview.backends.warp.settings.override_problem``;
+        the scene's own ``warp-*`` attributes are checked with the scene)."""
+        from dejaview.backends.warp.settings import override_problem
+
+        reasons = (override_problem(k, v) for k, v in options.items() if v is not None)
+        return next((r for r in reasons if r), None)
 
     def make_problem(self, scene, **options) -> Problem:
         """``WarpProblem.from_scene(scene, **options)`` (``integrator``, ``device``, ``substeps``, ...)."""
@@ -176,5 +172,5 @@ def as_problem(problem) -> Problem:
     return problem
 
 
-__all__ = ["BACKENDS", "REGISTRY", "WARP_MISSING", "Backend", "BackendOptions", "Problem", "as_problem", "check_options", "get_backend", "make_problem",
-           "simulate", "warp_available"]
+__all__ = ["BACKENDS", "REGISTRY", "WARP_MISSING", "Backend", "BackendOptions", "Problem", "as_problem",
+           "check_options", "get_backend", "make_problem", "simulate", "warp_available"]

@@ -89,10 +89,5 @@ class BackendOptions:
         given = {k: v for k, v in self.settings if k in backend.simulate_options}
         return backend.simulate(scene, **given, **run)
 
-    def to_json(self) -> dict:
-        """``{"backend": name, **settings}`` for result.json (values as text where not JSON)."""
-        plain = (bool, int, float, str)
-        return {"backend": self.name, **{k: v if isinstance(v, plain) else str(v) for k, v in self.settings}}
-
 
 __all__ = ["BackendOptions"]

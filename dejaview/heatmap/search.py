@@ -108,8 +108,9 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
             small bodies are bound by per-op overhead, so one large batch is much cheaper than
             several small ones; memory grows with it.
         workers: processes optimising chunks at once (1: in this process). Threads do not
-            help (the per-op Python overhead holds the GIL); each worker process is spawned and rebuilds the problem from the scene with
-            the backend's defaults (a few seconds), so use them for large grids. The cells are
+            help (the per-op Python overhead holds the GIL); each worker process is spawned
+            and rebuilds the problem from the scene with the backend's options (a few seconds),
+            so use them for large grids. The cells are
             split into at least this many chunks.
         radii, directions: robustness perturbations (m/s, ascending; directions per radius).
         velocity_tol, spin_tol, position_tol: deduplication tolerances.
@@ -129,15 +130,15 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     Raises:
         InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite.
     """
+    from dejaview.backends import BackendOptions, as_problem
     from dejaview.heatmap.posterior import choose_method, posterior_heatmap
     from dejaview.heatmap.weighting import deduplicate
-
-    from dejaview.backends import BackendOptions
 
     if problem is not None and backend is not None:
         raise InferenceError("backend options build a problem; the heatmap got a built problem as well: "
                              "pass one of backend and problem")
-    options = BackendOptions.of(backend) if problem is None else BackendOptions.of(problem.backend)
+    # the options workers rebuild the problem from (a reused problem's own: its engine)
+    options = BackendOptions.of(backend) if problem is None else as_problem(problem).backend_options()
     if ray is not None and method is None:
         method = "basins"  # Ray distributes the per-cell optimisations' chunks
     if choose_method(method, optimizer, options.name) == "posterior":
@@ -338,7 +339,7 @@ def _optimise_chunks(run: _Run, guesses: list, options, callback, should_stop,
                 seed=run.seed)
     problem = run.problem
     if run.ray is not None or (run.workers > 1 and len(chunks) > 1):
-        results = _chunks_in_processes(run.scene, _options_of(problem, options), guesses, opts, run.workers, progress, should_stop,
+        results = _chunks_in_processes(run.scene, options, guesses, opts, run.workers, progress, should_stop,
                                        state, chunks, run.ray)
     else:
         results = []
@@ -472,12 +473,6 @@ def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, sho
                    gradient=opts["gradient"], lr=opts["lr"], epsilon=0.0, callback=callback,
                    should_stop=should_stop, report=objective_to_loss, seed=opts["seed"] + ci)
     return opt.candidate_x, opt.candidate_loss, opt.stopped
-
-
-def _options_of(problem, options):
-    """``options``, or where a built problem was reused, the options that rebuild it in a worker
-    (``Problem.backend_options``: its backend's settings that matter there)."""
-    return problem.backend_options() if problem is not None else options
 
 
 def _worker_init(scene, options):

@@ -255,7 +255,8 @@ class Posterior:
             pos, q = st.position[..., body, :], st.orientation[..., body, :]
             chi2 = (((pos - self._target_com) / s.sigma) ** 2).sum(-1)
             w = (q * tq).sum(-1)  # q * conj(t): w = q_w t_w + q_v . t_v
-            v = tq[0] * q[..., 1:] - q[..., :1] * tq[1:] - torch.linalg.cross(q[..., 1:], tq[1:].expand_as(q[..., 1:]))
+            qv = q[..., 1:]
+            v = tq[0] * qv - q[..., :1] * tq[1:] - torch.linalg.cross(qv, tq[1:].expand_as(qv))
             angle = 2.0 * torch.atan2(v.norm(dim=-1), w.abs())
             chi2 = chi2 + (angle / s.angle_sigma) ** 2
             from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT

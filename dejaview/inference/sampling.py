@@ -440,7 +440,7 @@ class _SMC:
     def independence_move(self) -> float:
         """Propose from the mixture q (jumps between the search's modes)."""
         y, _ = self.q.sample(self.n, self.gen)
-        return self.metropolis(y, lambda lr_y, lq_y, lp_y: (self.target(lr_y, lp_y) - self.target(self.lr, self.lp))
+        return self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp)
                                + (self.lq - lq_y))
 
     def local_chol(self, points: torch.Tensor, population: torch.Tensor, exclude: torch.Tensor) -> torch.Tensor:

@@ -27,6 +27,16 @@ DEFAULT_SUBSTEPS = {"xpbd": 1, "semi-implicit": 10}
 SEMI_IMPLICIT_OMEGA_H = 0.1  # contact frequency x substep of the semi-implicit penalty contacts
 
 
+def override_problem(name: str, value) -> str | None:
+    """Why an override of ``make_problem(scene, "warp", ...)`` cannot run, or None: ``integrator``
+    one of ``INTEGRATORS``, ``substeps`` and ``iterations`` positive integers."""
+    if name == "integrator" and value not in INTEGRATORS:
+        return f"unknown warp integrator {value!r}; choose one of {', '.join(INTEGRATORS)}"
+    if name in ("substeps", "iterations") and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        return f"warp {name} must be a positive integer, got {value!r}"
+    return None
+
+
 def warp_settings(scene, integrator: str | None = None, substeps: int | None = None,
                   iterations: int | None = None, restitution: bool | None = None) -> dict:
     """The backend attributes of ``<simulation>`` (module docstring), overridden by options.
@@ -69,10 +79,9 @@ def warp_settings(scene, integrator: str | None = None, substeps: int | None = N
         if name == "restitution":
             out[name] = bool(value)
             continue
-        if name == "integrator" and value not in INTEGRATORS:
-            raise InferenceError(f"unknown warp integrator {value!r}; choose one of {', '.join(INTEGRATORS)}")
-        if name != "integrator" and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise InferenceError(f"warp {name} must be a positive integer, got {value!r}")
+        reason = override_problem(name, value)
+        if reason:
+            raise InferenceError(reason)
         out[name] = value
     if out["substeps"] is None:
         out["substeps"] = DEFAULT_SUBSTEPS[out["integrator"]]
