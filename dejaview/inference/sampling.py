@@ -424,12 +424,13 @@ class _SMC:
         u = torch.rand(self.n, generator=self.gen, dtype=torch.float64)
         lr_y, lq_y = self.reference(y), self.q.log_prob(y)
         lp_y = log_density(self.post, y, feasibility=False)
-        would = torch.isfinite(lp_y) & (torch.log(u) < log_ratio_of(lr_y, lq_y, lp_y))
-        if bool(would.any()):
-            idx = would.nonzero().squeeze(-1)
-            lp_y[idx[~self.post.feasible(y[idx])]] = -math.inf
         log_ratio = log_ratio_of(lr_y, lq_y, lp_y)
         ok = torch.isfinite(log_ratio) & (torch.log(u) < log_ratio)
+        if bool(ok.any()):  # density 0 where infeasible: rejected
+            idx = ok.nonzero().squeeze(-1)
+            bad = idx[~self.post.feasible(y[idx])]
+            lp_y[bad] = -math.inf
+            ok[bad] = False
         self.x = torch.where(ok[:, None], y, self.x)
         self.lr = torch.where(ok, lr_y, self.lr)
         self.lq = torch.where(ok, lq_y, self.lq)
