@@ -18,7 +18,8 @@ is the pose loss of its final state.
 
 Per N, best of ``repeats`` runs (more for short calls: ``_best_time``), B = 1:
 
-- ``dv rollout``: a DejaView rollout without gradient (native engine);
+- ``dv rollout``: a DejaView rollout without gradient (native engine), recording what the loss
+  reads (the final state, as MuJoCo's rollout);
 - ``dv loss+grad``: one exact loss + gradient of the 12 parameters (reverse mode,
   ``InferenceProblem.value_and_grad``), and its ratio to the rollout;
 - ``mj rollout``: a MuJoCo rollout (``mj_step`` with ``nstep``, no Python per step);
@@ -219,11 +220,9 @@ def _dv_timings(problem, x, repeats: int) -> tuple[float, float]:
     """(rollout seconds, loss + reverse gradient seconds) of parameters x (B, P)."""
     import torch
 
-    from dejaview.sim.integrate import rollout
-
-    def simulate():
+    def simulate():  # the loss's rollout: records what the loss reads (the end state here)
         with torch.no_grad():
-            rollout(problem.world, problem.initial_state(x), steps=problem.steps, engine="native")
+            problem.simulate(x)
 
     simulate()
     problem.value_and_grad(x, "reverse")

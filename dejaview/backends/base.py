@@ -214,6 +214,15 @@ def loss_steps(scene, dt: float, duration_steps: int) -> int:
     return duration_steps if time is None else max(1, int(round(time / dt)))
 
 
+def loss_record_every(scene, steps: int) -> int:
+    """Record interval of the loss's rollouts of ``steps`` steps: ``steps`` (the end state alone)
+    where the loss reads nothing else (``evaluate="final"`` or a pinned target time, and no
+    penalty, which reads every record), else 1."""
+    inf = scene.inference
+    ends_only = (inf.evaluate == "final" or inf.target.time is not None) and not inf.penalties
+    return max(1, steps) if ends_only else 1
+
+
 def objective_to_loss(value: float) -> float:
     """Inverse of ``0.5 * loss^2`` for reporting."""
     import math

@@ -18,6 +18,7 @@ descent and L-BFGS behave much better that way.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -89,6 +90,12 @@ class ParameterLayout:
             start += width
         raise KeyError(block)
 
+    @functools.cached_property
+    def _identity_base(self) -> bool:
+        """Whether the given orientation is the identity (exp(r) * q0 is then exp(r))."""
+        return bool(torch.equal(self.base_orientation.detach(),
+                                self.base_orientation.new_tensor([1.0, 0.0, 0.0, 0.0])))
+
     # --------------------------------------------------------------- mapping
     def decode(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         """Initial state of the source from parameters.
@@ -107,28 +114,37 @@ class ParameterLayout:
             u = x[:, i:i + a]
             i += a
             axes = list(self.position_axes)
+            every = a == 3  # every axis free: no column indexing (a rollout's few microseconds)
             if self.lo is not None:
-                lo, hi = self.lo[..., axes], self.hi[..., axes]
+                lo, hi = (self.lo, self.hi) if every else (self.lo[..., axes], self.hi[..., axes])
                 vals = lo + (hi - lo) * torch.sigmoid(u)
             else:
-                vals = self.base_position[axes] + self.scale["position"] * u
-            cols = [pos[:, k:k + 1] for k in range(3)]
-            for j, axis in enumerate(axes):
-                cols[axis] = vals[:, j:j + 1]
-            pos = torch.cat(cols, -1)
-        q = self.base_orientation.expand(b, 4)
+                vals = (self.base_position if every else self.base_position[axes]) + self.scale["position"] * u
+            if every:
+                pos = vals
+            else:
+                cols = [pos[:, k:k + 1] for k in range(3)]
+                for j, axis in enumerate(axes):
+                    cols[axis] = vals[:, j:j + 1]
+                pos = torch.cat(cols, -1)
         if self.free["orientation"]:
             r = self.scale["orientation"] * x[:, i:i + 3]
             i += 3
-            q = quat_multiply(rotvec_to_quat(r), q)
-        v = self.base_linear.expand(b, 3)
+            q = rotvec_to_quat(r)
+            if not self._identity_base:
+                q = quat_multiply(q, self.base_orientation.expand(b, 4))
+        else:
+            q = self.base_orientation.expand(b, 4)
         if self.free["linear_velocity"]:
             v = self.scale["linear_velocity"] * x[:, i:i + 3]
             i += 3
-        w = self.base_angular.expand(b, 3)
+        else:
+            v = self.base_linear.expand(b, 3)
         if self.free["angular_velocity"]:
             w = self.scale["angular_velocity"] * x[:, i:i + 3]
             i += 3
+        else:
+            w = self.base_angular.expand(b, 3)
         return {"position": pos, "orientation": q, "linear_velocity": v, "angular_velocity": w}
 
     def encode(self, position=None, linear_velocity=None, angular_velocity=None) -> torch.Tensor:

@@ -9,12 +9,13 @@ it runs under ``torch.func`` transforms (forward mode) as well as autograd (reve
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import torch
 
 from dejaview.backends.base import (DEFAULT_ORIENTATION_WEIGHT, GRADIENT_MODES, Problem, check_inference,
-                                    loss_steps, model_points)
+                                    loss_record_every, loss_steps, model_points)
 from dejaview.backends.params import ParameterLayout, layout_from_scene
 from dejaview.errors import InferenceError
 from dejaview.sim.integrate import rollout
@@ -108,17 +109,24 @@ class SpheresProblem(Problem):
             target=inf.target, loss_kind=inf.loss, evaluate=inf.evaluate, steps=steps,
             penalties=tuple((p.between[0], p.between[1], p.weight) for p in inf.penalties),
             orientation_weight=orientation_weight, points=points, checkpoint_every=checkpoint_every,
-            engine=engine, compile=compile)
+            record_every=loss_record_every(scene, steps), engine=engine, compile=compile)
 
     # ----------------------------------------------------------------- rollout
+    @functools.cached_property
+    def _source_com_offset(self) -> bool:
+        """Whether the source's centre of mass is off its object-frame origin."""
+        return bool(self.world.com[self.source].detach().ne(0).any())
+
     def initial_state(self, x: torch.Tensor) -> State:
         """State (B, N, ...) with the source's initial state from parameters x (B, P)."""
         s = self.layout.decode(x)
         b = x.shape[0]
         # the source alone (World.state wants every body): object-frame origin -> centre of mass
         q = normalize_quat(s["orientation"])
-        com = quat_rotate(q, self.world.com[self.source].expand_as(s["position"]))
-        src = (s["position"] + com, q, s["linear_velocity"], s["angular_velocity"])
+        position = s["position"]
+        if self._source_com_offset:  # (a centred mesh, e.g. a box or a ball, skips the rotation)
+            position = position + quat_rotate(q, self.world.com[self.source].expand_as(position))
+        src = (position, q, s["linear_velocity"], s["angular_velocity"])
         if self.world.num_bodies == 1:  # the source alone: its state is the whole state
             return State(*(t[:, None] for t in src))
         base = self.base.index(slice(0, 1))

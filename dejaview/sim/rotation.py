@@ -150,9 +150,10 @@ def rotvec_to_quat(r: torch.Tensor) -> torch.Tensor:
         (..., 4) unit quaternions w x y z with w >= 0 for angles below pi.
     """
     eps = 1e-4 if r.dtype == torch.float64 else 1e-2
-    norm, small = _safe_norm(r, eps)
-    half = 0.5 * norm
     sq = (r * r).sum(-1, keepdim=True)
+    small = sq < eps * eps
+    norm = torch.sqrt(torch.where(small, 1.0, sq))  # (_safe_norm, its square reused below)
+    half = 0.5 * norm
     # series of sin(t/2)/t and cos(t/2) below eps keeps the gradient exact at 0
     sinc_small = 0.5 - sq / 48.0
     cos_small = 1.0 - sq / 8.0

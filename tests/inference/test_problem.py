@@ -49,3 +49,65 @@ def test_the_source_state_is_its_centre_of_mass_as_world_state_gives_it():
     got = problem.initial_state(x)
     for a, b in zip(got.tensors(), expected.tensors()):
         assert torch.allclose(a, b, atol=1e-15)
+
+
+BOX_RAMP = ROOT / "examples" / "scenes" / "box_down_ramp.xml"  # evaluate="final", no penalty
+BOXES = ROOT / "examples" / "scenes" / "box_among_boxes.xml"  # every position axis free
+
+
+def _with_inference(path, **attrs):
+    """The scene at path with its <inference> attributes replaced."""
+    from dataclasses import replace
+
+    scene = Scene.from_xml(path)
+    return replace(scene, inference=replace(scene.inference, **attrs))
+
+
+def test_a_final_pose_loss_records_only_the_end_and_equals_the_every_step_loss_and_gradient():
+    """A loss that reads only the end state (evaluate final, no penalty) simulates recording the
+    end alone; value and gradient are those of the rollout that records every step."""
+    from dataclasses import replace
+
+    problem = InferenceProblem.from_scene(Scene.from_xml(BOX_RAMP))
+    assert problem.evaluate == "final" and not problem.penalties
+    assert problem.record_every == problem.steps
+    every = replace(problem, record_every=1)
+    gen = torch.Generator().manual_seed(1)
+    x = problem.layout.sample(3, gen)
+    with torch.no_grad():
+        assert problem.simulate(x).states.position.shape[0] == 2  # the start and the end
+    for mode in ("reverse", "forward"):
+        value, grad = problem.value_and_grad(x, mode)
+        value_1, grad_1 = every.value_and_grad(x, mode)
+        assert torch.allclose(value, value_1, rtol=0, atol=1e-12)
+        assert torch.allclose(grad, grad_1, rtol=1e-9, atol=1e-12)
+
+
+def test_losses_that_read_more_than_the_end_record_every_step():
+    best = InferenceProblem.from_scene(_with_inference(BOX_RAMP, evaluate="best"))
+    assert best.record_every == 1
+    from dejaview.scene.model import Penalty
+
+    penalised = InferenceProblem.from_scene(_with_inference(
+        BOX_RAMP, penalties=(Penalty(between=("box", "ramp"), weight=1.0),)))
+    assert penalised.record_every == 1
+
+
+def test_decoding_every_position_axis_equals_decoding_them_one_by_one():
+    """The all-axes shortcut of ParameterLayout.decode against the per-axis path (a layout that
+    frees the same three axes one column at a time gives the same numbers)."""
+    from dataclasses import replace
+
+    problem = InferenceProblem.from_scene(Scene.from_xml(BOXES))
+    layout = problem.layout
+    assert layout.position_axes == (0, 1, 2) and layout.lo is not None
+    x = layout.sample(5, torch.Generator().manual_seed(2))
+    got = layout.decode(x)["position"]
+    lo, hi = layout.lo, layout.hi
+    expected = lo + (hi - lo) * torch.sigmoid(x[:, :3])
+    assert torch.equal(got, expected)
+    # per-candidate boxes (the heatmap's cells): (B, 3) bounds
+    cells = replace(layout, lo=lo.expand(5, 3) - 0.1 * torch.arange(5.0, dtype=lo.dtype)[:, None],
+                    hi=hi.expand(5, 3).clone())
+    pos = cells.decode(x)["position"]
+    assert torch.equal(pos, cells.lo + (cells.hi - cells.lo) * torch.sigmoid(x[:, :3]))

@@ -343,12 +343,12 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
             b = int(bad[0, 0])
             step, body, quantity, record = (int(v) for v in status[b])
             raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
-    elif _needs_jacobian(init) and _reverse_only(init) and gradient_path() == "adjoint":
-        states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
     elif not _needs_jacobian(init):  # values only: no autograd.Function to pass through
         tensors, floats, ints = packed
         states, _, _ = extension().rollout(init.detach().contiguous(), int(steps), int(record_every), 0,
                                            tensors, floats, ints, threads())
+    elif _reverse_only(init) and gradient_path() == "adjoint":
+        states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
     else:
         states, _ = _Rollout.apply(init, int(steps), int(record_every), True, packed)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
