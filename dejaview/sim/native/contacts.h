@@ -184,24 +184,25 @@ template <typename S, int W> inline Dual<S, W> root8(const Dual<S, W>& a) {
 
 // per-thread scratch arrays of the wrench passes (no allocation per call); slot: which one
 template <typename T> inline std::vector<T>& scratch(int slot) {
-  thread_local std::vector<T> v[8];
+  thread_local std::vector<T> v[11];
   return v[slot];
 }
 
 // friction force (contacts.friction_force)
 template <typename T, typename S>
-void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
+__attribute__((always_inline)) inline void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
   T speed = sqrt(dot3(vt, vt) + S(1e-30));
   T b = stick * speed;
   T scale = vmax(coulomb, b) + S(1e-30);
   T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(1e-30)) * scale;
   T k = coulomb * stick / den;
+  #pragma GCC unroll 3
   for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
 }
 
 // rotational inverse-mass term (contacts._inverse_mass) of one arm
 template <typename T, typename S>
-T inverse_mass(const T* arm, const T* t, const T* inv_w, S inv_i_min) {
+__attribute__((always_inline)) inline T inverse_mass(const T* arm, const T* t, const T* inv_w, S inv_i_min) {
   T u[3], iu[3];
   cross3(arm, t, u);
   matvec(inv_w, u, iu);
@@ -211,8 +212,9 @@ T inverse_mass(const T* arm, const T* t, const T* inv_w, S inv_i_min) {
 }
 
 template <typename T>
-void slip_direction(const T* vt, T* t) {
+__attribute__((always_inline)) inline void slip_direction(const T* vt, T* t) {
   T den = sqrt(dot3(vt, vt) + SLIP_EPS * SLIP_EPS);
+  #pragma GCC unroll 3
   for (int c = 0; c < 3; ++c) t[c] = vt[c] / den;
 }
 
@@ -231,10 +233,13 @@ inline void sphere_center(const T* x, const R* rot, const S* c, T* p) {
   for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
 }
 
-// hysteretic spring normal force of one contact (contacts.normal_force)
+// hysteretic spring normal force of one contact (contacts.normal_force), in two parts: how much
+// the contact is loading (from its normal velocity vn), then the force
 template <typename T, typename S>
-inline T normal_force(const T& depth, const T& weight, const T& vn, S stiff, S unload, S unload_velocity) {
-  T loading = sigmoid(-vn / unload_velocity);
+inline T loading_of(const T& vn, S unload_velocity) { return sigmoid(-vn / unload_velocity); }
+
+template <typename T, typename S>
+inline T normal_force(const T& depth, const T& weight, const T& loading, S stiff, S unload) {
   return weight * stiff * depth * (unload + (1.0 - unload) * loading);
 }
 
@@ -347,29 +352,74 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   const S mass = w.mass[a];
   const S stiff = mass * w.omega * w.omega;
   const S inv_m = S(1) / mass;
+  const S h = w.h, uv = w.unload_velocity, inv_i_min = w.inv_i_min[a];
+  // the contact law in stages, each a loop over the picks (the values' loops vectorise; the
+  // sigmoid's exp, a library call, has its own loop), then the sums in pick order
+  std::vector<T>& vn_buf = scratch<T>(7);
+  std::vector<T>& ftq_buf = scratch<T>(8);  // (6, m) per pick f (3) and its torque (3)
+  std::vector<T>& loading_buf = scratch<T>(9);
+  std::vector<S>& law = scratch<S>(10);  // per pick its shape's mu and unload
+  vn_buf.resize(m);
+  ftq_buf.resize(6 * m);
+  loading_buf.resize(m);
+  law.resize(2 * m);
+  T* __restrict vn = vn_buf.data();
+  T* __restrict ftq = ftq_buf.data();
+  T* __restrict loading = loading_buf.data();
+  S* __restrict mu = law.data();
+  S* __restrict unload = mu + m;
+  const T* __restrict dep = depth.data();
+  const T* __restrict nr = nrm.data();
+  const T* __restrict ar = arm.data();
   for (int j = 0; j < m; ++j) {
-    const int k = picks[j].shape;
-    const T* n = &nrm[3 * j];
-    const T* r = &arm[3 * j];
-    T wr[3], vel[3], vt[3], t[3], ft[3];
+    mu[j] = w.mu_static[a * w.k + picks[j].shape];
+    unload[j] = w.unload_static[a * w.k + picks[j].shape];
+  }
+  for (int j = 0; j < m; ++j) {
+    const T* n = nr + 3 * j;
+    const T* r = ar + 3 * j;
+    T wr[3], vel[3];
     cross3(om, r, wr);
+#pragma GCC unroll 3
     for (int i = 0; i < 3; ++i) vel[i] = v[i] + wr[i];
-    T vn = dot3(vel, n);
-    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
-    T weight = depth[j] / (total + tiny);
-    T fn = normal_force(depth[j], weight, vn, stiff, w.unload_static[a * w.k + k], w.unload_velocity);
+    vn[j] = dot3(vel, n);
+  }
+  for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], uv);
+  const T denom = total + tiny;
+  // loop invariants as locals (no reloads through pointers the stores below might alias)
+  T vel0[3], om0[3], iw[9];
+  for (int i = 0; i < 3; ++i) {
+    vel0[i] = v[i];
+    om0[i] = om[i];
+  }
+  for (int i = 0; i < 9; ++i) iw[i] = inv_w[i];
+#pragma GCC ivdep
+  for (int j = 0; j < m; ++j) {
+    const T* n = nr + 3 * j;
+    const T* r = ar + 3 * j;
+    T wr[3], vel[3], vt[3], t[3], ft[3], f[3], tq[3];
+    cross3(om0, r, wr);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vel[i] = vel0[i] + wr[i];
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn[j] * n[i];
+    T weight = dep[j] / denom;
+    T fn = normal_force(dep[j], weight, loading[j], stiff, unload[j]);
     slip_direction(vt, t);
-    T inv_mass = inv_m + inverse_mass(r, t, inv_w, w.inv_i_min[a]);
-    T stick = weight / (inv_mass * w.h);
-    friction<T, S>(vt, w.mu_static[a * w.k + k] * fn, stick, ft);
-    T f[3], tq[3];
+    T inv_mass = inv_m + inverse_mass(r, t, iw, inv_i_min);
+    T stick = weight / (inv_mass * h);
+    friction<T, S>(vt, mu[j] * fn, stick, ft);
+#pragma GCC unroll 3
     for (int i = 0; i < 3; ++i) f[i] = fn * n[i] + ft[i];
     cross3(r, f, tq);
+#pragma GCC unroll 3
     for (int i = 0; i < 3; ++i) {
-      out[i] = out[i] + f[i];
-      out[3 + i] = out[3 + i] + tq[i];
+      ftq[i * m + j] = f[i];  // (6, m): one row per component
+      ftq[(3 + i) * m + j] = tq[i];
     }
   }
+  for (int j = 0; j < m; ++j)
+    for (int i = 0; i < 6; ++i) out[i] = out[i] + ftq[i * m + j];
 }
 
 // per-thread scratch of select_pair (no allocation per call)
@@ -483,36 +533,84 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   const S stiff = w.mass_pair[pi] * w.omega * w.omega;
   const S unload = w.unload_pair[pi];
   const S inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
+  const S h = w.h, uv = w.unload_velocity, mu = w.mu_pair[pi];
+  const S imin_a = w.inv_i_min[a], imin_b = w.inv_i_min[b];
+  // in stages, as static_wrench: the relative normal velocity, the loading (exp), the law
+  // (vectorised for values), the sums in pick order
+  std::vector<T>& vn_buf = scratch<T>(7);
+  std::vector<T>& loading_buf = scratch<T>(9);
+  std::vector<T>& fts_buf = scratch<T>(8);  // (9, m): f (3), the torques on a (3) and b (3)
+  vn_buf.resize(m);
+  loading_buf.resize(m);
+  fts_buf.resize(9 * m);
+  T* __restrict vn = vn_buf.data();
+  T* __restrict loading = loading_buf.data();
+  T* __restrict fts = fts_buf.data();
+  const T* __restrict dep = depth.data();
+  const T* __restrict nr = nrm.data();
+  const T* __restrict aa = arm_a.data();
+  const T* __restrict ab = arm_b.data();
+  T va[3], vb[3], wa0[3], wb0[3], iwa[9], iwb[9];
+  for (int i = 0; i < 3; ++i) {
+    va[i] = st_a[7 + i];
+    vb[i] = st_b[7 + i];
+    wa0[i] = st_a[10 + i];
+    wb0[i] = st_b[10 + i];
+  }
+  for (int i = 0; i < 9; ++i) {
+    iwa[i] = iw_a[i];
+    iwb[i] = iw_b[i];
+  }
   for (int k = 0; k < m; ++k) {
-    const T* n = &nrm[3 * k];
-    const T* ra = &arm_a[3 * k];
-    const T* rb = &arm_b[3 * k];
+    T wa[3], wb[3], vrel[3];
+    cross3(wa0, aa + 3 * k, wa);
+    cross3(wb0, ab + 3 * k, wb);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vrel[i] = (vb[i] + wb[i]) - (va[i] + wa[i]);
+    vn[k] = dot3(vrel, nr + 3 * k);
+  }
+  for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], uv);
+  const T denom = total + tiny;
+#pragma GCC ivdep
+  for (int k = 0; k < m; ++k) {
+    const T* n = nr + 3 * k;
+    const T* ra = aa + 3 * k;
+    const T* rb = ab + 3 * k;
     T wa[3], wb[3], vrel[3], vt[3], t[3], ft[3];
-    cross3(st_a + 10, ra, wa);
-    cross3(st_b + 10, rb, wb);
-    for (int i = 0; i < 3; ++i) vrel[i] = (st_b[7 + i] + wb[i]) - (st_a[7 + i] + wa[i]);
-    T vn = dot3(vrel, n);
-    for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn * n[i];
-    T weight = depth[k] / (total + tiny);
-    T fn = normal_force(depth[k], weight, vn, stiff, unload, w.unload_velocity);
+    cross3(wa0, ra, wa);
+    cross3(wb0, rb, wb);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vrel[i] = (vb[i] + wb[i]) - (va[i] + wa[i]);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn[k] * n[i];
+    T weight = dep[k] / denom;
+    T fn = normal_force(dep[k], weight, loading[k], stiff, unload);
     slip_direction(vt, t);
-    T inv_mass = inv_m + inverse_mass(ra, t, iw_a, w.inv_i_min[a]) + inverse_mass(rb, t, iw_b, w.inv_i_min[b]);
-    T stick = weight / (inv_mass * w.h);
-    friction<T, S>(vt, w.mu_pair[pi] * fn, stick, ft);
+    T inv_mass = inv_m + inverse_mass(ra, t, iwa, imin_a) + inverse_mass(rb, t, iwb, imin_b);
+    T stick = weight / (inv_mass * h);
+    friction<T, S>(vt, mu * fn, stick, ft);
     T f[3], neg[3], ta[3], tb[3];
+#pragma GCC unroll 3
     for (int i = 0; i < 3; ++i) {
       f[i] = fn * n[i] + ft[i];
       neg[i] = -f[i];
     }
     cross3(ra, neg, ta);
     cross3(rb, f, tb);
+#pragma GCC unroll 3
     for (int i = 0; i < 3; ++i) {
-      out[i] = out[i] - f[i];
-      out[3 + i] = out[3 + i] + ta[i];
-      out[6 + i] = out[6 + i] + f[i];
-      out[9 + i] = out[9 + i] + tb[i];
+      fts[i * m + k] = f[i];
+      fts[(3 + i) * m + k] = ta[i];
+      fts[(6 + i) * m + k] = tb[i];
     }
   }
+  for (int k = 0; k < m; ++k)
+    for (int i = 0; i < 3; ++i) {
+      out[i] = out[i] - fts[i * m + k];
+      out[3 + i] = out[3 + i] + fts[(3 + i) * m + k];
+      out[6 + i] = out[6 + i] + fts[i * m + k];
+      out[9 + i] = out[9 + i] + fts[(6 + i) * m + k];
+    }
 }
 
 }  // namespace dv

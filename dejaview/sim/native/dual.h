@@ -111,6 +111,9 @@ template <typename T> inline T clamp_min0(const T& a) { return val(a) >= 0 ? a :
 template <typename T> inline T clamp_max0(const T& a) { return val(a) <= 0 ? a : T(0); }
 template <typename T> inline const T& vmax(const T& a, const T& b) { return val(b) > val(a) ? b : a; }
 template <typename T> inline const T& vmin(const T& a, const T& b) { return val(b) < val(a) ? b : a; }
+// plain numbers by value: a select, not a branch (the contact law's loops vectorise)
+inline double vmax(double a, double b) { return b > a ? b : a; }
+inline double vmin(double a, double b) { return b < a ? b : a; }
 
 // ------------------------------------------------------------------ small vector algebra
 template <typename T> inline T dot3(const T* a, const T* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
@@ -122,10 +125,12 @@ template <typename T> inline void cross3(const T* a, const T* b, T* r) {
 }
 // r = M v, M row-major 3 x 3
 template <typename T, typename M> inline void matvec(const M* m, const T* v, T* r) {
+#pragma GCC unroll 3
   for (int i = 0; i < 3; ++i) r[i] = m[3 * i] * v[0] + m[3 * i + 1] * v[1] + m[3 * i + 2] * v[2];
 }
 // r = M^T v
 template <typename T, typename M> inline void matvec_t(const M* m, const T* v, T* r) {
+#pragma GCC unroll 3
   for (int i = 0; i < 3; ++i) r[i] = m[i] * v[0] + m[3 + i] * v[1] + m[6 + i] * v[2];
 }
 // rotation matrix of a unit quaternion (w x y z), as dejaview.sim.rotation.quat_to_matrix
