@@ -34,7 +34,7 @@ def support(body, piece: int, rot: np.ndarray, pos: np.ndarray, axes: np.ndarray
 
 
 def piece_depth(a, p: int, rot: np.ndarray, pos: np.ndarray, b, q: int,
-                 contact, limit: float | None = None) -> float:
+                contact, limit: float | None = None) -> float:
     """Penetration depth of two overlapping convex pieces (fcl found them overlapping).
 
     ``contact`` is fcl's contact where a piece is a sphere or cylinder (its
@@ -95,7 +95,7 @@ def vertex_depth(a, rot: np.ndarray, pos: np.ndarray, b) -> float:
 
 
 def below_plane(body, rot: np.ndarray, pos: np.ndarray, plane_rot: np.ndarray,
-                 plane_pos: np.ndarray) -> np.ndarray:
+                plane_pos: np.ndarray) -> np.ndarray:
     """How far (m) a solid at B poses reaches below a plane (the half-space z <= 0 of its frame).
 
     Returns:

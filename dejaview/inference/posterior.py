@@ -46,7 +46,8 @@ from dataclasses import dataclass
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.sim.rotation import normalize_quat, quat_conjugate, quat_multiply, quat_rotate, quat_to_rotvec
+from dejaview.sim.rotation import (geodesic_angle, normalize_quat, quat_conjugate, quat_multiply, quat_rotate,
+                                   quat_to_rotvec)
 from dejaview.sim.state import State
 
 DEFAULT_SIGMA = 0.005
@@ -200,7 +201,7 @@ class Posterior:
             metres (``InferenceProblem.loss_of_trajectory`` without penalties).
         """
         from dejaview.losses import LOSSES
-        from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT, nearest_record
+        from dejaview.losses.trajectory import nearest_record
 
         p, s = self.problem, self.settings
         body, world, st = p.source, p.world, traj.states
@@ -226,13 +227,7 @@ class Posterior:
         else:
             rel = quat_multiply(q, quat_conjugate(self._target_q).expand_as(q))
             parts = [(pos - self._target_com) / s.sigma, quat_to_rotvec(rel) / s.angle_sigma]
-        if p.target.linear_velocity is not None:
-            v = torch.as_tensor(p.target.linear_velocity, dtype=world.dtype)
-            parts.append(DEFAULT_VELOCITY_WEIGHT * (st.linear_velocity[..., body, :] - v) / s.sigma)
-        if p.target.angular_velocity is not None:
-            w = torch.as_tensor(p.target.angular_velocity, dtype=world.dtype)
-            parts.append(DEFAULT_VELOCITY_WEIGHT * (st.angular_velocity[..., body, :] - w) / s.angle_sigma)
-        r = torch.cat(parts, -1)  # (T, B, M)
+        r = torch.cat(parts + self._velocity_residuals(st), -1)  # (T, B, M)
         b = torch.arange(r.shape[1])
         if fixed is not None:
             k = torch.zeros_like(b)
@@ -244,28 +239,31 @@ class Posterior:
                                        orientation_weight=p.orientation_weight, points=p.points)[0]
         return r[k, b], loss
 
+    def _velocity_residuals(self, st) -> list[torch.Tensor]:
+        """Residuals (T, B, 3) of the source's velocities against the target's, where the target
+        gives them (linear, then angular), at states (T, B, N, ...)."""
+        from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
+
+        p, s = self.problem, self.settings
+        out = []
+        for target, field, sd in ((p.target.linear_velocity, "linear_velocity", s.sigma),
+                                  (p.target.angular_velocity, "angular_velocity", s.angle_sigma)):
+            if target is not None:
+                v = torch.as_tensor(target, dtype=p.world.dtype)
+                out.append(DEFAULT_VELOCITY_WEIGHT * (getattr(st, field)[..., p.source, :] - v) / sd)
+        return out
+
     def _best_pose_records(self, st) -> torch.Tensor:
         """(B,) index of the record (of states (T, B, N, ...)) whose pose residuals' chi-square
-        is least, per candidate: the pose loss's residuals squared and summed, written without
-        the rotation vector (its length is the angle ``2 atan2(|v|, |w|)`` of the relative
-        quaternion, whose parts are a dot and a cross product with the target's)."""
+        is least, per candidate: the pose loss's residuals squared and summed, the orientation's
+        by its geodesic angle (the length of its rotation vector, without computing those)."""
         p, s = self.problem, self.settings
-        body, tq = p.source, self._target_q
         with torch.no_grad():
-            pos, q = st.position[..., body, :], st.orientation[..., body, :]
+            pos, q = st.position[..., p.source, :], st.orientation[..., p.source, :]
             chi2 = (((pos - self._target_com) / s.sigma) ** 2).sum(-1)
-            w = (q * tq).sum(-1)  # q * conj(t): w = q_w t_w + q_v . t_v
-            qv = q[..., 1:]
-            v = tq[0] * qv - q[..., :1] * tq[1:] - torch.linalg.cross(qv, tq[1:].expand_as(qv))
-            angle = 2.0 * torch.atan2(v.norm(dim=-1), w.abs())
-            chi2 = chi2 + (angle / s.angle_sigma) ** 2
-            from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
-
-            for target, field, sd in ((p.target.linear_velocity, "linear_velocity", s.sigma),
-                                      (p.target.angular_velocity, "angular_velocity", s.angle_sigma)):
-                if target is not None:
-                    diff = getattr(st, field)[..., body, :] - torch.as_tensor(target, dtype=pos.dtype)
-                    chi2 = chi2 + ((DEFAULT_VELOCITY_WEIGHT * diff / sd) ** 2).sum(-1)
+            chi2 = chi2 + (geodesic_angle(self._target_q.expand_as(q), q) / s.angle_sigma) ** 2
+            for part in self._velocity_residuals(st):
+                chi2 = chi2 + (part ** 2).sum(-1)
             return chi2.argmin(0)
 
     def prior_residuals(self, x: torch.Tensor) -> torch.Tensor:

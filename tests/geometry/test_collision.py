@@ -288,6 +288,7 @@ def test_decide_only_gives_the_same_hits_and_a_lower_bound_of_the_depth(scene, c
     fast_hit, fast_depth, _ = c.penetration(source, pos, quat, margin=0.003, decide_only=True)
     assert 40 < hit.sum() < 360  # both kinds of pose are tried
     np.testing.assert_array_equal(fast_hit, hit)
-    # a lower bound of the true depth; the full search's depth comes from the convex pieces, which
-    # may lie inside the true surface by a fraction of a millimetre
-    assert np.all(fast_depth[hit] <= depth[hit] + 1e-3) and np.all(fast_depth[hit] > 0.003)
+    # a lower bound of the true depth; the full search's depth of a concave pair comes from fcl's
+    # contacts on the true surfaces, which the mug's deepest vertex exceeds by up to 7 um here
+    # (within the 0.1 mm the pieces are held to above)
+    assert np.all(fast_depth[hit] <= depth[hit] + 1e-4) and np.all(fast_depth[hit] > 0.003)
