@@ -355,15 +355,16 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   const S h = w.h, uv = w.unload_velocity, inv_i_min = w.inv_i_min[a];
   // the contact law in stages, each a loop over the picks (the values' loops vectorise; the
   // sigmoid's exp, a library call, has its own loop), then the sums in pick order
-  std::vector<T>& vn_buf = scratch<T>(7);
+  std::vector<T>& vn_buf = scratch<T>(7);  // (4, m) per pick vn, then its velocity (3)
   std::vector<T>& ftq_buf = scratch<T>(8);  // (6, m) per pick f (3) and its torque (3)
   std::vector<T>& loading_buf = scratch<T>(9);
   std::vector<S>& law = scratch<S>(10);  // per pick its shape's mu and unload
-  vn_buf.resize(m);
+  vn_buf.resize(4 * m);
   ftq_buf.resize(6 * m);
   loading_buf.resize(m);
   law.resize(2 * m);
   T* __restrict vn = vn_buf.data();
+  T* __restrict velocity = vn + m;
   T* __restrict ftq = ftq_buf.data();
   T* __restrict loading = loading_buf.data();
   S* __restrict mu = law.data();
@@ -381,28 +382,24 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     T wr[3], vel[3];
     cross3(om, r, wr);
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vel[i] = v[i] + wr[i];
+    for (int i = 0; i < 3; ++i) {
+      vel[i] = v[i] + wr[i];
+      velocity[i * m + j] = vel[i];
+    }
     vn[j] = dot3(vel, n);
   }
   for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], uv);
   const T denom = total + tiny;
   // loop invariants as locals (no reloads through pointers the stores below might alias)
-  T vel0[3], om0[3], iw[9];
-  for (int i = 0; i < 3; ++i) {
-    vel0[i] = v[i];
-    om0[i] = om[i];
-  }
+  T iw[9];
   for (int i = 0; i < 9; ++i) iw[i] = inv_w[i];
 #pragma GCC ivdep
   for (int j = 0; j < m; ++j) {
     const T* n = nr + 3 * j;
     const T* r = ar + 3 * j;
-    T wr[3], vel[3], vt[3], t[3], ft[3], f[3], tq[3];
-    cross3(om0, r, wr);
+    T vt[3], t[3], ft[3], f[3], tq[3];
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vel[i] = vel0[i] + wr[i];
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn[j] * n[i];
+    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + j] - vn[j] * n[i];
     T weight = dep[j] / denom;
     T fn = normal_force(dep[j], weight, loading[j], stiff, unload[j]);
     slip_direction(vt, t);
@@ -537,13 +534,14 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   const S imin_a = w.inv_i_min[a], imin_b = w.inv_i_min[b];
   // in stages, as static_wrench: the relative normal velocity, the loading (exp), the law
   // (vectorised for values), the sums in pick order
-  std::vector<T>& vn_buf = scratch<T>(7);
+  std::vector<T>& vn_buf = scratch<T>(7);  // (4, m) per pick vn, then the relative velocity (3)
   std::vector<T>& loading_buf = scratch<T>(9);
   std::vector<T>& fts_buf = scratch<T>(8);  // (9, m): f (3), the torques on a (3) and b (3)
-  vn_buf.resize(m);
+  vn_buf.resize(4 * m);
   loading_buf.resize(m);
   fts_buf.resize(9 * m);
   T* __restrict vn = vn_buf.data();
+  T* __restrict velocity = vn + m;
   T* __restrict loading = loading_buf.data();
   T* __restrict fts = fts_buf.data();
   const T* __restrict dep = depth.data();
@@ -566,7 +564,10 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     cross3(wa0, aa + 3 * k, wa);
     cross3(wb0, ab + 3 * k, wb);
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vrel[i] = (vb[i] + wb[i]) - (va[i] + wa[i]);
+    for (int i = 0; i < 3; ++i) {
+      vrel[i] = (vb[i] + wb[i]) - (va[i] + wa[i]);
+      velocity[i * m + k] = vrel[i];
+    }
     vn[k] = dot3(vrel, nr + 3 * k);
   }
   for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], uv);
@@ -576,13 +577,9 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     const T* n = nr + 3 * k;
     const T* ra = aa + 3 * k;
     const T* rb = ab + 3 * k;
-    T wa[3], wb[3], vrel[3], vt[3], t[3], ft[3];
-    cross3(wa0, ra, wa);
-    cross3(wb0, rb, wb);
+    T vt[3], t[3], ft[3];
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vrel[i] = (vb[i] + wb[i]) - (va[i] + wa[i]);
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vt[i] = vrel[i] - vn[k] * n[i];
+    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + k] - vn[k] * n[i];
     T weight = dep[k] / denom;
     T fn = normal_force(dep[k], weight, loading[k], stiff, unload);
     slip_direction(vt, t);
