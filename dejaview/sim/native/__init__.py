@@ -247,20 +247,18 @@ class _Traced(torch.autograd.Function):
     without forming them: memory O(steps * substeps * N) and no (13N)^2 products.
     """
 
+    # forward(ctx, ...) rather than forward + setup_context: with setup_context every apply binds
+    # the arguments through inspect.signature (~0.1 ms a call); this Function never runs under
+    # torch.func transforms (``_reverse_only``), which are what setup_context is for
     @staticmethod
-    def forward(init, steps, record_every, packed):
+    def forward(ctx, init, steps, record_every, packed):
         tensors, floats, ints = packed
         states, trace, _ = extension().rollout(init.detach().contiguous(), steps, record_every, 2,
                                                tensors, floats, ints, threads())
-        return states, trace
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        init, steps, record_every, packed = inputs
-        states, trace = output
         ctx.mark_non_differentiable(trace)
         ctx.steps, ctx.record_every, ctx.packed = steps, record_every, packed
         ctx.save_for_backward(init.detach(), states, trace)
+        return states, trace
 
     @staticmethod
     def backward(ctx, grad_states, _grad_trace):
