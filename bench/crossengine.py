@@ -169,6 +169,11 @@ FIDELITY = (
     ("slide and spin (box)", box("box", (1.0, 0, BOX[2] / 2), (1.5, 0.5, 0), (0, 0, 4.0)), 0.3),
     ("tumble (box dropped tilted, spinning)", box("box", (1.0, 0, 0.3), (0.8, 0, 0), (0, 4.0, 0),
                                                   about((0, 1, 0), 25)), 0.3),
+    ("box lands on an edge (dropped tilted 35 deg)", box("box", (1.0, 0, 0.3), orientation=about((0, 1, 0), 35)),
+     0.3),
+    ("box thrown onto the floor (box-thrown)", box("box", (0.8, -0.4, 0.5), (1.5, 0.2, 0.5), (0, 2.0, 0)), 0.3),
+    ("box bounces over corners (box-tumble-2)", box("box", (1.0, 0.6, 0.4), (0.3, -0.6, 0.5), (2.0, 1.0, 3.0),
+                                                   about((1, 2, 0), 30)), 0.3),
     ("box slides off the table", box("box", (0.0, 0, TABLE_TOP + BOX[2] / 2), (3.0, 0, 0)), 0.3),
     ("box-box hit (sliding into a resting box)", box("box", (1.0, 0, BOX[2] / 2), (2.5, 0, 0))
      + box("box2", (1.5, 0, BOX[2] / 2)), 0.3),

@@ -73,20 +73,32 @@ struct ContactLaw {
   const S* arm[2];
   const S* inv_w[2];
   S inv_i_min[2];
+  S pred[3] = {0, 0, 0};  // predicted change of the slip over the substep (static contacts)
   // forward values
-  S vn, vt[3], loading, g, fn, tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
+  S vn, vt[3], vs[3], loading, g, fn, tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
   bool b_wins;
   S f[3];
 
   void forward() {
+    forward_normal();
+    forward_friction();
+  }
+
+  // the normal force fn (and vn, vt)
+  void forward_normal() {
     vn = dot3(vel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
     loading = sigmoid(-vn / unload_velocity);
     g = unload + (S(1) - unload) * loading;
     fn = weight * stiff * depth * g;
-    tden = std::sqrt(dot3(vt, vt) + SLIP_EPS * SLIP_EPS);
-    for (int i = 0; i < 3; ++i) t[i] = vt[i] / tden;
+  }
+
+  // the friction on the slip vs = vt + pred, and the force f
+  void forward_friction() {
+    for (int i = 0; i < 3; ++i) vs[i] = vt[i] + pred[i];
+    tden = std::sqrt(dot3(vs, vs) + SLIP_EPS * SLIP_EPS);
+    for (int i = 0; i < 3; ++i) t[i] = vs[i] / tden;
     im = inv_m;
     const S rest_t = S(1) - dot3(t, t);
     for (int s = 0; s < arms; ++s) {
@@ -97,7 +109,7 @@ struct ContactLaw {
     }
     stick = weight / (im * h);
     coulomb = mu * fn;
-    speed = std::sqrt(dot3(vt, vt) + S(1e-30));
+    speed = std::sqrt(dot3(vs, vs) + S(1e-30));
     b = stick * speed;
     b_wins = b > coulomb;
     scale = (b_wins ? b : coulomb) + S(1e-30);
@@ -107,16 +119,24 @@ struct ContactLaw {
     rt = root8(pp);
     den = rt * scale;
     k = coulomb * stick / den;
-    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] - k * vt[i];
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] - k * vs[i];
   }
 
   // from fb (3): nb, velb, armb[s] (3 each, added to), ginv_w[s] (9, added to); returns through
   // depthb and weightb (set)
   void backward(const S* fb, S* nb, S* velb, S* const* armb, S* const* ginv_w, S& depthb, S& weightb) const {
-    S fnb = dot3(fb, n);
+    S fnb, vtb[3];
+    backward_friction(fb, nb, armb, ginv_w, fnb, vtb, weightb);
+    backward_normal(fnb, vtb, nb, velb, depthb, weightb);  // vs = vt + pred: vtb = vsb
+  }
+
+  // the friction's part: from fb (3) to fnb and vsb (3) (set), nb, armb[s], ginv_w[s] (added to),
+  // weightb (set: through the stick limit)
+  void backward_friction(const S* fb, S* nb, S* const* armb, S* const* ginv_w, S& fnb, S* vtb,
+                         S& weightb) const {
+    fnb = dot3(fb, n);
     for (int i = 0; i < 3; ++i) nb[i] += fn * fb[i];
-    S vtb[3];
-    const S kb = -dot3(fb, vt);
+    const S kb = -dot3(fb, vs);
     for (int i = 0; i < 3; ++i) vtb[i] = -k * fb[i];
     // friction: k = coulomb * stick / den, den = root8(pp) * scale, pp = uu^8 + vv^8 + 1e-30
     S cb = kb * stick / den;
@@ -134,7 +154,7 @@ struct ContactLaw {
     if (b_wins) bb += scaleb; else cb += scaleb;
     stickb += bb * speed;
     const S speedb = bb * stick;
-    for (int i = 0; i < 3; ++i) vtb[i] += speedb * vt[i] / speed;
+    for (int i = 0; i < 3; ++i) vtb[i] += speedb * vs[i] / speed;
     fnb += cb * mu;
     // stick = weight / (im h)
     weightb = stickb / (im * h);
@@ -156,9 +176,15 @@ struct ContactLaw {
       add_cross(t, ub, armb[s]);  // u = arm x t: armb += t x ub, tb += ub x arm
       add_cross(ub, arm[s], tb);
     }
-    // t = vt / sqrt(vt.vt + eps^2)
-    const S tv = dot3(tb, vt) / (tden * tden * tden);
-    for (int i = 0; i < 3; ++i) vtb[i] += tb[i] / tden - vt[i] * tv;
+    // t = vs / sqrt(vs.vs + eps^2)
+    const S tv = dot3(tb, vs) / (tden * tden * tden);
+    for (int i = 0; i < 3; ++i) vtb[i] += tb[i] / tden - vs[i] * tv;
+  }
+
+  // the normal force's part: from fnb and vtb (3) to nb, velb (added to), depthb (set), weightb
+  // (added to)
+  void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb) const {
+    S vtb[3] = {vtb_in[0], vtb_in[1], vtb_in[2]};
     // fn = weight stiff depth g, g = unload + (1 - unload) sigmoid(-vn / uv)
     weightb += fnb * stiff * depth * g;
     depthb = fnb * weight * stiff * g;
@@ -181,10 +207,13 @@ struct StaticAdjoint {
     ContactLaw<S> law;
     int shape, sphere;
     S r, c[3], p[3], d, gd[3], jn[9], arm[3];
+    S dv[3], dvn;  // the rate of change of the point's velocity the set's normal forces give
     S pb[3], depthb;  // the way back
+    S fnb, vtb[3], nb[3], armb[3], weightb;  // the way back, between its two passes
   };
   std::vector<Contact> contacts;
   S rot[9], inv_w[9], total, x[3], q[4], v[3], om[3];
+  S tsum[3], alpha[3], acc[3];  // the set's normal torque, the accelerations it and its force give
   bool broken = false, empty = true;
 
   void forward(const World<S>& w, int a, const S* st, const std::vector<Pick>& picks, S* out) {
@@ -254,7 +283,32 @@ struct StaticAdjoint {
       law.arm[0] = ct.arm;
       law.inv_w[0] = inv_w;
       law.inv_i_min[0] = w.inv_i_min[a];
-      law.forward();
+      law.forward_normal();
+    }
+    // the set's normal wrench (summed in pick order, as static_wrench) and the accelerations
+    S fsum[3] = {0, 0, 0};
+    for (int i = 0; i < 3; ++i) tsum[i] = 0;
+    for (int j = 0; j < m; ++j) {
+      const Contact& ct = contacts[j];
+      S f[3], tq[3];
+      for (int i = 0; i < 3; ++i) f[i] = ct.law.fn * ct.law.n[i];
+      cross3(ct.arm, f, tq);
+      for (int i = 0; i < 3; ++i) {
+        fsum[i] += f[i];
+        tsum[i] += tq[i];
+      }
+    }
+    const S inv_m = S(1) / mass;
+    for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;
+    matvec(inv_w, tsum, alpha);
+    for (int j = 0; j < m; ++j) {
+      Contact& ct = contacts[j];
+      ContactLaw<S>& law = ct.law;
+      cross3(alpha, ct.arm, ct.dv);
+      for (int i = 0; i < 3; ++i) ct.dv[i] += acc[i];
+      ct.dvn = dot3(ct.dv, law.n);
+      for (int i = 0; i < 3; ++i) law.pred[i] = w.h * (ct.dv[i] - ct.dvn * law.n[i]);
+      law.forward_friction();
       S tq[3];
       cross3(ct.arm, law.f, tq);
       for (int i = 0; i < 3; ++i) {
@@ -273,18 +327,54 @@ struct StaticAdjoint {
     S totalb = 0;
     const S* mf = mu;
     const S* mt = mu + 3;
-    for (Contact& ct : contacts) {
+    const S h = w.h;
+    S accb[3] = {0, 0, 0}, alphab[3] = {0, 0, 0};
+    for (Contact& ct : contacts) {  // the friction's part, and the predicted slip's
       const ContactLaw<S>& law = ct.law;
       // W += (f, arm x f)
       S fb[3] = {mf[0], mf[1], mf[2]};
       add_cross(mt, ct.arm, fb);
-      S armb[3] = {0, 0, 0};
-      add_cross(law.f, mt, armb);
-      S nb[3] = {0, 0, 0}, velb[3] = {0, 0, 0};
-      S* armbs[1] = {armb};
+      for (int i = 0; i < 3; ++i) ct.armb[i] = ct.nb[i] = 0;
+      add_cross(law.f, mt, ct.armb);
+      S* armbs[1] = {ct.armb};
       S* iwbs[1] = {iwb};
-      S depthb, weightb;
-      law.backward(fb, nb, velb, armbs, iwbs, depthb, weightb);
+      law.backward_friction(fb, ct.nb, armbs, iwbs, ct.fnb, ct.vtb, ct.weightb);
+      // vs = vt + pred, pred = h (dv - (dv . n) n), dv = acc + alpha x arm
+      const S* eb = ct.vtb;
+      const S ebn = dot3(eb, law.n);
+      S dvb[3];
+      for (int i = 0; i < 3; ++i) {
+        dvb[i] = h * (eb[i] - ebn * law.n[i]);
+        ct.nb[i] -= h * (ebn * ct.dv[i] + ct.dvn * eb[i]);
+        accb[i] += dvb[i];
+      }
+      add_cross(ct.arm, dvb, alphab);
+      add_cross(dvb, alpha, ct.armb);
+    }
+    // acc = F / m, alpha = inv_w T
+    const S inv_m = S(1) / w.mass[a];
+    S fsb[3], tsb[3];
+    for (int i = 0; i < 3; ++i) fsb[i] = accb[i] * inv_m;
+    matvec_t(inv_w, alphab, tsb);
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) iwb[3 * i + j] += alphab[i] * tsum[j];
+    for (Contact& ct : contacts) {  // F = sum fn n, T = sum arm x fn n; then the normal force's part
+      const ContactLaw<S>& law = ct.law;
+      S yb[3], y[3];
+      for (int i = 0; i < 3; ++i) {
+        yb[i] = fsb[i];
+        y[i] = law.fn * law.n[i];
+      }
+      add_cross(tsb, ct.arm, yb);
+      add_cross(y, tsb, ct.armb);
+      S fnb = ct.fnb + dot3(yb, law.n);
+      for (int i = 0; i < 3; ++i) ct.nb[i] += law.fn * yb[i];
+      S* nb = ct.nb;
+      S* armb = ct.armb;
+      S velb[3] = {0, 0, 0};
+      S depthb;
+      S weightb = ct.weightb;
+      law.backward_normal(fnb, ct.vtb, nb, velb, depthb, weightb);
       // vel = v + om x arm
       for (int i = 0; i < 3; ++i) vb[i] += velb[i];
       add_cross(ct.arm, velb, omb);

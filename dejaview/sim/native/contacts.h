@@ -393,15 +393,48 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   // loop invariants as locals (no reloads through pointers the stores below might alias)
   T iw[9];
   for (int i = 0; i < 9; ++i) iw[i] = inv_w[i];
+  // the normal forces first (ftq's rows hold fn n and its torque r x fn n for now) ...
 #pragma GCC ivdep
   for (int j = 0; j < m; ++j) {
     const T* n = nr + 3 * j;
     const T* r = ar + 3 * j;
-    T vt[3], t[3], ft[3], f[3], tq[3];
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + j] - vn[j] * n[i];
     T weight = dep[j] / denom;
     T fn = normal_force(dep[j], weight, loading[j], stiff, unload[j]);
+    T f[3], tq[3];
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i];
+    cross3(r, f, tq);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) {
+      ftq[i * m + j] = f[i];
+      ftq[(3 + i) * m + j] = tq[i];
+    }
+    loading[j] = fn;  // loading is not needed again: the slot keeps fn
+  }
+  // ... their sum, the set's normal wrench, and the accelerations it gives (contacts.py,
+  // "predicted slip": the friction acts on the slip the substep would end with)
+  T fsum[3] = {T(0), T(0), T(0)}, tsum[3] = {T(0), T(0), T(0)};
+  for (int j = 0; j < m; ++j)
+    for (int i = 0; i < 3; ++i) {
+      fsum[i] = fsum[i] + ftq[i * m + j];
+      tsum[i] = tsum[i] + ftq[(3 + i) * m + j];
+    }
+  T acc[3], alpha[3];
+  for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;
+  matvec(iw, tsum, alpha);
+#pragma GCC ivdep
+  for (int j = 0; j < m; ++j) {
+    const T* n = nr + 3 * j;
+    const T* r = ar + 3 * j;
+    T vt[3], t[3], ft[3], f[3], tq[3], dv[3];
+    cross3(alpha, r, dv);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) dv[i] = acc[i] + dv[i];
+    const T dvn = dot3(dv, n);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + j] - vn[j] * n[i] + h * (dv[i] - dvn * n[i]);
+    T weight = dep[j] / denom;
+    const T fn = loading[j];
     slip_direction(vt, t);
     T inv_mass = inv_m + inverse_mass(r, t, iw, inv_i_min);
     T stick = weight / (inv_mass * h);
