@@ -81,8 +81,9 @@ MuJoCo agrees with the rigid box there). With the prediction the friction is
 implicit in the normal forces' part of the slip; the stick limit's
 no-overshoot bound still holds (a substep maps the predicted slip u to
 (1 - H C) u). For a body resting on a face F_N is normal to the surface and
-T_N about zero, so nothing changes at rest. Body pairs keep the slip at the
-substep's start.
+T_N about zero, so nothing changes at rest. Body pairs alike, with the
+relative slip and the pair's normal force and torques on both bodies
+(``predicted_pair_slip_change``).
 
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass.
@@ -238,6 +239,31 @@ def predicted_slip_change(fn: torch.Tensor, normal: torch.Tensor, arm: torch.Ten
     return dv - (dv * normal).sum(-1, keepdim=True) * normal
 
 
+def predicted_pair_slip_change(fn: torch.Tensor, normal: torch.Tensor, arm_a: torch.Tensor, arm_b: torch.Tensor,
+                               mass_a: torch.Tensor, mass_b: torch.Tensor, inv_inertia_a: torch.Tensor,
+                               inv_inertia_b: torch.Tensor) -> torch.Tensor:
+    """``predicted_slip_change`` for body pairs: rate of change (B, P, C, 3) of each contact's
+    relative tangential velocity (b's point minus a's) that the pair's normal forces give.
+
+    Args:
+        fn: (B, P, C) normal forces (on b along ``normal``, on a against it); normal, arm_a,
+            arm_b: (B, P, C, 3); mass_a, mass_b: (P,); inv_inertia_a, inv_inertia_b: (B, P, 3, 3).
+    Returns:
+        ``F (1/m_a + 1/m_b) + alpha_b x r_b - alpha_a x r_a`` on each tangent plane, F the pair's
+        normal force on b and alpha = I_w^-1 T from each body's normal torque T.
+    """
+    f = fn.unsqueeze(-1) * normal  # on b
+    total_f = f.sum(2)  # (B, P, 3)
+    t_a = torch.linalg.cross(arm_a, -f, dim=-1).sum(2)
+    t_b = torch.linalg.cross(arm_b, f, dim=-1).sum(2)
+    alpha_a = small_matmul(t_a.unsqueeze(-2), inv_inertia_a.transpose(-1, -2)).squeeze(-2)
+    alpha_b = small_matmul(t_b.unsqueeze(-2), inv_inertia_b.transpose(-1, -2)).squeeze(-2)
+    acc = total_f * (1.0 / mass_a + 1.0 / mass_b)[:, None]
+    dv = (acc.unsqueeze(-2) + torch.linalg.cross(alpha_b.unsqueeze(-2).expand_as(arm_b), arm_b, dim=-1)
+          - torch.linalg.cross(alpha_a.unsqueeze(-2).expand_as(arm_a), arm_a, dim=-1))
+    return dv - (dv * normal).sum(-1, keepdim=True) * normal
+
+
 def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
                           inv_inertia_w: torch.Tensor):
     """Force and torque on every body from contacts with all static shapes.
@@ -362,6 +388,8 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     unload = unload_p[None, :, None]
     weight = depth_weights(depth)
     fn = normal_force(depth, weight, vn, stiff, unload, world.contact.unload_velocity)
+    vt = vt + h * predicted_pair_slip_change(fn, n, arm_a, arm_b, world.mass[ia], world.mass[ib],
+                                             inv_inertia_w[:, ia], inv_inertia_w[:, ib])
     inv_i = world.inv_inertia_min
     t = _slip_direction(vt)  # once for both bodies of each pair
     inv_mass = ((1.0 / world.mass[ia] + 1.0 / world.mass[ib])[:, None]

@@ -422,10 +422,13 @@ struct PairAdjoint {
   struct Contact {
     ContactLaw<S> law;
     S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
+    S dv[3], dvn;  // the rate of change of the relative velocity the pair's normal forces give
     S pab[3], pbb[3], depthb;
+    S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
   std::vector<Contact> contacts;
   S rot_a[9], rot_b[9], iw_a[9], iw_b[9], total;
+  S tsa[3], tsb[3], alpha_a[3], alpha_b[3], inv_m = 0;
   int a = 0, b = 0;
 
   void forward(const World<S>& w, int pi, const S* st_a, const S* st_b, const std::vector<PairPick>& picks,
@@ -488,7 +491,41 @@ struct PairAdjoint {
       law.inv_w[1] = iw_b;
       law.inv_i_min[0] = w.inv_i_min[a];
       law.inv_i_min[1] = w.inv_i_min[b];
-      law.forward();
+      law.forward_normal();
+    }
+    // the pair's normal force (on b) and torques, summed in pick order as pair_wrench, and the
+    // relative acceleration they give
+    S fsum[3] = {0, 0, 0}, acc[3];
+    for (int i = 0; i < 3; ++i) tsa[i] = tsb[i] = 0;
+    for (int k = 0; k < m; ++k) {
+      const Contact& ct = contacts[k];
+      S f[3], neg[3], ta[3], tb[3];
+      for (int i = 0; i < 3; ++i) {
+        f[i] = ct.law.fn * ct.law.n[i];
+        neg[i] = -f[i];
+      }
+      cross3(ct.arm_a, neg, ta);
+      cross3(ct.arm_b, f, tb);
+      for (int i = 0; i < 3; ++i) {
+        fsum[i] += f[i];
+        tsa[i] += ta[i];
+        tsb[i] += tb[i];
+      }
+    }
+    inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
+    for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;
+    matvec(iw_a, tsa, alpha_a);
+    matvec(iw_b, tsb, alpha_b);
+    for (int k = 0; k < m; ++k) {
+      Contact& ct = contacts[k];
+      ContactLaw<S>& law = ct.law;
+      S dva[3], dvb[3];
+      cross3(alpha_a, ct.arm_a, dva);
+      cross3(alpha_b, ct.arm_b, dvb);
+      for (int i = 0; i < 3; ++i) ct.dv[i] = acc[i] + dvb[i] - dva[i];
+      ct.dvn = dot3(ct.dv, law.n);
+      for (int i = 0; i < 3; ++i) law.pred[i] = w.h * (ct.dv[i] - ct.dvn * law.n[i]);
+      law.forward_friction();
       const S* f = law.f;
       S neg[3] = {-f[0], -f[1], -f[2]}, ta[3], tb[3];
       cross3(ct.arm_a, neg, ta);
@@ -513,25 +550,72 @@ struct PairAdjoint {
     const S *mfa = mu, *mta = mu + 3, *mfb = mu + 6, *mtb = mu + 9;
     const S* om_a = st_a + 10;
     const S* om_b = st_b + 10;
-    for (Contact& ct : contacts) {
+    const S h = w.h;
+    S accb[3] = {0, 0, 0}, alphaab[3] = {0, 0, 0}, alphabb[3] = {0, 0, 0};
+    for (Contact& ct : contacts) {  // the friction's part, and the predicted slip's
       const ContactLaw<S>& law = ct.law;
       const S* f = law.f;
       // on a: (-f, arm_a x -f); on b: (f, arm_b x f)
       S fb[3];
       for (int i = 0; i < 3; ++i) fb[i] = mfb[i] - mfa[i];
-      S armab[3] = {0, 0, 0}, armbb[3] = {0, 0, 0};
+      for (int i = 0; i < 3; ++i) ct.armab[i] = ct.armbb[i] = ct.nb[i] = 0;
       S tmp[3] = {0, 0, 0};
       add_cross(mta, ct.arm_a, tmp);
       for (int i = 0; i < 3; ++i) fb[i] -= tmp[i];
       add_cross(mtb, ct.arm_b, fb);
       S negf[3] = {-f[0], -f[1], -f[2]};
-      add_cross(negf, mta, armab);
-      add_cross(f, mtb, armbb);
-      S nb[3] = {0, 0, 0}, velb[3] = {0, 0, 0};
-      S* armbs[2] = {armab, armbb};
+      add_cross(negf, mta, ct.armab);
+      add_cross(f, mtb, ct.armbb);
+      S* armbs[2] = {ct.armab, ct.armbb};
       S* iwbs[2] = {iwab, iwbb};
-      S depthb, weightb;
-      law.backward(fb, nb, velb, armbs, iwbs, depthb, weightb);
+      law.backward_friction(fb, ct.nb, armbs, iwbs, ct.fnb, ct.vtb, ct.weightb);
+      // pred = h (dv - (dv . n) n), dv = acc + alpha_b x arm_b - alpha_a x arm_a
+      const S* eb = ct.vtb;
+      const S ebn = dot3(eb, law.n);
+      S dvb[3], ndvb[3];
+      for (int i = 0; i < 3; ++i) {
+        dvb[i] = h * (eb[i] - ebn * law.n[i]);
+        ndvb[i] = -dvb[i];
+        ct.nb[i] -= h * (ebn * ct.dv[i] + ct.dvn * eb[i]);
+        accb[i] += dvb[i];
+      }
+      add_cross(ct.arm_b, dvb, alphabb);
+      add_cross(dvb, alpha_b, ct.armbb);
+      add_cross(ct.arm_a, ndvb, alphaab);
+      add_cross(ndvb, alpha_a, ct.armab);
+    }
+    // acc = F inv_m, alpha_a = iw_a T_a, alpha_b = iw_b T_b
+    S fsb[3], tsab[3], tsbb[3];
+    for (int i = 0; i < 3; ++i) fsb[i] = accb[i] * inv_m;
+    matvec_t(iw_a, alphaab, tsab);
+    matvec_t(iw_b, alphabb, tsbb);
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) {
+        iwab[3 * i + j] += alphaab[i] * tsa[j];
+        iwbb[3 * i + j] += alphabb[i] * tsb[j];
+      }
+    for (Contact& ct : contacts) {  // F = sum y, T_b = sum arm_b x y, T_a = sum arm_a x -y (y = fn n)
+      const ContactLaw<S>& law = ct.law;
+      S y[3], ny[3], yb[3], zb[3] = {0, 0, 0};
+      for (int i = 0; i < 3; ++i) {
+        y[i] = law.fn * law.n[i];
+        ny[i] = -y[i];
+        yb[i] = fsb[i];
+      }
+      add_cross(tsbb, ct.arm_b, yb);
+      add_cross(y, tsbb, ct.armbb);
+      add_cross(tsab, ct.arm_a, zb);
+      add_cross(ny, tsab, ct.armab);
+      for (int i = 0; i < 3; ++i) yb[i] -= zb[i];
+      const S fnb = ct.fnb + dot3(yb, law.n);
+      for (int i = 0; i < 3; ++i) ct.nb[i] += law.fn * yb[i];
+      S* nb = ct.nb;
+      S* armab = ct.armab;
+      S* armbb = ct.armbb;
+      S velb[3] = {0, 0, 0};
+      S depthb;
+      S weightb = ct.weightb;
+      law.backward_normal(fnb, ct.vtb, nb, velb, depthb, weightb);
       // vel = (v_b + om_b x arm_b) - (v_a + om_a x arm_a)
       for (int i = 0; i < 3; ++i) {
         vbb[i] += velb[i];

@@ -605,16 +605,57 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   }
   for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], uv);
   const T denom = total + tiny;
+  // the normal forces first (fts's rows hold fn n and its torques for now), their sums, and the
+  // relative acceleration they give (static_wrench: the predicted slip)
 #pragma GCC ivdep
   for (int k = 0; k < m; ++k) {
     const T* n = nr + 3 * k;
     const T* ra = aa + 3 * k;
     const T* rb = ab + 3 * k;
-    T vt[3], t[3], ft[3];
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + k] - vn[k] * n[i];
     T weight = dep[k] / denom;
     T fn = normal_force(dep[k], weight, loading[k], stiff, unload);
+    T f[3], neg[3], ta[3], tb[3];
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) {
+      f[i] = fn * n[i];
+      neg[i] = -f[i];
+    }
+    cross3(ra, neg, ta);
+    cross3(rb, f, tb);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) {
+      fts[i * m + k] = f[i];
+      fts[(3 + i) * m + k] = ta[i];
+      fts[(6 + i) * m + k] = tb[i];
+    }
+    loading[k] = fn;  // the slot keeps fn
+  }
+  T fsum[3] = {T(0), T(0), T(0)}, tsa[3] = {T(0), T(0), T(0)}, tsb[3] = {T(0), T(0), T(0)};
+  for (int k = 0; k < m; ++k)
+    for (int i = 0; i < 3; ++i) {
+      fsum[i] = fsum[i] + fts[i * m + k];
+      tsa[i] = tsa[i] + fts[(3 + i) * m + k];
+      tsb[i] = tsb[i] + fts[(6 + i) * m + k];
+    }
+  T acc[3], alpha_a[3], alpha_b[3];
+  for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;  // b's acceleration relative to a's
+  matvec(iwa, tsa, alpha_a);
+  matvec(iwb, tsb, alpha_b);
+#pragma GCC ivdep
+  for (int k = 0; k < m; ++k) {
+    const T* n = nr + 3 * k;
+    const T* ra = aa + 3 * k;
+    const T* rb = ab + 3 * k;
+    T vt[3], t[3], ft[3], dva[3], dvb[3], dv[3];
+    cross3(alpha_a, ra, dva);
+    cross3(alpha_b, rb, dvb);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) dv[i] = acc[i] + dvb[i] - dva[i];
+    const T dvn = dot3(dv, n);
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) vt[i] = velocity[i * m + k] - vn[k] * n[i] + h * (dv[i] - dvn * n[i]);
+    T weight = dep[k] / denom;
+    const T fn = loading[k];
     slip_direction(vt, t);
     T inv_mass = inv_m + inverse_mass(ra, t, iwa, imin_a) + inverse_mass(rb, t, iwb, imin_b);
     T stick = weight / (inv_mass * h);
