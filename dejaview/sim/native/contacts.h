@@ -452,6 +452,23 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     for (int i = 0; i < 6; ++i) out[i] = out[i] + ftq[i * m + j];
 }
 
+// column k of a pair's (9, m) forces: f (on b; -f on a), its torque on a (arm_a x -f) and on b
+template <typename T>
+__attribute__((always_inline)) inline void store_pair_force(const T* f, const T* ra, const T* rb, T* fts, int m,
+                                                            int k) {
+  T neg[3], ta[3], tb[3];
+#pragma GCC unroll 3
+  for (int i = 0; i < 3; ++i) neg[i] = -f[i];
+  cross3(ra, neg, ta);
+  cross3(rb, f, tb);
+#pragma GCC unroll 3
+  for (int i = 0; i < 3; ++i) {
+    fts[i * m + k] = f[i];
+    fts[(3 + i) * m + k] = ta[i];
+    fts[(6 + i) * m + k] = tb[i];
+  }
+}
+
 // per-thread scratch of select_pair (no allocation per call)
 template <typename S> std::vector<int>& pair_ids_a() { thread_local std::vector<int> v; return v; }
 template <typename S> std::vector<int>& pair_ids_b() { thread_local std::vector<int> v; return v; }
@@ -614,20 +631,10 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     const T* rb = ab + 3 * k;
     T weight = dep[k] / denom;
     T fn = normal_force(dep[k], weight, loading[k], stiff, unload);
-    T f[3], neg[3], ta[3], tb[3];
+    T f[3];
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) {
-      f[i] = fn * n[i];
-      neg[i] = -f[i];
-    }
-    cross3(ra, neg, ta);
-    cross3(rb, f, tb);
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) {
-      fts[i * m + k] = f[i];
-      fts[(3 + i) * m + k] = ta[i];
-      fts[(6 + i) * m + k] = tb[i];
-    }
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i];
+    store_pair_force(f, ra, rb, fts, m, k);
     loading[k] = fn;  // the slot keeps fn
   }
   T fsum[3] = {T(0), T(0), T(0)}, tsa[3] = {T(0), T(0), T(0)}, tsb[3] = {T(0), T(0), T(0)};
@@ -660,20 +667,10 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     T inv_mass = inv_m + inverse_mass(ra, t, iwa, imin_a) + inverse_mass(rb, t, iwb, imin_b);
     T stick = weight / (inv_mass * h);
     friction<T, S>(vt, mu * fn, stick, ft);
-    T f[3], neg[3], ta[3], tb[3];
+    T f[3];
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) {
-      f[i] = fn * n[i] + ft[i];
-      neg[i] = -f[i];
-    }
-    cross3(ra, neg, ta);
-    cross3(rb, f, tb);
-#pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) {
-      fts[i * m + k] = f[i];
-      fts[(3 + i) * m + k] = ta[i];
-      fts[(6 + i) * m + k] = tb[i];
-    }
+    for (int i = 0; i < 3; ++i) f[i] = fn * n[i] + ft[i];
+    store_pair_force(f, ra, rb, fts, m, k);
   }
   for (int k = 0; k < m; ++k)
     for (int i = 0; i < 3; ++i) {
