@@ -73,17 +73,17 @@ struct ContactLaw {
   const S* arm[2];
   const S* inv_w[2];
   S inv_i_min[2];
-  S pred[3] = {0, 0, 0};  // predicted change of the slip over the substep (static contacts)
   // forward values
-  S vn, vt[3], vs[3], loading, g, fn, tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
+  S vn, vt[3], loading, g, fn;
+  S dv[3], dvn, pred[3], vs[3];  // the predicted slip: its rate of change, then vs = vt + pred
+  S tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
   bool b_wins;
   S f[3];
 
-  void forward() {
-    forward_normal();
-    forward_friction();
-  }
+  // The values run forward_normal, then predict (once the set's normal forces are known), then
+  // forward_friction; the way back runs backward_friction, predict_backward, then (once the
+  // set's sums have their cotangents) backward_normal.
 
   // the normal force fn (and vn, vt)
   void forward_normal() {
@@ -92,6 +92,23 @@ struct ContactLaw {
     loading = sigmoid(-vn / unload_velocity);
     g = unload + (S(1) - unload) * loading;
     fn = weight * stiff * depth * g;
+  }
+
+  // the slip's predicted change over a substep of length h, from dv_in (3), the rate of change of
+  // the contact's (relative) velocity that the set's normal forces give: pred = h (dv - (dv.n) n)
+  void predict(const S* dv_in, S h) {
+    for (int i = 0; i < 3; ++i) dv[i] = dv_in[i];
+    dvn = dot3(dv, n);
+    for (int i = 0; i < 3; ++i) pred[i] = h * (dv[i] - dvn * n[i]);
+  }
+
+  // its vjp: from vsb (3), the slip's cotangent (= pred's), to dvb (3, set) and nb (added to)
+  void predict_backward(const S* vsb, S h, S* dvb, S* nb) const {
+    const S vsbn = dot3(vsb, n);
+    for (int i = 0; i < 3; ++i) {
+      dvb[i] = h * (vsb[i] - vsbn * n[i]);
+      nb[i] -= h * (vsbn * dv[i] + dvn * vsb[i]);
+    }
   }
 
   // the friction on the slip vs = vt + pred, and the force f
@@ -120,14 +137,6 @@ struct ContactLaw {
     den = rt * scale;
     k = coulomb * stick / den;
     for (int i = 0; i < 3; ++i) f[i] = fn * n[i] - k * vs[i];
-  }
-
-  // from fb (3): nb, velb, armb[s] (3 each, added to), ginv_w[s] (9, added to); returns through
-  // depthb and weightb (set)
-  void backward(const S* fb, S* nb, S* velb, S* const* armb, S* const* ginv_w, S& depthb, S& weightb) const {
-    S fnb, vtb[3];
-    backward_friction(fb, nb, armb, ginv_w, fnb, vtb, weightb);
-    backward_normal(fnb, vtb, nb, velb, depthb, weightb);  // vs = vt + pred: vtb = vsb
   }
 
   // the friction's part: from fb (3) to fnb and vsb (3) (set), nb, armb[s], ginv_w[s] (added to),
@@ -207,7 +216,6 @@ struct StaticAdjoint {
     ContactLaw<S> law;
     int shape, sphere;
     S r, c[3], p[3], d, gd[3], jn[9], arm[3];
-    S dv[3], dvn;  // the rate of change of the point's velocity the set's normal forces give
     S pb[3], depthb;  // the way back
     S fnb, vtb[3], nb[3], armb[3], weightb;  // the way back, between its two passes
   };
@@ -266,6 +274,8 @@ struct StaticAdjoint {
     }
     const S tiny = std::numeric_limits<S>::min();
     const S mass = w.mass[a];
+    S fsum[3] = {0, 0, 0};  // the set's normal wrench, summed in pick order as static_wrench
+    for (int i = 0; i < 3; ++i) tsum[i] = 0;
     for (int j = 0; j < m; ++j) {
       Contact& ct = contacts[j];
       ContactLaw<S>& law = ct.law;
@@ -284,30 +294,25 @@ struct StaticAdjoint {
       law.inv_w[0] = inv_w;
       law.inv_i_min[0] = w.inv_i_min[a];
       law.forward_normal();
-    }
-    // the set's normal wrench (summed in pick order, as static_wrench) and the accelerations
-    S fsum[3] = {0, 0, 0};
-    for (int i = 0; i < 3; ++i) tsum[i] = 0;
-    for (int j = 0; j < m; ++j) {
-      const Contact& ct = contacts[j];
       S f[3], tq[3];
-      for (int i = 0; i < 3; ++i) f[i] = ct.law.fn * ct.law.n[i];
+      for (int i = 0; i < 3; ++i) f[i] = law.fn * law.n[i];
       cross3(ct.arm, f, tq);
       for (int i = 0; i < 3; ++i) {
         fsum[i] += f[i];
         tsum[i] += tq[i];
       }
     }
+    // the accelerations the set's normal wrench gives, the predicted slips, the friction
     const S inv_m = S(1) / mass;
     for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;
     matvec(inv_w, tsum, alpha);
     for (int j = 0; j < m; ++j) {
       Contact& ct = contacts[j];
       ContactLaw<S>& law = ct.law;
-      cross3(alpha, ct.arm, ct.dv);
-      for (int i = 0; i < 3; ++i) ct.dv[i] += acc[i];
-      ct.dvn = dot3(ct.dv, law.n);
-      for (int i = 0; i < 3; ++i) law.pred[i] = w.h * (ct.dv[i] - ct.dvn * law.n[i]);
+      S dv[3];
+      cross3(alpha, ct.arm, dv);
+      for (int i = 0; i < 3; ++i) dv[i] += acc[i];
+      law.predict(dv, w.h);
       law.forward_friction();
       S tq[3];
       cross3(ct.arm, law.f, tq);
@@ -339,15 +344,10 @@ struct StaticAdjoint {
       S* armbs[1] = {ct.armb};
       S* iwbs[1] = {iwb};
       law.backward_friction(fb, ct.nb, armbs, iwbs, ct.fnb, ct.vtb, ct.weightb);
-      // vs = vt + pred, pred = h (dv - (dv . n) n), dv = acc + alpha x arm
-      const S* eb = ct.vtb;
-      const S ebn = dot3(eb, law.n);
+      // vs = vt + pred, dv = acc + alpha x arm
       S dvb[3];
-      for (int i = 0; i < 3; ++i) {
-        dvb[i] = h * (eb[i] - ebn * law.n[i]);
-        ct.nb[i] -= h * (ebn * ct.dv[i] + ct.dvn * eb[i]);
-        accb[i] += dvb[i];
-      }
+      law.predict_backward(ct.vtb, h, dvb, ct.nb);
+      for (int i = 0; i < 3; ++i) accb[i] += dvb[i];
       add_cross(ct.arm, dvb, alphab);
       add_cross(dvb, alpha, ct.armb);
     }
@@ -422,7 +422,6 @@ struct PairAdjoint {
   struct Contact {
     ContactLaw<S> law;
     S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
-    S dv[3], dvn;  // the rate of change of the relative velocity the pair's normal forces give
     S pab[3], pbb[3], depthb;
     S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
@@ -470,6 +469,8 @@ struct PairAdjoint {
       total += law.depth;
     }
     const S tiny = std::numeric_limits<S>::min();
+    S fsum[3] = {0, 0, 0}, acc[3];  // the pair's normal force (on b) and torques, in pick order
+    for (int i = 0; i < 3; ++i) tsa[i] = tsb[i] = 0;
     for (int k = 0; k < m; ++k) {
       Contact& ct = contacts[k];
       ContactLaw<S>& law = ct.law;
@@ -492,16 +493,9 @@ struct PairAdjoint {
       law.inv_i_min[0] = w.inv_i_min[a];
       law.inv_i_min[1] = w.inv_i_min[b];
       law.forward_normal();
-    }
-    // the pair's normal force (on b) and torques, summed in pick order as pair_wrench, and the
-    // relative acceleration they give
-    S fsum[3] = {0, 0, 0}, acc[3];
-    for (int i = 0; i < 3; ++i) tsa[i] = tsb[i] = 0;
-    for (int k = 0; k < m; ++k) {
-      const Contact& ct = contacts[k];
       S f[3], neg[3], ta[3], tb[3];
       for (int i = 0; i < 3; ++i) {
-        f[i] = ct.law.fn * ct.law.n[i];
+        f[i] = law.fn * law.n[i];
         neg[i] = -f[i];
       }
       cross3(ct.arm_a, neg, ta);
@@ -512,6 +506,7 @@ struct PairAdjoint {
         tsb[i] += tb[i];
       }
     }
+    // the relative acceleration the pair's normal forces give, the predicted slips, the friction
     inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
     for (int i = 0; i < 3; ++i) acc[i] = fsum[i] * inv_m;
     matvec(iw_a, tsa, alpha_a);
@@ -519,12 +514,11 @@ struct PairAdjoint {
     for (int k = 0; k < m; ++k) {
       Contact& ct = contacts[k];
       ContactLaw<S>& law = ct.law;
-      S dva[3], dvb[3];
+      S dva[3], dvb[3], dv[3];
       cross3(alpha_a, ct.arm_a, dva);
       cross3(alpha_b, ct.arm_b, dvb);
-      for (int i = 0; i < 3; ++i) ct.dv[i] = acc[i] + dvb[i] - dva[i];
-      ct.dvn = dot3(ct.dv, law.n);
-      for (int i = 0; i < 3; ++i) law.pred[i] = w.h * (ct.dv[i] - ct.dvn * law.n[i]);
+      for (int i = 0; i < 3; ++i) dv[i] = acc[i] + dvb[i] - dva[i];
+      law.predict(dv, w.h);
       law.forward_friction();
       const S* f = law.f;
       S neg[3] = {-f[0], -f[1], -f[2]}, ta[3], tb[3];
@@ -569,14 +563,11 @@ struct PairAdjoint {
       S* armbs[2] = {ct.armab, ct.armbb};
       S* iwbs[2] = {iwab, iwbb};
       law.backward_friction(fb, ct.nb, armbs, iwbs, ct.fnb, ct.vtb, ct.weightb);
-      // pred = h (dv - (dv . n) n), dv = acc + alpha_b x arm_b - alpha_a x arm_a
-      const S* eb = ct.vtb;
-      const S ebn = dot3(eb, law.n);
+      // vs = vt + pred, dv = acc + alpha_b x arm_b - alpha_a x arm_a
       S dvb[3], ndvb[3];
+      law.predict_backward(ct.vtb, h, dvb, ct.nb);
       for (int i = 0; i < 3; ++i) {
-        dvb[i] = h * (eb[i] - ebn * law.n[i]);
         ndvb[i] = -dvb[i];
-        ct.nb[i] -= h * (ebn * ct.dv[i] + ct.dvn * eb[i]);
         accb[i] += dvb[i];
       }
       add_cross(ct.arm_b, dvb, alphabb);
