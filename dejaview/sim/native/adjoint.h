@@ -190,6 +190,13 @@ struct ContactLaw {
     for (int i = 0; i < 3; ++i) vtb[i] += tb[i] / tden - vs[i] * tv;
   }
 
+  // backward_normal where y = fn n also entered the set's sums, with cotangent yb (3)
+  void backward_normal_and_sum(S fnb, const S* yb, const S* vtb, S* nb, S* velb, S& depthb,
+                               S& weightb) const {
+    for (int i = 0; i < 3; ++i) nb[i] += fn * yb[i];
+    backward_normal(fnb + dot3(yb, n), vtb, nb, velb, depthb, weightb);
+  }
+
   // the normal force's part: from fnb and vtb (3) to nb, velb (added to), depthb (set), weightb
   // (added to)
   void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb) const {
@@ -367,14 +374,12 @@ struct StaticAdjoint {
       }
       add_cross(tsb, ct.arm, yb);
       add_cross(y, tsb, ct.armb);
-      S fnb = ct.fnb + dot3(yb, law.n);
-      for (int i = 0; i < 3; ++i) ct.nb[i] += law.fn * yb[i];
       S* nb = ct.nb;
       S* armb = ct.armb;
       S velb[3] = {0, 0, 0};
       S depthb;
       S weightb = ct.weightb;
-      law.backward_normal(fnb, ct.vtb, nb, velb, depthb, weightb);
+      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
       // vel = v + om x arm
       for (int i = 0; i < 3; ++i) vb[i] += velb[i];
       add_cross(ct.arm, velb, omb);
@@ -598,15 +603,13 @@ struct PairAdjoint {
       add_cross(tsab, ct.arm_a, zb);
       add_cross(ny, tsab, ct.armab);
       for (int i = 0; i < 3; ++i) yb[i] -= zb[i];
-      const S fnb = ct.fnb + dot3(yb, law.n);
-      for (int i = 0; i < 3; ++i) ct.nb[i] += law.fn * yb[i];
       S* nb = ct.nb;
       S* armab = ct.armab;
       S* armbb = ct.armbb;
       S velb[3] = {0, 0, 0};
       S depthb;
       S weightb = ct.weightb;
-      law.backward_normal(fnb, ct.vtb, nb, velb, depthb, weightb);
+      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
       // vel = (v_b + om_b x arm_b) - (v_a + om_a x arm_a)
       for (int i = 0; i < 3; ++i) {
         vbb[i] += velb[i];
