@@ -98,7 +98,9 @@ def test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box(engine, 
     would add 13 % to its impulse where a rigid impact is instantaneous). The friction
     acts on the slip the substep would end with (``dejaview.sim.contacts``, "predicted slip"); on
     the slip at its start it lagged one substep behind the impact's normal force, the edge left
-    sliding at 0.31-0.40 m/s and the box spun 40 % faster than the rigid box (on either surface)."""
+    sliding at 0.30-0.40 m/s and the box spun 40 % faster than the rigid box (on either surface).
+    The native cases are skipped where the native extension does not build (no compiler).
+    """
     from dejaview.geometry.box_spheres import box_spheres
     from dejaview.sim.world import BodySpec, World
 
