@@ -10,7 +10,7 @@ keep the event loop's latency flat
 while they compute, can be restarted when one dies (a crash sends its job
 back to the runner, not the server down), and stop by themselves when the
 server goes away. The cost is a start-up of a few seconds per worker (torch
-imports) and progress travelling through a ``multiprocessing`` queue. Threads
+imports) and progress travelling through a pipe. Threads
 (``executor="thread"``) start instantly and suit tests and tiny deployments.
 
 Both pools speak the same events, delivered to ``on_event`` from a
@@ -128,6 +128,7 @@ WARM_UP_SCENE = """<scene version="1"><simulation dt="0.01" duration="0.01"/>
 def _warm_up() -> None:
     """One tiny rollout before the first job: torch's first ops and the simulator's lazy imports
     cost a second or two, which would otherwise land on the first client's latency."""
+    import dejaview.inference.solve  # noqa: F401  imported now so the first solve starts at once
     from dejaview.scene.xml import read_scene_string
     from dejaview.sim.simulate import simulate
 
@@ -137,46 +138,109 @@ def _warm_up() -> None:
         log.exception("worker warm-up failed")
 
 
-def _process_main(slot, inbox, events, cancel, options, parent_pid):
-    """Entry point of a worker process (spawned: a fresh interpreter)."""
+def _process_main(slot, serve, inbox, events, cancel, options, parent_pid):
+    """Entry point of a worker process (spawned: a fresh interpreter).
+
+    ``inbox``/``events`` are this worker's own pipe ends and ``cancel`` its flag
+    in shared memory (see ``ProcessPool``): nothing here takes a lock that
+    another process could wait on, so a worker killed at any moment leaves
+    nothing held.
+    """
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
     import torch
 
-    import dejaview.inference.solve  # noqa: F401  imported now so the first job starts at once
-    import dejaview.sim.simulate  # noqa: F401
-
     torch.set_num_threads(1)
+    send_lock = threading.Lock()
 
     def get_task():
         while True:
             try:
-                return inbox.get(timeout=1.0)
-            except queue.Empty:
-                if os.getppid() != parent_pid:
-                    return None
+                if inbox.poll(1.0):
+                    return inbox.recv()
+            except (EOFError, OSError):  # the server closed our inbox: it is gone
+                return None
+            if os.getppid() != parent_pid:
+                return None
 
-    serve_jobs(slot, get_task, events.put, cancel.is_set, options, parent_pid)
+    def put_event(event):
+        with send_lock:
+            try:
+                events.send(event)
+            except OSError:  # the server is gone; nobody is left to hear of the job
+                os._exit(0)
+
+    serve(slot, get_task, put_event, lambda: cancel.value != 0, options, parent_pid)
+
+
+class _Sender:
+    """Sends tasks down a worker's inbox pipe from a thread of its own.
+
+    A task carries its scene text, which can be larger than a pipe's buffer;
+    ``put`` never blocks the caller (the server's event loop) on a worker that
+    is still starting or has just died. The thread ends at ``close`` or when
+    the worker's end of the pipe is gone.
+    """
+
+    _CLOSE = object()
+
+    def __init__(self, conn, name: str):
+        self._conn = conn
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._run, name=name, daemon=True).start()
+
+    def put(self, item) -> None:
+        self._queue.put(item)
+
+    def close(self) -> None:
+        self._queue.put(self._CLOSE)
+
+    def _run(self) -> None:
+        try:
+            while (item := self._queue.get()) is not self._CLOSE:
+                self._conn.send(item)
+        except OSError:  # the worker died: what it was sent is the runner's to run again
+            pass
+        finally:
+            self._conn.close()
 
 
 class ProcessPool:
-    """Jobs run in ``size`` worker processes; a dead worker is replaced and its job failed."""
+    """Jobs run in ``size`` worker processes; a dead worker is replaced and its job reported crashed.
+
+    Each worker has its own two pipes (tasks in, events out) and its own cancel
+    flag, a byte in shared memory. No ``multiprocessing`` lock, queue or event
+    is shared with a worker: one killed while holding such a lock (inside
+    ``Event.is_set``, or writing to a shared ``Queue``) would leave it held
+    for good, and the next ``Event.clear`` on the event loop, or every other
+    worker's next event, would wait forever. A worker killed halfway through
+    writing an event leaves a truncated message on its own pipe, which the
+    reader sees as the end of that pipe.
+
+    Options besides the job ones: ``respawn_delay_s`` (default 5), the least
+    time between starting a worker and starting its replacement, so a worker
+    that dies at start-up is not restarted in a tight loop.
+    """
 
     kind = "process"
 
-    def __init__(self, size: int, options: dict):
+    def __init__(self, size: int, options: dict, serve=None):
+        """``serve``: the worker's loop, ``serve_jobs`` unless a test gives another
+        (a module-level function with its signature)."""
         import multiprocessing
 
         self.size = size
         self.options = options
+        self._serve = serve or serve_jobs
         self._ctx = multiprocessing.get_context("spawn")
-        self._events = self._ctx.Queue()
         self._procs: list = [None] * size
-        self._inboxes: list = [None] * size
-        self._cancel = [self._ctx.Event() for _ in range(size)]
+        self._senders: list[_Sender | None] = [None] * size
+        self._events: list = [None] * size  # the reading ends of the workers' event pipes
+        self._cancel = [self._ctx.RawValue("b", 0) for _ in range(size)]
         self._current: list[str | None] = [None] * size
         self._spawned_at = [0.0] * size
+        self._respawn_delay_s = float(options.get("respawn_delay_s", 5.0))
         self._lock = threading.Lock()
         self._closing = False
         self._reader: threading.Thread | None = None
@@ -185,12 +249,24 @@ class ProcessPool:
 
     def _spawn(self, slot: int) -> None:
         self._spawned_at[slot] = time.monotonic()
-        inbox = self._ctx.Queue()
+        task_out, task_in = self._ctx.Pipe(duplex=False)
+        event_out, event_in = self._ctx.Pipe(duplex=False)
         proc = self._ctx.Process(target=_process_main, name=f"dejaview-worker-{slot}", daemon=True,
-                                 args=(slot, inbox, self._events, self._cancel[slot], self.options,
-                                       os.getpid()))
+                                 args=(slot, self._serve, task_out, event_in, self._cancel[slot],
+                                       self.options, os.getpid()))
         proc.start()
-        self._inboxes[slot], self._procs[slot] = inbox, proc
+        task_out.close()  # the worker holds these ends now: its death closes them for good
+        event_in.close()
+        old = self._senders[slot]
+        if old is not None:
+            old.close()
+        self._senders[slot] = _Sender(task_in, f"dejaview-worker-{slot}-inbox")
+        self._events[slot], self._procs[slot] = event_out, proc
+
+    def pid(self, slot: int) -> int | None:
+        """The process id of the worker in ``slot`` (None before ``start``)."""
+        proc = self._procs[slot]
+        return None if proc is None else proc.pid
 
     def start(self, on_event) -> None:
         self._on_event = on_event
@@ -200,29 +276,45 @@ class ProcessPool:
         self._reader.start()
 
     def _read(self) -> None:
+        """The events thread: every worker's events in, dead workers replaced."""
+        from multiprocessing.connection import wait
+
         while not self._closing:
-            try:
-                event = self._events.get(timeout=0.5)
-            except queue.Empty:
-                event = None
-            except (EOFError, OSError):
-                return
-            if event is not None:
-                if event[0] == "ready":
-                    self.ready += 1
-                elif event[0] in ("finished", "failed", "cancelled"):
-                    with self._lock:
-                        if self._current[event[2]] == event[1]:
-                            self._current[event[2]] = None
-                self._on_event(event)
+            conns = {conn: slot for slot, conn in enumerate(self._events) if conn is not None}
+            for conn in wait(list(conns), timeout=0.5):
+                self._receive(conns[conn], conn)
             self._replace_dead()
+
+    def _receive(self, slot: int, conn) -> bool:
+        """Read one event of ``slot``'s worker and pass it on; False at the end of its pipe."""
+        try:
+            event = conn.recv()
+        except (EOFError, OSError):  # the worker is gone, perhaps halfway through an event
+            if self._events[slot] is conn:
+                self._events[slot] = None
+            conn.close()
+            return False
+        except Exception:  # noqa: BLE001  an event that does not unpickle is dropped, not the reader
+            log.exception("unreadable event from worker %d", slot)
+            return True
+        if event[0] == "ready":
+            self.ready += 1
+        elif event[0] in ("finished", "failed", "cancelled"):
+            with self._lock:
+                if self._current[event[2]] == event[1]:
+                    self._current[event[2]] = None
+        self._on_event(event)
+        return True
 
     def _replace_dead(self) -> None:
         for slot, proc in enumerate(self._procs):
             if self._closing or proc is None or proc.is_alive():
                 continue
-            if time.monotonic() - self._spawned_at[slot] < 5.0:
-                continue  # a worker that dies at start-up is retried every 5 s, not in a tight loop
+            if time.monotonic() - self._spawned_at[slot] < self._respawn_delay_s:
+                continue  # a worker that dies at start-up is retried after a pause, not in a tight loop
+            conn = self._events[slot]
+            while conn is not None and self._receive(slot, conn):  # what it said before it died
+                pass
             with self._lock:
                 job_id, self._current[slot] = self._current[slot], None
             log.error("worker %d died (exit code %s); starting a new one", slot, proc.exitcode)
@@ -232,20 +324,21 @@ class ProcessPool:
                 self._on_event(("crashed", job_id, slot, proc.exitcode))
 
     def run(self, slot: int, job_id: str, spec: dict, out_dir: str) -> None:
-        self._cancel[slot].clear()
+        self._cancel[slot].value = 0
         with self._lock:
             self._current[slot] = job_id
-        self._inboxes[slot].put((job_id, spec, out_dir))
+        self._senders[slot].put((job_id, spec, out_dir))
 
     def cancel(self, slot: int) -> None:
-        self._cancel[slot].set()
+        self._cancel[slot].value = 1
 
     def close(self, timeout: float = 10.0) -> None:
         self._closing = True
-        for flag, inbox in zip(self._cancel, self._inboxes):
-            flag.set()
-            if inbox is not None:
-                inbox.put(None)
+        for flag, sender in zip(self._cancel, self._senders):
+            flag.value = 1
+            if sender is not None:
+                sender.put(None)
+                sender.close()
         for proc in self._procs:
             if proc is not None:
                 proc.join(timeout)
@@ -254,6 +347,9 @@ class ProcessPool:
                     proc.join(2.0)
         if self._reader is not None:
             self._reader.join(2.0)
+        for conn in self._events:
+            if conn is not None:
+                conn.close()
 
 
 def make_pool(kind: str, size: int, options: dict):
