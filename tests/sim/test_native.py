@@ -148,6 +148,31 @@ def test_native_gradients_through_body_pairs_equal_torch_autograd():
     assert torch.allclose(out, ref, rtol=1e-7, atol=1e-9 * float(ref.abs().max()))
 
 
+@pytest.mark.parametrize("record_every", [1, 7])
+def test_the_adjoint_reads_the_rollouts_contact_picks_as_if_it_selected_them_again(record_every):
+    """Reverse mode reads the static contacts each substep picked from the rollout's pick log; the
+    same adjoint without the log selects them again: both give the same gradient, bit for bit,
+    through static contacts and body pairs, for every candidate of a batch."""
+    from tests.sim.test_contact_capacity import _boxes, _throw
+
+    ext = native.extension()
+    for world, state, steps in ((*_tumbling_box("grid", batch=3), 90), (_boxes(20, 40), None, 60)):
+        state = _throw(world) if state is None else state
+        init = torch.cat(state.tensors(), -1).contiguous()
+        packed = native.pack_world(world)
+        states, trace, _, counts, picks, starts = ext.rollout(init, steps, record_every, 2, *packed, 1)
+        assert counts.shape == (init.shape[0], steps * world.substeps, init.shape[1])
+        assert int(counts.sum()) == picks.numel() > 0 and starts.numel() == init.shape[0] + 1
+        grad = torch.randn(states.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        logged = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, counts, picks, starts)
+        empty = torch.empty(0, dtype=torch.int32)
+        again = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, empty, empty,
+                            torch.empty(0, dtype=torch.int64))
+        assert torch.equal(logged, again)
+        with pytest.raises(RuntimeError, match="pick log does not match"):
+            ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 1, counts, picks[:-1], starts)
+
+
 def test_native_forward_mode_equals_reverse_mode():
     world, state = _tumbling_box("grid", batch=2)
     x0 = torch.cat(state.tensors(), -1)  # (B, 1, 13)

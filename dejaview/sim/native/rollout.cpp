@@ -62,7 +62,21 @@ struct Scratch {
   std::vector<S> travel;                          // (N) the sum of move over the substeps
   std::vector<char> placed;                       // (N) selected before (last holds its pose)
   std::vector<S> pair_clear;                      // (P) clearance bound of each pair (select_pair)
+  const int32_t* logged = nullptr;                // (N) picks of this substep per body (PickLog), or null
+  const uint32_t* logged_picks = nullptr;         // ... and the picks themselves, body after body
 };
+
+// The static picks of every substep of a traced rollout (reverse mode reads them instead of
+// selecting again: the same picks, in the same order, as select_static is exact and deterministic).
+// counts (steps * substeps, N): picks per substep and body; picks: shape << 16 | sphere, substep
+// after substep, body after body. Kept only while the scene's indices fit 16 bits each.
+struct PickLog {
+  std::vector<int32_t> counts;
+  std::vector<uint32_t> picks;
+};
+
+template <typename S>
+bool pick_log_fits(const World<S>& w) { return w.k <= 0xFFFF && w.s_max <= 0xFFFF; }
 
 // which spheres touch at state (contact selection on values, the clearance bounds of sc updated)
 // which spheres touch at state (contact selection on values, the clearance bounds of sc updated).
@@ -92,6 +106,14 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     sc.travel[a] += move;
     if (need != nullptr && !need[a]) {
       sc.picks[a].clear();
+      continue;
+    }
+    if (sc.logged != nullptr) {
+      const uint32_t* first = sc.logged_picks;
+      for (int b = 0; b < a; ++b) first += sc.logged[b];
+      sc.picks[a].clear();
+      for (int j = 0; j < sc.logged[a]; ++j)
+        sc.picks[a].push_back({static_cast<int>(first[j] >> 16), static_cast<int>(first[j] & 0xFFFF), 0.0});
       continue;
     }
     select_static(w, a, state + 13 * a, rot, sc.picks[a], &sc.key[static_cast<int64_t>(a) * w.k * w.s_max],
@@ -335,7 +357,8 @@ inline int trace_first(int64_t record_every) { return record_every == 1 ? 1 : 0;
 
 template <typename S>
 void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
-                   S* rec_states, S* rec_phi, const S* limits, int64_t* status, S* trace = nullptr) {
+                   S* rec_states, S* rec_phi, const S* limits, int64_t* status, S* trace = nullptr,
+                   PickLog* log = nullptr) {
   const int n = w.n;
   const int dim = 13 * n;
   Scratch<S> sc;
@@ -359,6 +382,12 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
       }
       if (!with_jac) {
         substep<S>(w, state.data(), sc, nullptr);
+        if (log != nullptr)
+          for (int a = 0; a < n; ++a) {
+            log->counts.push_back(static_cast<int32_t>(sc.picks[a].size()));
+            for (const Pick& pk : sc.picks[a])
+              log->picks.push_back(static_cast<uint32_t>(pk.shape) << 16 | static_cast<uint32_t>(pk.sphere));
+          }
         continue;
       }
       substep(w, state.data(), sc, sc.jac.data());
@@ -393,7 +422,8 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
 // grad_init = sum_t Phi_t^T grad_t, as lam <- J^T lam backwards through the substeps.
 template <typename S>
 void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every,
-                       const S* rec_states, const S* trace, const S* grad, S* out) {
+                       const S* rec_states, const S* trace, const S* grad, S* out,
+                       const int32_t* counts = nullptr, const uint32_t* picks = nullptr, int64_t total = 0) {
   const int n = w.n;
   const int dim = 13 * n;
   Scratch<S> sc;
@@ -412,6 +442,11 @@ void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t 
       const S* s;
       if (k >= k0) s = trace + ((step - 1) * per_step + (k - k0)) * static_cast<int64_t>(dim);
       else s = step == 1 ? init : rec_states + (step - 2) * static_cast<int64_t>(dim);  // record_every 1
+      if (counts != nullptr) {  // this substep's logged picks end where the next one's begin
+        sc.logged = counts + ((step - 1) * w.substeps + k) * static_cast<int64_t>(n);
+        for (int a = 0; a < n; ++a) total -= sc.logged[a];
+        sc.logged_picks = picks + total;
+      }
       substep_adjoint(w, s, sc, lam.data());
     }
   }
@@ -557,7 +592,10 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
 // simulator's parallelism does not depend on torch.set_num_threads).
 // init: (B, N, 13) -> states (B, R, N, 13), extra and status (B, 4). mode 0: values only (extra
 // empty); 1: extra = phi (B, R, 13N, 13N) = d state / d init (forward mode); 2: extra = the trace
-// (B, steps * (substeps - k0), N, 13) of substep states that reverse mode (adjoint) reads. status:
+// (B, steps * (substeps - k0), N, 13) of substep states that reverse mode (adjoint) reads, and three
+// more outputs, the static picks of every substep (PickLog): counts (B, steps * substeps, N) int32,
+// picks (total,) int32 (shape << 16 | sphere), starts (B + 1,) int64 (candidate i's picks are
+// picks[starts[i]:starts[i + 1]]); all three empty where the scene's indices do not fit. status:
 // where a candidate diverged (run_candidate), checked only when floats carries the limits
 // {reach, speed} after the schema's FLOATS (mode 0 only).
 std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, int64_t mode,
@@ -582,6 +620,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
   else if (mode == 2) extra = torch::empty({b, steps * per_step, n, 13}, init.options());
   else extra = torch::empty({0}, init.options());
   auto status = torch::full({b, 4}, -1, init.options().dtype(torch::kInt64));
+  std::vector<dv::PickLog> logs;
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
@@ -596,20 +635,39 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
     const S* limits = has_limits ? limit_values : nullptr;
     int64_t* st = status.data_ptr<int64_t>();
     pybind11::gil_scoped_release no_gil;  // other Python threads (a server's event loop) run meanwhile
+    if (mode == 2 && dv::pick_log_fits(w)) logs.resize(b);
     dv::parallel_for(b, threads, [&](int64_t i) {
       dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
                            with_jac ? ex + i * ex_per : nullptr, limits, st + 4 * i,
-                           mode == 2 ? ex + i * ex_per : nullptr);
+                           mode == 2 ? ex + i * ex_per : nullptr, logs.empty() ? nullptr : &logs[i]);
     });
   }
-  return {states, extra, status};
+  if (mode != 2) return {states, extra, status};
+  const auto i32 = init.options().dtype(torch::kInt32), i64 = init.options().dtype(torch::kInt64);
+  if (logs.empty()) return {states, extra, status, torch::empty({0}, i32), torch::empty({0}, i32),
+                            torch::empty({0}, i64)};
+  auto counts = torch::empty({b, steps * ints[dv::schema::I_SUBSTEPS], n}, i32);
+  auto starts = torch::empty({b + 1}, i64);
+  int64_t* at = starts.data_ptr<int64_t>();
+  at[0] = 0;
+  for (int64_t i = 0; i < b; ++i) at[i + 1] = at[i] + static_cast<int64_t>(logs[i].picks.size());
+  auto picks = torch::empty({at[b]}, i32);
+  for (int64_t i = 0; i < b; ++i) {  // each candidate's log freed once copied
+    std::copy(logs[i].counts.begin(), logs[i].counts.end(), counts.data_ptr<int32_t>() + i * counts.size(1) * n);
+    std::copy(logs[i].picks.begin(), logs[i].picks.end(), reinterpret_cast<uint32_t*>(picks.data_ptr<int32_t>()) + at[i]);
+    dv::PickLog().counts.swap(logs[i].counts);
+    dv::PickLog().picks.swap(logs[i].picks);
+  }
+  return {states, extra, status, counts, picks, starts};
 }
 
 // Reverse mode: grad (B, R, N, 13) of the records of rollout(init, ..., mode 2) (states, trace)
 // -> grad init (B, N, 13) = sum_t Phi_t^T grad_t, without forming Phi.
+// counts, picks, starts: the rollout's pick log (empty: select the contacts again).
 torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor trace, torch::Tensor grad,
                       int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
-                      std::vector<double> floats, std::vector<int64_t> ints, int64_t threads) {
+                      std::vector<double> floats, std::vector<int64_t> ints, int64_t threads,
+                      torch::Tensor counts, torch::Tensor picks, torch::Tensor starts) {
   TORCH_CHECK(init.dim() == 3 && init.size(2) == 13 && init.scalar_type() == torch::kFloat64 &&
               init.device().is_cpu(), "init must be (B, N, 13) float64 on the CPU");
   init = init.contiguous();
@@ -624,11 +682,25 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
   const int64_t per_step = ints[dv::schema::I_SUBSTEPS] - dv::trace_first(record_every);
   TORCH_CHECK(states.numel() == b * records * dim && grad.numel() == b * records * dim &&
               trace.numel() == b * steps * per_step * dim, "adjoint: states, trace or grad of the wrong size");
+  const bool logged = starts.numel() > 0;
+  if (logged) {
+    counts = counts.contiguous();
+    picks = picks.contiguous();
+    starts = starts.contiguous();
+    TORCH_CHECK(counts.scalar_type() == torch::kInt32 && picks.scalar_type() == torch::kInt32 &&
+                starts.scalar_type() == torch::kInt64 && counts.numel() == b * steps * ints[dv::schema::I_SUBSTEPS] * n &&
+                starts.numel() == b + 1 && starts[b].item<int64_t>() == picks.numel(),
+                "adjoint: the pick log does not match the rollout");
+  }
   auto out = torch::empty({b, n, 13}, init.options());
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
     TORCH_CHECK(w.n == n, "state and world disagree on the number of bodies");
+    const int32_t* cn = logged ? counts.data_ptr<int32_t>() : nullptr;
+    const uint32_t* pk = logged ? reinterpret_cast<const uint32_t*>(picks.data_ptr<int32_t>()) : nullptr;
+    const int64_t* at = logged ? starts.data_ptr<int64_t>() : nullptr;
+    const int64_t per_candidate = steps * w.substeps * n;
     const S* in = init.data_ptr<S>();
     const S* rs = states.data_ptr<S>();
     const S* tr = trace.data_ptr<S>();
@@ -637,7 +709,9 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
     pybind11::gil_scoped_release no_gil;
     dv::parallel_for(b, threads, [&](int64_t i) {
       dv::adjoint_candidate<S>(w, in + i * dim, steps, record_every, rs + i * records * dim,
-                               tr + i * steps * per_step * dim, g + i * records * dim, o + i * dim);
+                               tr + i * steps * per_step * dim, g + i * records * dim, o + i * dim,
+                               logged ? cn + i * per_candidate : nullptr, logged ? pk + at[i] : nullptr,
+                               logged ? at[i + 1] - at[i] : 0);
     });
   }
   return out;
