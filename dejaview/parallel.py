@@ -38,7 +38,7 @@ _REPORT_EVERY_S = 0.2
 
 
 class ParallelError(DejaViewError):
-    """The scale-out could not start: Ray missing or unreachable, bad settings."""
+    """The scale-out could not start (Ray missing or unreachable, bad settings) or lost a worker."""
 
 
 def map_chunks(fn: Callable, chunks: Sequence, *, setup: Callable | None = None, setup_args: tuple = (),
@@ -58,7 +58,8 @@ def map_chunks(fn: Callable, chunks: Sequence, *, setup: Callable | None = None,
     Returns:
         The results, in chunk order (shorter after cancellation).
     Raises:
-        ParallelError: Ray not installed or not reachable, ``workers`` < 1.
+        ParallelError: Ray not installed or not reachable, ``workers`` < 1, a worker process
+            killed (the OOM killer, a signal) or crashed while it ran a chunk.
         Whatever ``fn`` or ``setup`` raised.
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -103,6 +104,7 @@ def _in_processes(fn, chunks, setup, setup_args, workers, report, done, should_s
     import multiprocessing
     import queue as queue_mod
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     ctx = multiprocessing.get_context("spawn")
     with ctx.Manager() as manager:
@@ -111,19 +113,38 @@ def _in_processes(fn, chunks, setup, setup_args, workers, report, done, should_s
                                  initializer=_pool_init, initargs=(setup, setup_args)) as pool:
             futures = [pool.submit(_pool_run, fn, i, chunk, q, stop) for i, chunk in enumerate(chunks)]
             pending = set(range(len(futures)))
+            def manager(call, *args):
+                """A call on q or stop; the manager process behind them may have been killed."""
+                try:
+                    return call(*args)
+                except (EOFError, OSError):
+                    raise ParallelError(f"the helper process that carries the workers' progress died "
+                                        f"(killed by a signal or the out-of-memory killer); "
+                                        f"{len(pending)} chunk(s) left unfinished: try again") from None
+
             while pending:
                 try:
-                    report(*q.get(timeout=0.1))
+                    report(*manager(q.get, True, 0.1))
                 except queue_mod.Empty:
                     pass
                 if should_stop is not None and should_stop():
-                    stop.set()
+                    manager(stop.set)
                 for i in sorted(c for c in pending if futures[c].done()):
                     pending.discard(i)
-                    done(i, futures[i].result())  # raises a worker's error here
+                    try:
+                        result = futures[i].result()  # raises a worker's error here
+                    except BrokenProcessPool:
+                        raise ParallelError(
+                            f"a worker process died (killed by a signal or the out-of-memory killer, or "
+                            f"crashed) while chunk {i} of {len(chunks)} ran; {len(pending) + 1} chunk(s) "
+                            f"left unfinished: try again, with fewer workers if memory is short") from None
+                    except (EOFError, OSError):  # the chunk's own error, or it lost the manager: which?
+                        manager(q.qsize)
+                        raise
+                    done(i, result)
             while True:  # the last messages
                 try:
-                    report(*q.get_nowait())
+                    report(*manager(q.get_nowait))
                 except queue_mod.Empty:
                     break
             return [f.result() for f in futures]

@@ -50,6 +50,68 @@ def test_a_worker_error_is_raised_here(workers):
         map_chunks(_square, [1, "boom"], setup=_setup, setup_args=(0,), workers=workers)
 
 
+def _killed(context, chunk, report, stopped):
+    import os
+    import signal
+    import time
+
+    if chunk == "kill":
+        time.sleep(0.5)  # the other chunk is under way
+        os.kill(os.getpid(), signal.SIGKILL)  # as the out-of-memory killer would
+    return chunk
+
+
+def test_a_killed_worker_process_is_a_one_line_error():
+    with pytest.raises(ParallelError, match=r"a worker process died .* while chunk \d of 2 ran") as err:
+        map_chunks(_killed, ["kill", 1], workers=2)
+    assert "\n" not in str(err.value)
+
+
+def _reporting_sleeper(context, chunk, report, stopped):
+    import time
+
+    report("started")
+    for _ in range(1000):
+        if stopped():
+            return "stopped"
+        time.sleep(0.01)
+    return "ran"
+
+
+def _spawned_children() -> list[tuple[int, int]]:
+    """(start time, pid) of this process's ``multiprocessing`` spawned children, oldest first."""
+    import os
+
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == os.getpid() and b"spawn_main" in cmdline:
+            out.append((int(fields[19]), int(entry.name)))
+    return sorted(out)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the manager process through /proc")
+def test_a_killed_manager_process_is_a_one_line_error():
+    """The manager process (first spawned) carries progress and the stop flag; killed, the run
+    ends with one line instead of click's 'aborted' (an EOFError from the queue)."""
+    import os
+    import signal
+
+    def kill_manager(index, message):
+        if index == 0:
+            os.kill(_spawned_children()[0][1], signal.SIGKILL)
+
+    with pytest.raises(ParallelError, match="the helper process that carries the workers' progress died"):
+        map_chunks(_reporting_sleeper, [0, 1], workers=2, on_report=kill_manager)
+
+
 def test_cancellation_reaches_the_workers():
     out = map_chunks(_until_stopped, [0, 1], workers=2, should_stop=lambda: True)
     assert out == ["stopped", "stopped"]
