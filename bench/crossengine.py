@@ -9,7 +9,8 @@ Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
 1. **Physics fidelity** (``fidelity``): the same start simulated by DejaView
    (native engine, the scene's defaults) and by MuJoCo (the scene exported
    with ``dejaview.io.mjcf.export_mjcf``, whose ``contact_parameters`` map
-   friction, restitution and contact stiffness), the distance between the
+   friction, restitution and contact stiffness; at ``MUJOCO_TIMESTEP``, a
+   converged step), the distance between the
    two engines' centres of mass after 0.5, 1.0 and 1.5 s, for bounce, roll,
    slide, tumble and a box-box hit.
 2. **Inference across engines** (``CASES``, >= 16): MuJoCo simulates a known
@@ -40,6 +41,11 @@ SUCCESS_TOL = 0.03
 FIDELITY_TOL = 0.02
 """Metres: the fidelity table's bar at 1.0 s."""
 FIDELITY_TIMES = (0.5, 1.0, 1.5)
+MUJOCO_TIMESTEP = 5e-5
+"""Seconds: MuJoCo's time step here, the reference's, converged (docs/physics-fidelity.md,
+"MuJoCo's time step"): at ``dejaview.io.mjcf``'s 0.5 ms MuJoCo's box sliding off the table ends
+21 cm from where its converged runs put it (it tips the box over the edge twice as fast as a
+rigid box), at 50 us every fidelity row is within 0.25 cm of its 20 us run but that one (1.3 cm)."""
 UNCERTAINTY = (0.2, 0.2)
 """Relative standard deviations (friction, restitution) of the runs with model uncertainty."""
 TABLE_TOP = 0.7
@@ -92,8 +98,9 @@ def make_scene(text: str):
 
 
 # ------------------------------------------------------------------ engines
-def mujoco_run(scene, times, state: dict | None = None):
-    """MuJoCo's object-frame origins and orientations of every movable object at ``times``.
+def mujoco_run(scene, times, state: dict | None = None, timestep: float | None = None):
+    """MuJoCo's object-frame origins and orientations of every movable object at ``times``, at
+    ``timestep`` (default ``MUJOCO_TIMESTEP``).
 
     Returns:
         {t: (positions (N, 3), orientations (N, 4))}.
@@ -102,7 +109,7 @@ def mujoco_run(scene, times, state: dict | None = None):
 
     from dejaview.io.mjcf import export_mjcf
 
-    model = mujoco.MjModel.from_xml_string(export_mjcf(scene, state))
+    model = mujoco.MjModel.from_xml_string(export_mjcf(scene, state, timestep=timestep or MUJOCO_TIMESTEP))
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
     mujoco.mj_forward(model, data)
@@ -196,6 +203,29 @@ def fidelity(print_fn=print, names=None) -> list[dict]:
         rows.append(row)
         print_fn(f"{name:<44} " + " ".join(f"{100 * gap[t]:>7.2f}" for t in FIDELITY_TIMES)
                  + ("" if row["within_2cm_at_1s"] else "  > 2 cm at 1.0 s"))
+    return rows
+
+
+TIMESTEP_STUDY = (5e-4, 2.5e-4, 1e-4, 5e-5)
+"""MuJoCo steps compared with ``STUDY_REFERENCE`` in ``timestep_study``."""
+STUDY_REFERENCE = 2e-5
+
+
+def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFERENCE) -> list[dict]:
+    """Is MuJoCo converged at its step? Per fidelity row, MuJoCo's end at 1.0 s at each step
+    against its run at ``reference`` (cm, the largest over the bodies): how ``MUJOCO_TIMESTEP``
+    was chosen (docs/physics-fidelity.md, "MuJoCo's time step")."""
+    rows = []
+    print_fn(f"{'motion':<44} " + " ".join(f"{1e3 * dt:>8.3g}ms" for dt in steps)
+             + f"  (cm at 1.0 s from MuJoCo at {1e3 * reference:g} ms)")
+    for name, objects, e in FIDELITY:
+        scene = make_scene(scene_text(objects, 1.0, restitution=e))
+        ref = mujoco_run(scene, (1.0,), timestep=reference)[1.0][0]
+        gaps = [float(np.linalg.norm(mujoco_run(scene, (1.0,), timestep=dt)[1.0][0] - ref, axis=-1).max())
+                for dt in steps]
+        rows.append({"section": "timestep", "motion": name,
+                     **{f"gap_{1e3 * dt:g}ms_m": g for dt, g in zip(steps, gaps)}})
+        print_fn(f"{name:<44} " + " ".join(f"{100 * g:>10.2f}" for g in gaps))
     return rows
 
 
@@ -418,8 +448,9 @@ def main(argv=None) -> int:
     parser.add_argument("--no-fidelity", action="store_true")
     parser.add_argument("--csv", type=Path, default=None)
     parser.add_argument("--no-baseline", action="store_true")
+    parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     args = parser.parse_args(argv)
-    rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
+    rows = timestep_study() if args.timestep_study else run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
                with_fidelity=not args.no_fidelity, baseline=not args.no_baseline)
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv

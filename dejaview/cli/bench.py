@@ -359,8 +359,11 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--no-warp", is_flag=True, help="Do not re-simulate the answers in Warp.")
 @click.option("--no-fidelity", is_flag=True, help="Skip the fidelity table.")
 @click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
+@click.option("--timestep-study", is_flag=True,
+              help="Only MuJoCo's time-step convergence on the fidelity rows (how its step was chosen).")
 @csv_option
-def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_only, csv_path):
+def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_only, timestep_study,
+                csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
@@ -374,7 +377,9 @@ def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_
     module = bench_module("crossengine")
     names = tuple(c for c in cases.replace(" ", "").split(",") if c)
     try:
-        if fidelity_only:
+        if timestep_study:
+            rows = module.timestep_study(click.echo)
+        elif fidelity_only:
             rows = module.fidelity(click.echo)
         else:
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,

@@ -1,4 +1,5 @@
-"""``dejaview export-mjcf SCENE -o MODEL.xml [--state result.json]``: the scene as a MuJoCo model."""
+"""``dejaview export-mjcf SCENE -o MODEL.xml [--state result.json] [--timestep S]``: the scene as a
+MuJoCo model."""
 
 from __future__ import annotations
 
@@ -13,7 +14,12 @@ import click
               help="The MJCF file to write.")
 @click.option("--state", type=click.Path(dir_okay=False, path_type=Path), metavar="RESULT.json",
               help="A solve's result.json: its initial_state replaces the source's in the keyframe.")
-def command(scene: Path, output: Path, state: Path | None) -> None:
+@click.option("--timestep", type=click.FloatRange(min=0.0, min_open=True, max=0.01), default=None,
+              metavar="SECONDS",
+              help="MuJoCo's time step (default 0.0005; the contacts' damping is mapped for it). "
+                   "5e-05 is converged where 0.0005 is not: a box tipping over an edge "
+                   "(docs/physics-fidelity.md, \"MuJoCo's time step\").")
+def command(scene: Path, output: Path, state: Path | None, timestep: float | None) -> None:
     """Write SCENE as an MJCF model that MuJoCo loads as it is.
 
     Fixed objects become world geoms, movable ones bodies with a free joint;
@@ -22,11 +28,11 @@ def command(scene: Path, output: Path, state: Path | None) -> None:
     ``mj_resetDataKeyframe(model, data, 0)``. Meshes are inline mesh assets
     (non-convex ones as convex pieces: MuJoCo collides convex hulls).
     """
-    from dejaview.io.mjcf import MJCFError, export_mjcf, read_state
+    from dejaview.io.mjcf import MJ_TIMESTEP, MJCFError, export_mjcf, read_state
     from dejaview.scene import Scene
 
     sc = Scene.from_xml(scene)
-    text = export_mjcf(sc, read_state(state) if state is not None else None)
+    text = export_mjcf(sc, read_state(state) if state is not None else None, timestep=timestep or MJ_TIMESTEP)
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(text, encoding="utf-8")

@@ -141,17 +141,18 @@ def solref_restitution(solref, timestep: float = MJ_TIMESTEP) -> float:
 
 
 def contact_parameters(friction: float, restitution: float,
-                       frequency: float = DEFAULT_FREQUENCY) -> dict[str, str]:
+                       frequency: float = DEFAULT_FREQUENCY, timestep: float = MJ_TIMESTEP) -> dict[str, str]:
     """MJCF geom attributes for DejaView's friction and restitution (module docstring).
 
     Args:
         friction: Coulomb coefficient.
         restitution: 0..1.
         frequency: DejaView's contact frequency omega_0 (rad/s), the stiffness of both engines.
+        timestep: MuJoCo's time step (s), which the damping that gives ``restitution`` depends on.
     Returns:
         ``{"condim", "friction", "solref", "solimp"}`` as attribute strings.
     """
-    zeta = damping_ratio(float(restitution), float(frequency))
+    zeta = damping_ratio(float(restitution), float(frequency), float(timestep))
     return {"condim": "3", "friction": f"{_num(friction)} 0 0",
             "solref": f"{_num(-frequency ** 2)} {_num(-2.0 * zeta * frequency)}",
             "solimp": _vec(SOLIMP)}
@@ -202,12 +203,12 @@ def _initial_states(scene, state: dict | None) -> dict[str, dict]:
     return out
 
 
-def _geom(scene, obj, assets: list[str]) -> list[str]:
+def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP) -> list[str]:
     """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``."""
     sim = scene.simulation
     contact = contact_parameters(sim.friction if obj.friction is None else obj.friction,
                                  sim.restitution if obj.restitution is None else obj.restitution,
-                                 scene_frequency(scene))
+                                 scene_frequency(scene), timestep)
     attrs = {"name": obj.id}
     kind = obj.geometry_kind
     if kind == "plane":
@@ -258,13 +259,14 @@ def _mass_properties(scene, obj):
                                      mass=obj.mass, density=density)
 
 
-def export_mjcf(scene, state: dict | None = None) -> str:
+def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP) -> str:
     """The scene as MJCF text that ``mujoco.MjModel.from_xml_string`` loads as it is.
 
     Args:
         scene: a validated Scene (mesh files must exist).
         state: optional parsed ``result.json`` of a solve: its ``initial_state``
             replaces the source's pose and velocity in the keyframe.
+        timestep: MuJoCo's time step (s); the contacts' damping is mapped for it.
     Returns:
         MJCF XML. Fixed objects are world geoms, movable ones bodies with a free
         joint (named after the object); the keyframe ``initial`` holds their
@@ -284,7 +286,7 @@ def export_mjcf(scene, state: dict | None = None) -> str:
 
             # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
             for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
-                for geom in _geom(scene, part, assets):
+                for geom in _geom(scene, part, assets, timestep):
                     world.append(geom.replace("<geom ", f'<geom pos="{_vec(part.pose.position)}" '
                                                         f'quat="{_vec(part.pose.orientation)}" ', 1))
             continue
@@ -295,7 +297,7 @@ def export_mjcf(scene, state: dict | None = None) -> str:
         world.append(f'<body name="{_xml(obj.id)}" pos="{_vec(s["position"])}" '
                      f'quat="{_vec(s["orientation"])}"><freejoint name="{_xml(obj.id)}"/>'
                      f'<inertial pos="{_vec(props.center_of_mass)}" mass="{_num(props.mass)}" '
-                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets))}</body>')
+                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep))}</body>')
         rot = quaternion_matrices(s["orientation"])
         omega = np.asarray(s["angular_velocity"], dtype=np.float64)
         # free joint: velocity of the body origin (world), angular velocity in the body frame
@@ -314,7 +316,7 @@ def export_mjcf(scene, state: dict | None = None) -> str:
     body = "\n    ".join(world)
     return f"""<mujoco model="{_xml(scene.name or 'dejaview-scene')}">{comment}
   <compiler angle="radian"/>
-  <option timestep="{_num(MJ_TIMESTEP)}" gravity="{_vec(scene.gravity)}" {option}/>{asset}
+  <option timestep="{_num(timestep)}" gravity="{_vec(scene.gravity)}" {option}/>{asset}
   <worldbody>
     {body}
   </worldbody>{keyframe}

@@ -85,6 +85,41 @@ def test_box_sliding_across_a_table_ends_within_3cm_in_both_engines():
     assert np.linalg.norm(dejaview_end - mujoco_end) < 0.03
 
 
+def test_export_at_another_timestep_keeps_the_restitution(tmp_path):
+    """--timestep writes MuJoCo's step and maps the damping for it: a ball dropped with e = 0.6
+    rebounds as high at 50 us as at the default 0.5 ms (the damping differs)."""
+    from dejaview.io.mjcf import MJ_TIMESTEP
+
+    scene = Scene.from_string("""<scene version="1"><simulation dt="0.002" duration="1.0" restitution="0.6"/>
+      <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+      <object id="ball" shape="sphere" radius="0.05" mass="0.4"><pose position="0 0 0.5"/></object></scene>""")
+    apexes, dampings = [], []
+    for dt in (MJ_TIMESTEP, 5e-5):
+        xml = export_mjcf(scene, timestep=dt)
+        model = mujoco.MjModel.from_xml_string(xml)
+        assert model.opt.timestep == pytest.approx(dt)
+        dampings.append(float(model.geom_solref[0][1]))
+        data = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+        bounced, apex = False, 0.0
+        while data.time < 0.8:
+            mujoco.mj_step(model, data)
+            bounced = bounced or data.qvel[2] > 0
+            if bounced:
+                apex = max(apex, float(data.qpos[2]) - 0.05)
+        apexes.append(apex)
+    assert dampings[0] != pytest.approx(dampings[1])
+    assert apexes[1] == pytest.approx(apexes[0], rel=0.03) and apexes[0] == pytest.approx(0.45 * 0.36, rel=0.1)
+    out = tmp_path / "ball.xml"
+    scene_path = tmp_path / "ball_scene.xml"
+    scene.write(scene_path)
+    result = CliRunner().invoke(cli, ["export-mjcf", str(scene_path), "-o", str(out), "--timestep", "5e-5"])
+    assert result.exit_code == 0, result.output
+    assert mujoco.MjModel.from_xml_path(str(out)).opt.timestep == pytest.approx(5e-5)
+    bad = CliRunner().invoke(cli, ["export-mjcf", str(scene_path), "-o", str(out), "--timestep", "-1"])
+    assert bad.exit_code != 0 and "--timestep" in bad.output
+
+
 def test_state_from_a_result_json_goes_into_the_keyframe(tmp_path):
     """The mug (centre of mass off its frame origin) launched spinning: MuJoCo sees the same
     centre-of-mass velocity and world angular velocity as DejaView's initial_state."""
