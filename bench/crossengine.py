@@ -209,23 +209,69 @@ def fidelity(print_fn=print, names=None) -> list[dict]:
 TIMESTEP_STUDY = (5e-4, 2.5e-4, 1e-4, 5e-5)
 """MuJoCo steps compared with ``STUDY_REFERENCE`` in ``timestep_study``."""
 STUDY_REFERENCE = 2e-5
+SUBSTEP_STUDY = (2, 4, 8)
+"""DejaView substeps per 2 ms step compared with ``SUBSTEP_REFERENCE`` (same contact stiffness)."""
+SUBSTEP_REFERENCE = 16
 
 
-def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFERENCE) -> list[dict]:
-    """Is MuJoCo converged at its step? Per fidelity row, MuJoCo's end at 1.0 s at each step
-    against its run at ``reference`` (cm, the largest over the bodies): how ``MUJOCO_TIMESTEP``
-    was chosen (docs/physics-fidelity.md, "MuJoCo's time step")."""
+def with_substeps(world, substeps: int):
+    """``world`` integrated in ``substeps`` substeps at the same contact frequency (stiffness),
+    each pair's unloading factor re-mapped so that it rebounds with the same restitution."""
+    import torch
+
+    from dejaview.sim.world import _discrete_restitution, restitution_to_unloading
+
+    om = world.contact.frequency
+    h0, h = world.dt / world.substeps, world.dt / substeps
+
+    def remap(phi):
+        flat = [restitution_to_unloading(_discrete_restitution(float(p), om * h0), om * h) if float(p) > 0
+                else 0.0 for p in phi.reshape(-1).tolist()]
+        return torch.tensor(flat, dtype=phi.dtype).reshape(phi.shape)
+
+    return replace(world, substeps=int(substeps), unload_static=remap(world.unload_static),
+                   unload_pair=remap(world.unload_pair))
+
+
+def _dejaview_end(world, scene, t: float) -> np.ndarray:
+    import torch
+
+    from dejaview.sim import rollout
+    from dejaview.sim.build import initial_state
+
+    with torch.no_grad():
+        traj = rollout(world, initial_state(world, scene), steps=round(t / world.dt), engine="native")
+    return world.object_position(_flat(traj.states))[-1].numpy()
+
+
+def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFERENCE,
+                   substeps=SUBSTEP_STUDY) -> list[dict]:
+    """Are the engines converged at their steps? Per fidelity row, the end at 1.0 s (cm, the
+    largest over the bodies) of MuJoCo at each of ``steps`` against MuJoCo at ``reference``, and
+    of DejaView at each of ``substeps`` against DejaView at ``SUBSTEP_REFERENCE`` substeps (the
+    same contact stiffness): how ``MUJOCO_TIMESTEP`` was chosen, and how much of each row's gap
+    is the steps' rather than the models' (docs/physics-fidelity.md, "MuJoCo's time step")."""
+    from dejaview.sim import World
+
     rows = []
-    print_fn(f"{'motion':<44} " + " ".join(f"{1e3 * dt:>8.3g}ms" for dt in steps)
-             + f"  (cm at 1.0 s from MuJoCo at {1e3 * reference:g} ms)")
+    print_fn(f"{'motion':<44} " + " ".join(f"{'mj ' + format(1e3 * dt, 'g') + 'ms':>10}" for dt in steps)
+             + " " + " ".join(f"{'dv ' + str(k) + ' sub':>9}" for k in substeps)
+             + f"  (cm at 1.0 s: MuJoCo from its {1e3 * reference:g} ms run, DejaView from its "
+               f"{SUBSTEP_REFERENCE} substeps)")
     for name, objects, e in FIDELITY:
         scene = make_scene(scene_text(objects, 1.0, restitution=e))
         ref = mujoco_run(scene, (1.0,), timestep=reference)[1.0][0]
         gaps = [float(np.linalg.norm(mujoco_run(scene, (1.0,), timestep=dt)[1.0][0] - ref, axis=-1).max())
                 for dt in steps]
+        world = World.from_scene(scene)
+        dv_ref = _dejaview_end(with_substeps(world, SUBSTEP_REFERENCE), scene, 1.0)
+        dv = [float(np.linalg.norm(_dejaview_end(with_substeps(world, k), scene, 1.0) - dv_ref, axis=-1).max())
+              for k in substeps]
         rows.append({"section": "timestep", "motion": name,
-                     **{f"gap_{1e3 * dt:g}ms_m": g for dt, g in zip(steps, gaps)}})
-        print_fn(f"{name:<44} " + " ".join(f"{100 * g:>10.2f}" for g in gaps))
+                     **{f"gap_{1e3 * dt:g}ms_m": g for dt, g in zip(steps, gaps)},
+                     **{f"dv_gap_{k}_substeps_m": g for k, g in zip(substeps, dv)}})
+        print_fn(f"{name:<44} " + " ".join(f"{100 * g:>10.2f}" for g in gaps)
+                 + " " + " ".join(f"{100 * g:>9.2f}" for g in dv))
     return rows
 
 
