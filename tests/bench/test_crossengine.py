@@ -101,7 +101,8 @@ def test_unknown_cases_are_a_one_line_error():
 def test_answers_with_model_uncertainty_end_within_3_cm_in_mujoco(crossengine, case):
     """Two cases whose answers without model uncertainty measured 8.1 and 5.3 cm off in MuJoCo
     (needle pasts; box-slide-spin-floor 0.7 cm with the symmetric box packing); with it 0.38 and
-    0.12 cm (docs/physics-fidelity.md)."""
+    0.12 cm. With MuJoCo at its converged 50 us step (2026-11-25): 5.6 and 0.5 cm without, 2.7 and
+    2.3 cm with it, close to the bar (docs/physics-fidelity.md)."""
     (c,) = [c for c in crossengine.CASES if c.name == case]
     row = crossengine.solve_case(c, crossengine.UNCERTAINTY, warp=False, print_fn=lambda *_: None)
     assert row["success"], row
