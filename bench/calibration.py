@@ -19,7 +19,11 @@ the central 50 % interval half the time and inside the 90 % interval 90 % of
 the time.
 
 Reported per scene and pooled over parameters: the coverage of the central
-50 % and 90 % intervals, the sharpness (mean 90 % interval width over the
+50 % and 90 % intervals, the histogram of the truth's rank by log posterior
+density (the fraction of samples denser than the truth: uniform too if the
+samples are the posterior's, whatever the parameterisation; piled at 1 when the
+samples crowd the densest regions and miss the posterior's thinner bulk, at 0
+in the opposite case), the sharpness (mean 90 % interval width over the
 prior's 90 % width: 1 means the end taught nothing), and a 10-bin rank
 histogram (``--plot``: a PNG of them). The scenes (built in code from bundled
 ones; the files are not touched), each observed at its last record
@@ -145,6 +149,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     from dejaview.inference.posterior import Posterior, PosteriorSettings
     from dejaview.inference.posterior_report import physical, weighted_quantiles
     from dejaview.inference.problem import InferenceProblem
+    from dejaview.inference.sampling import log_density
 
     gen = torch.Generator().manual_seed(1000 + index)
     scene = base_scene(name)
@@ -174,6 +179,9 @@ def run_case(name: str, index: int, samples: int) -> dict:
     row["ranks"] = ranks
     row["cover50"], row["cover90"] = cover[0.5], cover[0.9]
     row["sharpness"] = [wd / pw for wd, pw in zip(width, prior_width90(prior_post))]
+    observed_post = Posterior(result.problem, PosteriorSettings.from_scene(observed))
+    truth_density = float(log_density(observed_post, truth)[0])
+    row["density_rank"] = float((w * (smp.log_density > truth_density).double()).sum())
     return row
 
 
@@ -186,8 +194,12 @@ def summarize(rows: list[dict]) -> dict:
     for x in ranks:
         hist[min(int(x * BINS), BINS - 1)] += 1
     sharp = [s for r in rows for s in r["sharpness"]]
+    density = [0] * (BINS // 2)
+    for r in rows:
+        if r.get("density_rank") is not None:
+            density[min(int(r["density_rank"] * len(density)), len(density) - 1)] += 1
     return {"cover50": sum(c50) / len(c50), "cover90": sum(c90) / len(c90), "n": len(c90),
-            "sharpness": sum(sharp) / len(sharp), "histogram": hist,
+            "sharpness": sum(sharp) / len(sharp), "histogram": hist, "density_histogram": density,
             "seconds": sum(r["seconds"] for r in rows) / len(rows)}
 
 
@@ -216,13 +228,16 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
             if verbose:
                 say(f"  {name} {i}: {row['seconds']:.1f} s, ranks "
                     + " ".join(f"{r:.2f}" for r in row["ranks"])
-                    + f", {row['unique']} distinct, {row['stages']} steps")
+                    + f", {row['unique']} distinct, {row['stages']} steps, "
+                    + f"{row['density_rank']:.2f} of the samples denser than the truth")
         per_scene[name] = summarize(mine)
-    say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram")
+    say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram"
+        f"  [density rank, 5 bins]")
     for name, s in per_scene.items():
         params = len(next(r for r in rows if r["scene"] == name)["parameters"])
         say(f"{name:<16} {params:>6} {s['cover50']:>8.3f} {s['cover90']:>8.3f} {s['sharpness']:>6.3f} "
-            f"{s['seconds']:>7.1f}  {' '.join(str(h) for h in s['histogram'])}  {verdict(s)}")
+            f"{s['seconds']:>7.1f}  {' '.join(str(h) for h in s['histogram'])}  "
+            f"[{' '.join(str(h) for h in s['density_histogram'])}]  {verdict(s)}")
     pooled = summarize(rows)
     say(f"{'pooled':<16} {'':>6} {pooled['cover50']:>8.3f} {pooled['cover90']:>8.3f} "
         f"{pooled['sharpness']:>6.3f} {pooled['seconds']:>7.1f}  "

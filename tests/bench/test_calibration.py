@@ -16,17 +16,19 @@ def test_one_case_ranks_the_truth_in_every_parameter():
     assert len(row["ranks"]) == 2 and all(0.0 <= r <= 1.0 for r in row["ranks"])
     assert len(row["cover50"]) == len(row["cover90"]) == 2
     assert all(0 < s < 1 for s in row["sharpness"])  # the end taught something about the start
+    assert 0.0 <= row["density_rank"] <= 1.0
 
 
 def test_summary_counts_coverage_and_ranks():
     module = bench_module("calibration")
     rows = [{"cover50": [True, False], "cover90": [True, True], "ranks": [0.05, 0.95], "sharpness": [0.2, 0.4],
-             "seconds": 1.0},
+             "seconds": 1.0, "density_rank": 0.99},
             {"cover50": [False, False], "cover90": [True, False], "ranks": [0.5, 0.999], "sharpness": [0.1, 0.1],
-             "seconds": 3.0}]
+             "seconds": 3.0, "density_rank": 0.3}]
     s = module.summarize(rows)
     assert s["cover50"] == 0.25 and s["cover90"] == 0.75 and s["n"] == 4
     assert s["histogram"] == [1, 0, 0, 0, 0, 1, 0, 0, 0, 2] and s["seconds"] == 2.0
+    assert s["density_histogram"] == [0, 1, 0, 0, 1]
     assert module.verdict(s) == "missed"
 
 
