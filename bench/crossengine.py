@@ -217,20 +217,13 @@ SUBSTEP_REFERENCE = 16
 def with_substeps(world, substeps: int):
     """``world`` integrated in ``substeps`` substeps at the same contact frequency (stiffness),
     each pair's unloading factor re-mapped so that it rebounds with the same restitution."""
-    import torch
-
-    from dejaview.sim.world import _discrete_restitution, restitution_to_unloading
+    from dejaview.sim.world import remap_unloading
 
     om = world.contact.frequency
     h0, h = world.dt / world.substeps, world.dt / substeps
-
-    def remap(phi):
-        flat = [restitution_to_unloading(_discrete_restitution(float(p), om * h0), om * h) if float(p) > 0
-                else 0.0 for p in phi.reshape(-1).tolist()]
-        return torch.tensor(flat, dtype=phi.dtype).reshape(phi.shape)
-
-    return replace(world, substeps=int(substeps), unload_static=remap(world.unload_static),
-                   unload_pair=remap(world.unload_pair))
+    return replace(world, substeps=int(substeps),
+                   unload_static=remap_unloading(world.unload_static, om * h0, om * h),
+                   unload_pair=remap_unloading(world.unload_pair, om * h0, om * h))
 
 
 def _dejaview_end(world, scene, t: float) -> np.ndarray:
@@ -496,8 +489,11 @@ def main(argv=None) -> int:
     parser.add_argument("--no-baseline", action="store_true")
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     args = parser.parse_args(argv)
-    rows = timestep_study() if args.timestep_study else run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
-               with_fidelity=not args.no_fidelity, baseline=not args.no_baseline)
+    if args.timestep_study:
+        rows = timestep_study()
+    else:
+        rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
+                   with_fidelity=not args.no_fidelity, baseline=not args.no_baseline)
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

@@ -128,7 +128,7 @@ def vary_world(world, friction_factor: float, restitution_factor: float, stiffne
     inverted), scaled, clipped to [0, 1] and mapped back at the new stiffness, so a variant's
     impacts rebound with the scaled restitution.
     """
-    from dejaview.sim.world import _discrete_restitution, restitution_to_unloading
+    from dejaview.sim.world import remap_unloading
 
     f = max(friction_factor, MIN_FACTOR)
     k = max(stiffness_factor, MIN_FACTOR)
@@ -137,10 +137,7 @@ def vary_world(world, friction_factor: float, restitution_factor: float, stiffne
     omega_h0, omega_h = world.contact.frequency * h, omega * h
 
     def unload(phi: torch.Tensor) -> torch.Tensor:
-        flat = [restitution_to_unloading(min(1.0, max(0.0, _discrete_restitution(float(p), omega_h0)
-                                                      * restitution_factor)), omega_h)
-                if float(p) > 0 else 0.0 for p in phi.reshape(-1).tolist()]
-        return torch.tensor(flat, dtype=phi.dtype, device=phi.device).reshape(phi.shape)
+        return remap_unloading(phi, omega_h0, omega_h, restitution_factor)
 
     return replace(world, mu_static=world.mu_static * f, mu_pair=world.mu_pair * f,
                    unload_static=unload(world.unload_static), unload_pair=unload(world.unload_pair),

@@ -215,6 +215,17 @@ def restitution_to_unloading(e: float, omega_h: float = DEFAULT_OMEGA_H) -> floa
     return 0.5 * (lo + hi)
 
 
+def remap_unloading(phi: torch.Tensor, omega_h0: float, omega_h: float,
+                    restitution_factor: float = 1.0) -> torch.Tensor:
+    """Unloading factors ``phi`` (any shape) mapped from substep ``omega_h0`` to ``omega_h``: each
+    pair's simulated restitution recovered at ``omega_h0``, times ``restitution_factor``, clipped
+    to [0, 1], and the factor that gives it at ``omega_h`` (a pair without restitution stays 0)."""
+    flat = [restitution_to_unloading(min(1.0, max(0.0, _discrete_restitution(float(p), omega_h0)
+                                                  * restitution_factor)), omega_h)
+            if float(p) > 0 else 0.0 for p in phi.reshape(-1).tolist()]
+    return torch.tensor(flat, dtype=phi.dtype, device=phi.device).reshape(phi.shape)
+
+
 @dataclass(frozen=True)
 class World:
     """Static description of a scene for the sphere-packing simulator.
