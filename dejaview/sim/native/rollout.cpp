@@ -78,10 +78,10 @@ struct PickLog {
 template <typename S>
 bool pick_log_fits(const World<S>& w) { return w.k <= 0xFFFF && w.s_max <= 0xFFFF; }
 
-// which spheres touch at state (contact selection on values, the clearance bounds of sc updated)
 // which spheres touch at state (contact selection on values, the clearance bounds of sc updated).
 // need (N, or null for all): bodies whose contacts are wanted; the others get no static picks,
 // and a pair of two such bodies none (reverse mode skips bodies its adjoint has not reached).
+// With a pick log (sc.logged, reverse mode) the static picks are read from it, not selected.
 //
 // Pairs keep a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair, set
 // by select_pair and lowered every substep by how far either body moved: a pair whose bound
@@ -89,6 +89,7 @@ bool pick_log_fits(const World<S>& w) { return w.k <= 0xFFFF && w.s_max <= 0xFFF
 template <typename S>
 void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const char* need = nullptr) {
   const int n = w.n;
+  const uint32_t* logged = sc.logged_picks;  // body a's logged picks, when there is a log
   for (int a = 0; a < n; ++a) {
     S* rot = &sc.rot[9 * a];
     S* last = &sc.last[12 * a];
@@ -104,13 +105,13 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
     sc.move[a] = move;
     sc.travel[a] += move;
+    const uint32_t* first = logged;
+    if (sc.logged != nullptr) logged += sc.logged[a];
     if (need != nullptr && !need[a]) {
       sc.picks[a].clear();
       continue;
     }
     if (sc.logged != nullptr) {
-      const uint32_t* first = sc.logged_picks;
-      for (int b = 0; b < a; ++b) first += sc.logged[b];
       sc.picks[a].clear();
       for (int j = 0; j < sc.logged[a]; ++j)
         sc.picks[a].push_back({static_cast<int>(first[j] >> 16), static_cast<int>(first[j] & 0xFFFF), 0.0});
@@ -655,8 +656,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
   for (int64_t i = 0; i < b; ++i) {  // each candidate's log freed once copied
     std::copy(logs[i].counts.begin(), logs[i].counts.end(), counts.data_ptr<int32_t>() + i * counts.size(1) * n);
     std::copy(logs[i].picks.begin(), logs[i].picks.end(), reinterpret_cast<uint32_t*>(picks.data_ptr<int32_t>()) + at[i]);
-    dv::PickLog().counts.swap(logs[i].counts);
-    dv::PickLog().picks.swap(logs[i].picks);
+    logs[i] = dv::PickLog();
   }
   return {states, extra, status, counts, picks, starts};
 }
