@@ -31,11 +31,15 @@ bridge starts from the mixture q below instead of the prior).
     ``p(m) sqrt(det Sigma)``, plus the prior itself (``PRIOR_SHARE``): the
     particles jump into every mode the search found, in proportion to its mass;
   - ``RW_MOVES`` random-walk moves whose step covariance is that of the
-    particle's nearest neighbours in the population (it follows ridges, curved
-    valleys and separate modes alike; the step scale adapts towards
+    population in the particle's mode (the particles the same reference
+    component is most responsible for; the step scale adapts towards
     ``TARGET_ACCEPTANCE``), every other one a differential-evolution step
     ``x + g (x_a - x_b)`` between two other particles, whose length follows the
-    population's extent (long along a ridge the end leaves free).
+    population's extent (long along a ridge the end leaves free). Both walk a
+    start-area position as its fraction of the area (``_SMC.to_walk``), and
+    the particles move in two halves, each guided by the other half's current
+    values (``_SMC.halves``): a kernel built from the particles that move with
+    it is not exact.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 
 Tempering from the prior reaches branches of the posterior the search did not
@@ -77,8 +81,6 @@ one mode."""
 PRIOR_SHARE = 0.3
 """Weight of the prior itself in the reference mixture (defensive importance sampling): branches
 of the posterior that the search did not find are reached by tempering from the prior."""
-NEIGHBOURS_PER_PARAMETER = 2
-"""A random-walk step's covariance is that of the particle's ``2 P + 2`` nearest neighbours."""
 DISTINCT_FRACTION = 0.9
 """A tempering step's moves go on until this fraction of the particles are distinct ..."""
 MAX_MOVES = 8
@@ -412,106 +414,192 @@ class _SMC:
         out = (1.0 - self.beta) * lr + self.beta * lp if self.beta < 1 else lp.clone()
         return torch.where(torch.isfinite(lp) & ~torch.isnan(out), out, torch.full_like(out, -math.inf))
 
-    def metropolis(self, y: torch.Tensor, log_ratio_of) -> float:
-        """Accept or reject proposals y (N, P) by Metropolis-Hastings; ``log_ratio_of(log r,
-        log q, log p)`` (each (N,) at y) gives the log acceptance ratio (N,).
+    def metropolis(self, y: torch.Tensor, rows: torch.Tensor, log_q_ratio: torch.Tensor | None = None,
+                   independence: bool = False) -> float:
+        """Accept or reject proposals y (R, P) for the particles ``rows`` (R,) by Metropolis-Hastings:
+        the log acceptance ratio is ``log pi_beta(y) - log pi_beta(x)`` plus ``log_q_ratio`` (R,)
+        (``log q(x | y) - log q(y | x)``; None: a symmetric proposal), or for an ``independence``
+        proposal from the mixture q, ``log q(x) - log q(y)``.
 
         The proposals are simulated as if feasible, and the interpenetration check (fcl, as
         costly as a rollout) runs only on those the ratio would accept: an infeasible start
         has density 0, which can only turn an acceptance into a rejection. Same decisions as
         checking every proposal first (the uniform draws do not depend on the values).
         Returns the acceptance rate."""
-        u = torch.rand(self.n, generator=self.gen, dtype=torch.float64)
+        u = torch.rand(rows.shape[0], generator=self.gen, dtype=torch.float64)
+        lr_x, lq_x, lp_x = self.lr[rows], self.lq[rows], self.lp[rows]
         lr_y, lq_y = self.reference(y), self.q.log_prob(y)
-        lp_y = log_density(self.post, y, feasibility=False)
-        log_ratio = log_ratio_of(lr_y, lq_y, lp_y)
+        lp_y = torch.full_like(u, -math.inf)
+        live = torch.ones_like(u, dtype=torch.bool) if log_q_ratio is None else torch.isfinite(log_q_ratio)
+        if bool(live.any()):  # a proposal the Hastings term rules out (outside the area) is not simulated
+            lp_y[live] = log_density(self.post, y[live], feasibility=False)
+        log_ratio = self.target(lr_y, lp_y) - self.target(lr_x, lp_x)
+        if independence:
+            log_ratio = log_ratio + (lq_x - lq_y)
+        elif log_q_ratio is not None:
+            log_ratio = log_ratio + log_q_ratio
         ok = torch.isfinite(log_ratio) & (torch.log(u) < log_ratio)
         if bool(ok.any()):  # density 0 where infeasible: rejected
             idx = ok.nonzero().squeeze(-1)
             bad = idx[~self.post.feasible(y[idx])]
             lp_y[bad] = -math.inf
             ok[bad] = False
-        self.x = torch.where(ok[:, None], y, self.x)
-        self.lr = torch.where(ok, lr_y, self.lr)
-        self.lq = torch.where(ok, lq_y, self.lq)
-        self.lp = torch.where(ok, lp_y, self.lp)
-        self.moves += 1
+        self.x[rows] = torch.where(ok[:, None], y, self.x[rows])
+        self.lr[rows] = torch.where(ok, lr_y, lr_x)
+        self.lq[rows] = torch.where(ok, lq_y, lq_x)
+        self.lp[rows] = torch.where(ok, lp_y, lp_x)
         return float(ok.double().mean())
 
     def independence_move(self) -> float:
         """Propose from the mixture q (jumps between the search's modes)."""
         y, _ = self.q.sample(self.n, self.gen)
-        return self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp)
-                               + (self.lq - lq_y))
+        acc = self.metropolis(y, torch.arange(self.n), independence=True)
+        self.moves += 1
+        return acc
 
-    def local_chol(self, points: torch.Tensor, population: torch.Tensor, exclude: torch.Tensor) -> torch.Tensor:
-        """(N, P, P) Cholesky factors of the covariance of each point's ``2 P + 2`` nearest
-        neighbours among the population's distinct members (distances in units of the
-        population's spread), never counting the member ``exclude`` (N, P) (the particle's own
-        current state, and its copies from resampling). Where fewer distinct members are left,
-        the whole population's covariance."""
-        n, p = points.shape
-        k = NEIGHBOURS_PER_PARAMETER * p + 2
-        spread = population.std(0).clamp_min(1e-12)
-        if population.shape[0] <= k + 1:
-            c = torch.cov(population.T).reshape(p, p) if population.shape[0] > 1 else torch.eye(p, dtype=points.dtype)
-            c = c + 1e-9 * torch.eye(p, dtype=c.dtype) * float(torch.diagonal(c).mean().clamp_min(1e-12))
-            return torch.linalg.cholesky(c).expand(n, p, p).clone()
-        d = torch.cdist(points / spread, population / spread)
-        same = torch.cdist(exclude / spread, population / spread) < 1e-9
-        d = torch.where(same, torch.full_like(d, math.inf), d)
-        idx = d.topk(k, largest=False).indices  # (N, k)
-        nb = population[idx]  # (N, k, P)
-        c = nb - nb.mean(1, keepdim=True)
-        cov = c.transpose(1, 2) @ c / (k - 1)
-        jitter = 1e-6 * torch.diagonal(cov, dim1=1, dim2=2).mean(-1).clamp_min(1e-12)
-        cov = cov + jitter[:, None, None] * torch.eye(p, dtype=cov.dtype)
-        chol, info = torch.linalg.cholesky_ex(cov)
-        bad = info != 0
-        if bool(bad.any()):
-            chol[bad] = torch.diag_embed(torch.sqrt(torch.diagonal(cov[bad], dim1=1, dim2=2)))
-        return chol
+    def halves(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """A random split of the particles into two halves, as (moved, guides) twice: each half
+        moves in turn with the other half's current values as its fixed guides.
+
+        Why: a kernel built from the population (nearest neighbours, differences of members)
+        leaves the target invariant only for guides that stay fixed while the particle moves.
+        Moving every particle at once, each guided by the others' old values, does not: on an
+        11-D Gaussian the walk settled at 0.8 of the true variance. The
+        halves' alternation is exact (as in Goodman and Weare's ensemble samplers) and costs
+        the same rollouts."""
+        perm = torch.randperm(self.n, generator=self.gen)
+        a, b = perm[: self.n // 2], perm[self.n // 2:]
+        return [(a, b), (b, a)]
+
+    def mode_of(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,) the reference component (one of the search's distinct modes) most responsible for
+        parameters x (B, P), the prior component left out: a fixed partition of the space."""
+        k = self.q.means.shape[0]
+        return self.q.component_log_prob(x)[:, :k].argmax(-1)
+
+    def mode_chol(self, guides: torch.Tensor) -> torch.Tensor:
+        """(K, P, P) Cholesky factors, in walk coordinates (``to_walk``), of the covariance of the
+        guides (M, P) (parameters) that each reference component is most responsible for
+        (``mode_of``); the guides' overall covariance for a component with fewer than P + 2.
+
+        Why per mode and not of the nearest neighbours: a posterior that the end pins in a few
+        directions and leaves to the prior in the others is a thin slab; a point's nearest
+        neighbours span a small patch of it, so steps along the slab stay short and the
+        population, thinned there by every resampling, never spreads again (on an 11-D
+        Gaussian with 6 observed directions: central 90 % intervals held the truth 46 % of
+        the time with nearest-neighbour steps alone, 86 % with the population's covariance)."""
+        k, p = self.q.means.shape[0], guides.shape[1]
+        w = self.to_walk(guides)
+        own = self.mode_of(guides)
+        eye = torch.eye(p, dtype=w.dtype)
+
+        def chol_of(points):
+            c = torch.cov(points.T).reshape(p, p) if points.shape[0] > 1 else eye.clone()
+            c = c + 1e-9 * eye * float(torch.diagonal(c).mean().clamp_min(1e-12))
+            chol, info = torch.linalg.cholesky_ex(c)
+            return chol if int(info) == 0 else torch.diag(torch.sqrt(torch.diagonal(c).clamp_min(1e-12)))
+
+        overall = chol_of(w)
+        out = overall.expand(k, p, p).clone()
+        for j in range(k):
+            mine = own == j
+            if int(mine.sum()) >= p + 2:
+                out[j] = chol_of(w[mine])
+        return out
+
+    def to_walk(self, x: torch.Tensor) -> torch.Tensor:
+        """The walk's coordinates (B, P) of parameters x (B, P): a position inside a start area as
+        its fraction of the area, ``sigmoid(u)`` in (0, 1), the rest as they are.
+
+        Why: an end that leaves the position free spreads its posterior evenly over the start
+        area, which the layout's logit coordinates turn into the logistic density, whose tails
+        hold a quarter of the mass beyond |u| = 2 and thin out where the population's steps
+        are short; in fractions the same posterior is flat between walls."""
+        cols = self.post.layout.block_slice("position")
+        if cols.stop == cols.start or self.post.layout.lo is None:
+            return x
+        w = x.clone()
+        w[:, cols] = torch.sigmoid(x[:, cols])
+        return w
+
+    def from_walk(self, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Parameters x (B, P) at walk coordinates w (B, P), and ``log |dx/dw|`` (B,) there (``-inf``
+        outside the start area: a fraction beyond (0, 1))."""
+        cols = self.post.layout.block_slice("position")
+        if cols.stop == cols.start or self.post.layout.lo is None:
+            return w, torch.zeros(w.shape[0], dtype=w.dtype)
+        f = w[:, cols]
+        inside = ((f > 0) & (f < 1)).all(-1)
+        f = torch.where(inside[:, None], f, torch.full_like(f, 0.5))
+        x = w.clone()
+        x[:, cols] = torch.logit(f)
+        log_jac = -(torch.log(f) + torch.log1p(-f)).sum(-1)
+        return x, torch.where(inside, log_jac, torch.full_like(log_jac, -math.inf))
+
+    def walk_log_jacobian(self, x: torch.Tensor) -> torch.Tensor:
+        """``log |dx/dw|`` (B,) at parameters x (B, P) (``to_walk``)."""
+        return self.from_walk(self.to_walk(x))[1]
+
+    def walk_metropolis(self, rows: torch.Tensor, w_y: torch.Tensor, log_q_ratio: torch.Tensor | None) -> float:
+        """Metropolis-Hastings for a proposal made in walk coordinates w_y (R, P) with the walk's
+        log Hastings term ``log_q_ratio`` (R,) (None: symmetric): the target in walk coordinates
+        is the one in parameters times ``|dx/dw|``; proposals outside the start area are
+        rejected without a rollout."""
+        y, log_jac_y = self.from_walk(w_y)
+        ratio = log_jac_y - self.walk_log_jacobian(self.x[rows])
+        if log_q_ratio is not None:
+            ratio = ratio + log_q_ratio
+        inside = torch.isfinite(log_jac_y)
+        y = torch.where(inside[:, None], y, self.x[rows])
+        return self.metropolis(y, rows, ratio)
 
     def random_walk_move(self) -> float:
-        """y = x + scale * L(x) z, L(x) from x's nearest neighbours in the current population;
-        the Hastings ratio uses L(y) from y's neighbours in the same population."""
-        population = torch.unique(self.x, dim=0)
-        here = self.x.clone()
-        lx = self.local_chol(here, population, here)
-        z = torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
-        y = self.x + self.scale * (lx @ z.unsqueeze(-1)).squeeze(-1)
-        ly = self.local_chol(y, population, here)
-        back = torch.linalg.solve_triangular(ly, (self.x - y).unsqueeze(-1) / self.scale,
-                                             upper=False).squeeze(-1)
-        logdet_x = torch.log(torch.diagonal(lx, dim1=-2, dim2=-1)).sum(-1)
-        logdet_y = torch.log(torch.diagonal(ly, dim1=-2, dim2=-1)).sum(-1)
-        log_q_back = -0.5 * (back * back).sum(-1) - logdet_y
-        log_q_fwd = -0.5 * (z * z).sum(-1) - logdet_x
-        acc = self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp)
-                              + log_q_back - log_q_fwd)
+        """w = to_walk(x); w' = w + scale * L z, L the Cholesky factor of the covariance of the
+        guides (the other half of the particles, ``halves``) in x's mode (``mode_chol``), in walk
+        coordinates; the Hastings ratio uses the factor of the mode at w'."""
+        accepted = 0.0
+        for rows, guides in self.halves():
+            chol = self.mode_chol(torch.unique(self.x[guides], dim=0))
+            lx = chol[self.mode_of(self.x[rows])]
+            here = self.to_walk(self.x[rows])
+            z = torch.randn(here.shape, generator=self.gen, dtype=torch.float64)
+            w_y = here + self.scale * (lx @ z.unsqueeze(-1)).squeeze(-1)
+            y, _ = self.from_walk(w_y)
+            ly = chol[self.mode_of(y)]
+            back = torch.linalg.solve_triangular(ly, (here - w_y).unsqueeze(-1) / self.scale,
+                                                 upper=False).squeeze(-1)
+            logdet_x = torch.log(torch.diagonal(lx, dim1=-2, dim2=-1)).sum(-1)
+            logdet_y = torch.log(torch.diagonal(ly, dim1=-2, dim2=-1)).sum(-1)
+            log_q_ratio = (-0.5 * (back * back).sum(-1) - logdet_y) - (-0.5 * (z * z).sum(-1) - logdet_x)
+            accepted += self.walk_metropolis(rows, w_y, log_q_ratio) * rows.shape[0]
+        self.moves += 1
+        acc = accepted / self.n
         self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
     def difference_move(self) -> float:
-        """Differential-evolution step (ter Braak 2006): y = x + g (x_a - x_b) + e, a and b two
-        other distinct members of the current population (never x itself), g = 2.38 / sqrt(2 P),
-        e a jitter of 1e-4 of the population's spread: the step follows
-        the population's own extent and direction (along a ridge the end leaves free, where the
-        nearest-neighbour steps are short). Symmetric given the population."""
-        population = torch.unique(self.x, dim=0)
-        m, p = population.shape
-        if m < 3:
-            return self.random_walk_move()
-        scores = torch.rand(self.n, m, generator=self.gen, dtype=torch.float64)
-        scores[torch.cdist(self.x, population) < 1e-12] = -1.0  # never the particle itself
-        a = scores.argmax(1)
-        scores[torch.arange(self.n), a] = -2.0
-        b = scores.argmax(1)
+        """Differential-evolution step (ter Braak 2006) in walk coordinates: w' = w + g (w_a - w_b)
+        + e, a and b two distinct guides (members of the other half of the particles,
+        ``halves``), g = 2.38 / sqrt(2 P), e a jitter of 1e-4 of the guides' spread: the step
+        follows the population's own extent and direction (along a ridge the end leaves free).
+        Symmetric given the guides."""
+        p = self.x.shape[1]
         gamma = 2.38 / math.sqrt(2 * p)
-        jitter = 1e-4 * population.std(0).clamp_min(1e-12)
-        e = jitter * torch.randn(self.x.shape, generator=self.gen, dtype=torch.float64)
-        y = self.x + gamma * (population[a] - population[b]) + e
-        return self.metropolis(y, lambda lr_y, lq_y, lp_y: self.target(lr_y, lp_y) - self.target(self.lr, self.lp))
+        accepted = 0.0
+        for rows, guides in self.halves():
+            population = torch.unique(self.to_walk(self.x[guides]), dim=0)
+            m = population.shape[0]
+            if m < 2:
+                return self.random_walk_move()
+            r = rows.shape[0]
+            a = torch.randint(m, (r,), generator=self.gen)
+            b = (a + torch.randint(1, m, (r,), generator=self.gen)) % m  # never a
+            jitter = 1e-4 * population.std(0).clamp_min(1e-12)
+            e = jitter * torch.randn((r, p), generator=self.gen, dtype=torch.float64)
+            y = self.to_walk(self.x[rows]) + gamma * (population[a] - population[b]) + e
+            accepted += self.walk_metropolis(rows, y, None) * r
+        self.moves += 1
+        return accepted / self.n
 
     def distinct(self) -> float:
         return torch.unique(self.x, dim=0).shape[0] / self.n

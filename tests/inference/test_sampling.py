@@ -318,3 +318,34 @@ def test_prior_draws_follow_the_normalised_prior_density(block, settings):
     log_g = (-0.5 * (g / sd) ** 2 - torch.log(sd * math.sqrt(2 * math.pi))).sum(-1)
     w = torch.exp(log_prior_density(P, g) - log_g)
     assert float(w.mean()) == pytest.approx(1.0, abs=0.03)
+
+
+def test_a_thin_slab_in_eleven_parameters_keeps_the_priors_spread_along_it():
+    """11 parameters with N(0, 1) priors, 6 random directions observed to 0.05 (the box thrown of
+    the calibration bench: the end fixes 6 numbers, the prior the rest): 300 samples (the bench's
+    count) spread along the 5 unobserved directions as the posterior does and across the thin
+    ones too, from a search's mode 4 standard deviations off. Steps from each particle's nearest
+    neighbours, every particle moved at once, kept 0.76 of the variance along the slab here (and
+    without the difference steps 0.1-0.4: 90 % intervals held the truth 46 % of the time)."""
+    gen = torch.Generator().manual_seed(0)
+    p, m, sigma = 11, 6, 0.05
+    a = torch.randn(m, p, generator=gen, dtype=torch.float64)
+    prec = a.T @ a / sigma ** 2 + torch.eye(p, dtype=torch.float64)
+    cov = torch.linalg.inv(prec)
+    evals, evecs = torch.linalg.eigh(cov)  # ascending: the 6 thin directions first
+    ratios = []
+    for seed in range(4):
+        truth = torch.randn(p, generator=gen, dtype=torch.float64)
+        b = truth @ a.T + sigma * torch.randn(m, generator=gen, dtype=torch.float64)
+        mean = cov @ (a.T @ b) / sigma ** 2
+
+        def res(x, b=b):
+            return torch.cat([(x @ a.T - b) / sigma, x], -1)  # observation, then the prior's residuals
+
+        post = FakePosterior(p, lambda x, res=res: 0.5 * (res(x) ** 2).sum(-1), res)
+        rough = mean + 4 * evecs[:, :m] @ torch.sqrt(evals[:m])  # a search's mode, 4 sd off across
+        smp = sample_posterior(post, [Mode(rough, 0.0, 0.0, 0.0)], 300, seed=seed)
+        ratios.append(torch.diagonal(evecs.T @ torch.cov(smp.x.T) @ evecs) / evals)
+    r = torch.stack(ratios).mean(0)
+    assert 0.85 < float(r[m:].mean()) < 1.2, r  # along the slab
+    assert 0.85 < float(r[:m].mean()) < 1.2, r  # across it
