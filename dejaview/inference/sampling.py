@@ -39,7 +39,11 @@ bridge starts from the mixture q below instead of the prior).
     start-area position as its fraction of the area (``_SMC.to_walk``), and
     the particles move in two halves, each guided by the other half's current
     values (``_SMC.halves``): a kernel built from the particles that move with
-    it is not exact.
+    it is not exact. The first of them each step is a population move
+    (``POPULATION_MOVES``): an independence proposal from a kernel density
+    estimate of the other half, so particles jump between the basins the
+    population holds and the basins' shares follow their mass, where the walks
+    stay in their basin.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 
 Tempering from the prior reaches branches of the posterior the search did not
@@ -83,8 +87,11 @@ PRIOR_SHARE = 0.3
 of the posterior that the search did not find are reached by tempering from the prior."""
 DISTINCT_FRACTION = 0.9
 """A tempering step's moves go on until this fraction of the particles are distinct ..."""
-MAX_MOVES = 8
+MAX_MOVES = 7
 """... or this many moves have run."""
+POPULATION_MOVES = True
+"""The first random-walk move of each step is ``_SMC.population_move`` (measured on the calibration
+bench: ``docs/benchmarks.md``, "Posterior: calibration and speed")."""
 DIFFERENCE_MOVES = True
 """Every other random-walk move is a differential-evolution step (``_SMC.difference_move``);
 measured on the calibration bench: ``docs/benchmarks.md``, "Posterior: calibration and speed"."""
@@ -577,6 +584,46 @@ class _SMC:
         self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
+    def population_move(self) -> float:
+        """Independence proposal from a kernel density estimate of the guides (the other half of
+        the particles, ``halves``), in walk coordinates: a guide drawn at random, plus a normal
+        step with its mode's covariance (``mode_chol``) times Silverman's bandwidth factor. A
+        particle can jump into any basin the other half holds, in proportion to how many
+        guides sit there; the Hastings ratio q(w) / q(w') weighs basins by their mass."""
+        p = self.x.shape[1]
+        accepted = 0.0
+        for rows, guides in self.halves():
+            gx = torch.unique(self.x[guides], dim=0)
+            m = gx.shape[0]
+            if m == 0 or rows.shape[0] == 0:  # a population of one: nothing to propose from
+                continue
+            h = (4.0 / ((p + 2) * m)) ** (1.0 / (p + 4))
+            chol = self.mode_chol(gx) * h  # (K, P, P)
+            g = self.to_walk(gx)
+            own = self.mode_of(gx)  # (M,)
+            gl = chol[own]  # (M, P, P)
+            inv = torch.linalg.inv(chol)  # (K, P, P)
+            logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (K,)
+
+            def log_kde(w, inv=inv, own=own, g=g, logdet=logdet):
+                """(R,) log density (up to a constant) of the estimate at walk coordinates w (R, P)."""
+                out = torch.full((w.shape[0], g.shape[0]), -math.inf, dtype=w.dtype)
+                for c in range(inv.shape[0]):
+                    mine = own == c
+                    if bool(mine.any()):  # the kernels of component c's guides, whitened by its factor
+                        d = torch.cdist(w @ inv[c].T, g[mine] @ inv[c].T)
+                        out[:, mine] = -0.5 * d * d - logdet[c]
+                return torch.logsumexp(out, -1)
+
+            r = rows.shape[0]
+            pick = torch.randint(m, (r,), generator=self.gen)
+            z = torch.randn((r, p), generator=self.gen, dtype=torch.float64)
+            w_y = g[pick] + (gl[pick] @ z.unsqueeze(-1)).squeeze(-1)
+            ratio = log_kde(self.to_walk(self.x[rows])) - log_kde(w_y)
+            accepted += self.walk_metropolis(rows, w_y, ratio) * r
+        self.moves += 1
+        return accepted / self.n
+
     def difference_move(self) -> float:
         """Differential-evolution step (ter Braak 2006) in walk coordinates: w' = w + g (w_a - w_b)
         + e, a and b two distinct guides (members of the other half of the particles,
@@ -612,8 +659,11 @@ class _SMC:
         while done < count or (done < MAX_MOVES and self.distinct() < DISTINCT_FRACTION):
             if self.stopped():
                 return
-            self.acceptance.append(self.difference_move() if DIFFERENCE_MOVES and done % 2 == 0
-                                   else self.random_walk_move())
+            if POPULATION_MOVES and done == 1:
+                self.acceptance.append(self.population_move())
+            else:
+                self.acceptance.append(self.difference_move() if DIFFERENCE_MOVES and done % 2 == 0
+                                       else self.random_walk_move())
             done += 1
 
     def run(self) -> None:

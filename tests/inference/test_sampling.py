@@ -349,3 +349,43 @@ def test_a_thin_slab_in_eleven_parameters_keeps_the_priors_spread_along_it():
     r = torch.stack(ratios).mean(0)
     assert 0.85 < float(r[m:].mean()) < 1.2, r  # along the slab
     assert 0.85 < float(r[:m].mean()) < 1.2, r  # across it
+
+
+
+def test_the_population_move_rebalances_basins_the_particles_hold():
+    """Two basins in 3 parameters holding 0.3 and 0.7 of the mass, the particles (drawn from each
+    basin exactly) put 0.8 / 0.2 instead: the moves within a basin cannot mend that, the
+    population move (a jump to where the other half's particles are, weighed by the target)
+    does, and leaves each basin's shape as it is."""
+    from dejaview.inference.sampling import _SMC, laplace_mixture
+
+    m = torch.tensor([[-1.0, 0.0, 0.0], [1.2, 0.3, -0.2]], dtype=torch.float64)
+    s = torch.tensor([0.05, 0.1], dtype=torch.float64)
+    w = torch.tensor([0.3, 0.7], dtype=torch.float64)
+
+    def neg_log(x):  # the posterior itself: two normal basins, each normalised, weighted w
+        z2 = (((x[:, None, :] - m[None]) / s[None, :, None]) ** 2).sum(-1)
+        return -torch.logsumexp(torch.log(w) - 3 * torch.log(s) - 0.5 * z2, -1)
+
+    post = FakePosterior(3, neg_log, lambda x: (x - m[0]) / s[0])
+    q, _ = laplace_mixture(post, [Mode(m[0].clone(), float(neg_log(m[:1])), 0.0, 0.0)])
+    gen = torch.Generator().manual_seed(0)
+    n = 1000
+    basin = (torch.arange(n) >= 800).long()  # 800 in the light basin, 200 in the heavy one
+    x0 = m[basin] + s[basin, None] * torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    shares = {}
+    for kind in ("population_move", "random_walk_move"):
+        smc = _SMC(post, q, n, 0, None, None, from_prior=False)
+        smc.x = x0.clone()
+        smc.lr, smc.lq = smc.reference(smc.x), q.log_prob(smc.x)
+        smc.lp = -neg_log(smc.x)
+        smc.beta = 1.0
+        for _ in range(40):
+            getattr(smc, kind)()
+        heavy = smc.x[:, 0] > 0.1
+        shares[kind] = float(heavy.double().mean())
+        if kind == "population_move":
+            assert float(smc.x[heavy, 1].std()) == pytest.approx(0.1, rel=0.15)
+            assert float(smc.x[~heavy, 1].std()) == pytest.approx(0.05, rel=0.15)
+    assert shares["population_move"] == pytest.approx(0.7, abs=0.06), shares
+    assert shares["random_walk_move"] < 0.3, shares  # the walk stays in its basin
