@@ -149,7 +149,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     from dejaview.inference.posterior import Posterior, PosteriorSettings
     from dejaview.inference.posterior_report import physical, weighted_quantiles
     from dejaview.inference.problem import InferenceProblem
-    from dejaview.inference.sampling import log_density
+    from dejaview.inference.reference import log_density
 
     gen = torch.Generator().manual_seed(1000 + index)
     scene = base_scene(name)

@@ -26,7 +26,8 @@ from dejaview.inference.posterior_report import (
     read_csv,
     weighted_quantiles,
 )
-from dejaview.inference.sampling import Mixture, log_base_density, sample_posterior
+from dejaview.inference.reference import Mixture, log_base_density
+from dejaview.inference.sampling import sample_posterior
 from dejaview.inference.sampling import PosteriorSamples as Samples
 from dejaview.inference.search import Mode
 from dejaview.scene import Optimize, PosteriorSamples, Scene
@@ -300,7 +301,7 @@ def test_prior_draws_follow_the_normalised_prior_density(block, settings):
     """``log_prior_density`` is the normalised density of ``prior_draws``: importance weights
     p / g under a broad normal g average to 1, and the draws' density ranks like p."""
     from dejaview.inference.params import layout_from_scene
-    from dejaview.inference.sampling import log_prior_density, prior_draws
+    from dejaview.inference.reference import log_prior_density, prior_draws
 
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
     free = {b: b == block for b in ("position", "orientation", "linear_velocity", "angular_velocity")}
@@ -357,7 +358,8 @@ def test_the_population_move_rebalances_basins_the_particles_hold():
     basin exactly) put 0.8 / 0.2 instead: the moves within a basin cannot mend that, the
     population move (a jump to where the other half's particles are, weighed by the target)
     does, and leaves each basin's shape as it is."""
-    from dejaview.inference.sampling import _SMC, laplace_mixture
+    from dejaview.inference.reference import laplace_mixture
+    from dejaview.inference.sampling import _SMC
 
     m = torch.tensor([[-1.0, 0.0, 0.0], [1.2, 0.3, -0.2]], dtype=torch.float64)
     s = torch.tensor([0.05, 0.1], dtype=torch.float64)
