@@ -249,10 +249,11 @@ class _SMC:
         k = self.q.means.shape[0]
         return self.q.component_log_prob(x)[:, :k].argmax(-1)
 
-    def mode_chol(self, guides: torch.Tensor) -> torch.Tensor:
-        """(K, P, P) Cholesky factors, in walk coordinates (``to_walk``), of the covariance of the
-        guides (M, P) (parameters) that each reference component is most responsible for
-        (``mode_of``); the guides' overall covariance for a component with fewer than P + 2.
+    def mode_chol(self, w: torch.Tensor, own: torch.Tensor) -> torch.Tensor:
+        """(K, P, P) Cholesky factors of the covariance of the guides at walk coordinates w (M, P)
+        (``to_walk``) that each reference component is most responsible for (``own`` (M,):
+        ``mode_of`` the guides); the guides' overall covariance for a component with fewer
+        than P + 2.
 
         Why per mode and not of the nearest neighbours: a posterior that the end pins in a few
         directions and leaves to the prior in the others is a thin slab; a point's nearest
@@ -260,9 +261,7 @@ class _SMC:
         population, thinned there by every resampling, never spreads again (on an 11-D
         Gaussian with 6 observed directions: central 90 % intervals held the truth 46 % of
         the time with nearest-neighbour steps alone, 86 % with the population's covariance)."""
-        k, p = self.q.means.shape[0], guides.shape[1]
-        w = self.to_walk(guides)
-        own = self.mode_of(guides)
+        k, p = self.q.means.shape[0], w.shape[1]
         eye = torch.eye(p, dtype=w.dtype)
 
         def chol_of(points):
@@ -331,7 +330,8 @@ class _SMC:
         coordinates; the Hastings ratio uses the factor of the mode at w'."""
         accepted = 0.0
         for rows, guides in self.halves():
-            chol = self.mode_chol(torch.unique(self.x[guides], dim=0))
+            gx = torch.unique(self.x[guides], dim=0)
+            chol = self.mode_chol(self.to_walk(gx), self.mode_of(gx))
             lx = chol[self.mode_of(self.x[rows])]
             here = self.to_walk(self.x[rows])
             z = torch.randn(here.shape, generator=self.gen, dtype=torch.float64)
@@ -363,9 +363,9 @@ class _SMC:
             if m == 0 or rows.shape[0] == 0:  # a population of one: nothing to propose from
                 continue
             h = (4.0 / ((p + 2) * m)) ** (1.0 / (p + 4))
-            chol = self.mode_chol(gx) * h  # (K, P, P)
             g = self.to_walk(gx)
             own = self.mode_of(gx)  # (M,)
+            chol = self.mode_chol(g, own) * h  # (K, P, P)
             gl = chol[own]  # (M, P, P)
             inv = torch.linalg.inv(chol)  # (K, P, P)
             logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (K,)
@@ -397,12 +397,15 @@ class _SMC:
         Symmetric given the guides."""
         p = self.x.shape[1]
         gamma = 2.38 / math.sqrt(2 * p)
+        splits = self.halves()
+        # fewer than two distinct guides on a side: a random walk instead (decided before either
+        # half moves; a move never merges distinct values, so the count holds for the second half)
+        if min(torch.unique(self.x[guides], dim=0).shape[0] for _, guides in splits) < 2:
+            return self.random_walk_move()
         accepted = 0.0
-        for rows, guides in self.halves():
+        for rows, guides in splits:
             population = torch.unique(self.to_walk(self.x[guides]), dim=0)
             m = population.shape[0]
-            if m < 2:
-                return self.random_walk_move()
             r = rows.shape[0]
             a = torch.randint(m, (r,), generator=self.gen)
             b = (a + torch.randint(1, m, (r,), generator=self.gen)) % m  # never a
