@@ -19,18 +19,6 @@ from dejaview.server.local import LocalServer
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "server"
 
 
-def heatmap_available() -> bool:
-    try:
-        from dejaview.heatmap import compute_heatmap  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-needs_heatmap = pytest.mark.skipif(not heatmap_available(),
-                                   reason="dejaview.heatmap (compute_heatmap) is not there yet")
-
-
 def make_scene_root(base: Path) -> Path:
     """``base/root``: the fixtures plus a symlinked scene and a symlinked folder that lead to
     ``base/outside`` (a valid scene and mesh the server must never read)."""

@@ -13,8 +13,6 @@ from dejaview.io.trajectory import HEADER, read_trajectory_csv
 from dejaview.server.client import get_json, http_get, run_job, submit_job, wait_healthy
 from dejaview.server.local import LocalServer
 
-from .conftest import needs_heatmap
-
 
 def wait_state(base: str, job_id: str, timeout: float = 120.0) -> dict:
     deadline = time.monotonic() + timeout
@@ -57,7 +55,6 @@ def test_two_clients_run_at_the_same_time(live_server):
     assert sa["started_at"] < sb["finished_at"] and sb["started_at"] < sa["finished_at"]
 
 
-@needs_heatmap
 def test_heatmap_job_runs_beside_a_solve(live_server, tmp_path):
     async def both():
         return await asyncio.gather(

@@ -14,7 +14,7 @@ from dejaview.backends import warp_available
 from dejaview.io.trajectory import HEADER, read_trajectory_csv
 from dejaview.server.runner import ARTEFACTS
 
-from .conftest import FIXTURES, needs_heatmap
+from .conftest import FIXTURES
 
 BALL_XML = (FIXTURES / "ball.xml").read_text()
 
@@ -130,7 +130,6 @@ def test_samples_with_a_local_optimiser_fail_the_job_with_one_line(client):
     assert "\n" not in status["error"]["message"]
 
 
-@needs_heatmap
 def test_heatmap_job(client):
     job_id = submit(client, kind="heatmap", scene_path="ball.xml", overrides={"iterations": 1})
     status = wait_state(client, job_id, timeout=120)

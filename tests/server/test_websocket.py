@@ -9,7 +9,7 @@ import pytest
 from dejaview.io.trajectory import HEADER, read_trajectory_csv
 from dejaview.server.messages import SERVER_MESSAGE
 
-from .conftest import FIXTURES, needs_heatmap, receive, types, until_done
+from .conftest import FIXTURES, receive, types, until_done
 
 BALL_XML = (FIXTURES / "ball.xml").read_text()
 
@@ -71,7 +71,6 @@ def test_payloads_over_the_inline_limit_come_as_urls_only(make_client):
     assert client.get(result["url"]).json()["source"] == "ball"
 
 
-@needs_heatmap
 def test_heatmap_messages(client):
     with client.websocket_connect("/ws") as ws:
         submit(ws, kind="heatmap", scene_path="ball.xml", overrides={"iterations": 1})
@@ -282,7 +281,6 @@ def test_bare_text_scene_with_inference_is_solved(client):
     assert traj["ball"]["position"][0] != [0.0, 0.0, 0.4]
 
 
-@needs_heatmap
 def test_bare_text_heatmap_scene_gets_csv_then_ppm(client):
     with client.websocket_connect("/ws") as ws:
         ws.send_text("ball.xml")
