@@ -24,7 +24,9 @@ density (the fraction of samples denser than the truth: uniform too if the
 samples are the posterior's, whatever the parameterisation; piled at 1 when the
 samples crowd the densest regions and miss the posterior's thinner bulk, at 0
 in the opposite case), the sharpness (mean 90 % interval width over the
-prior's 90 % width: 1 means the end taught nothing), and a 10-bin rank
+prior's 90 % width: 1 means the end taught nothing), on how many truths the
+sampler's two independent runs disagreed (``max_rhat`` per truth over
+``posterior_report.RHAT_LIMIT``: the warning a user sees), and a 10-bin rank
 histogram (``--plot``: a PNG of them). The scenes (built in code from bundled
 ones; the files are not touched), each observed at its last record
 (``evaluate="final"``, the generative model of the observation):
@@ -147,7 +149,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
 
     from dejaview.inference import solve
     from dejaview.inference.posterior import Posterior, PosteriorSettings
-    from dejaview.inference.posterior_report import physical, weighted_quantiles
+    from dejaview.inference.posterior_report import physical, rhat, weighted_quantiles
     from dejaview.inference.problem import InferenceProblem
     from dejaview.inference.reference import log_density
 
@@ -177,6 +179,8 @@ def run_case(name: str, index: int, samples: int) -> dict:
             if level == 0.9:
                 width.append(hi - lo)
     row["ranks"] = ranks
+    r = rhat(values, smp.run) if smp.run is not None else None
+    row["max_rhat"] = None if r is None or not bool(torch.isfinite(r).all()) else float(r.max())
     row["cover50"], row["cover90"] = cover[0.5], cover[0.9]
     row["sharpness"] = [wd / pw for wd, pw in zip(width, prior_width90(prior_post))]
     observed_post = Posterior(result.problem, PosteriorSettings.from_scene(observed))
@@ -198,7 +202,10 @@ def summarize(rows: list[dict]) -> dict:
     for r in rows:
         if r.get("density_rank") is not None:
             density[min(int(r["density_rank"] * len(density)), len(density) - 1)] += 1
-    return {"cover50": sum(c50) / len(c50), "cover90": sum(c90) / len(c90), "n": len(c90),
+    from dejaview.inference.posterior_report import RHAT_LIMIT
+
+    flagged = sum(1 for r in rows if r.get("max_rhat") is not None and r["max_rhat"] > RHAT_LIMIT)
+    return {"cover50": sum(c50) / len(c50), "cover90": sum(c90) / len(c90), "n": len(c90), "flagged": flagged,
             "sharpness": sum(sharp) / len(sharp), "histogram": hist, "density_histogram": density,
             "seconds": sum(r["seconds"] for r in rows) / len(rows)}
 
@@ -218,7 +225,7 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     say(f"calibration: {', '.join(scenes)}; {truths} truths each, {samples} samples; load average {load:.1f}")
     rows = []
-    per_scene = {}
+    per_scene, mine_by = {}, {}
     for name in scenes:
         mine = []
         for i in range(truths):
@@ -231,13 +238,15 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
                     + f", {row['unique']} distinct, {row['stages']} steps, "
                     + f"{row['density_rank']:.2f} of the samples denser than the truth")
         per_scene[name] = summarize(mine)
+        mine_by[name] = mine
     say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram"
         f"  [density rank, 5 bins]")
     for name, s in per_scene.items():
         params = len(next(r for r in rows if r["scene"] == name)["parameters"])
         say(f"{name:<16} {params:>6} {s['cover50']:>8.3f} {s['cover90']:>8.3f} {s['sharpness']:>6.3f} "
             f"{s['seconds']:>7.1f}  {' '.join(str(h) for h in s['histogram'])}  "
-            f"[{' '.join(str(h) for h in s['density_histogram'])}]  {verdict(s)}")
+            f"[{' '.join(str(h) for h in s['density_histogram'])}]  {verdict(s)}; runs disagree on "
+            f"{s['flagged']} of {len(mine_by[name])} truths")
     pooled = summarize(rows)
     say(f"{'pooled':<16} {'':>6} {pooled['cover50']:>8.3f} {pooled['cover90']:>8.3f} "
         f"{pooled['sharpness']:>6.3f} {pooled['seconds']:>7.1f}  "

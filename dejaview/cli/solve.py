@@ -99,5 +99,11 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
                        + ", ".join(f"{m['probability']:.2f}" for m in post["modes"]))
             for name, iv in post["intervals"].items():
                 lo, hi = iv["90%"]
-                click.echo(f"    {name:20s} median {iv['median']:8.3f}   90% [{lo:8.3f}, {hi:8.3f}]")
+                click.echo(f"    {name:20s} median {iv['median']:8.3f}   90% [{lo:8.3f}, {hi:8.3f}]"
+                           + (f"   R-hat {iv['rhat']:.3f}" if "rhat" in iv else ""))
+            agree = post.get("agreement")
+            if agree is not None and not agree["runs_agree"]:
+                click.echo(f"  warning: the sampler's {sampler['runs']} independent runs disagree (R-hat up to "
+                           f"{agree['max_rhat']:.2f} > {agree['limit']:g}): the posterior is rugged; do not trust "
+                           "these intervals and mode probabilities (docs/inference.md)")
         click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))

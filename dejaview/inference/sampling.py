@@ -41,6 +41,10 @@ bridge starts from the mixture q below instead of the prior).
     population holds and the basins' shares follow their mass, where the walks
     stay in their basin.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
+- The n samples are those of ``RUNS`` independent runs (n / RUNS particles
+  each, seeds apart): where they disagree (``posterior_report.rhat``) the
+  posterior is rugged, each run holds other branches of it, and the report
+  says so (measured on the calibration bench: docs/inference.md).
 
 Tempering from the prior reaches branches of the posterior the search did not
 find (a ball thrown up rather than rolled, both ending alike); the moves from
@@ -81,6 +85,11 @@ MAX_MOVES = 7
 POPULATION_MOVES = True
 """The first random-walk move of each step is ``_SMC.population_move`` (measured on the calibration
 bench: ``docs/benchmarks.md``, "Posterior: calibration and speed")."""
+RUNS = 2
+"""Independent SMC runs that share the samples (each ``n / RUNS`` particles): their agreement
+(``posterior_report.rhat``) says whether the samples can be trusted."""
+MIN_RUN_SIZE = 20
+"""Fewer samples than ``RUNS`` times this: one run."""
 DIFFERENCE_MOVES = True
 """Every other random-walk move is a differential-evolution step (``_SMC.difference_move``);
 measured on the calibration bench: ``docs/benchmarks.md``, "Posterior: calibration and speed"."""
@@ -95,6 +104,7 @@ class PosteriorSamples:
         component: (N,) the mode each sample belongs to: the nearest of the search's distinct
             modes (the reference components' centres), in scaled parameters.
         mode_index: per component, the index of the search mode it is centred on.
+        run: (N,) which of the sampler's independent runs (``RUNS``) drew each sample.
         stats: what the sampler did (stages, betas, acceptance, ESS, rollouts, seconds).
     """
 
@@ -103,6 +113,7 @@ class PosteriorSamples:
     log_density: torch.Tensor
     component: torch.Tensor
     mode_index: list
+    run: torch.Tensor | None = None
     stats: dict = field(default_factory=dict)
 
 
@@ -456,8 +467,9 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
         modes: the search's modes (``SearchResult.modes``: ``Mode`` with x (P,) and cost), best first.
         n: number of samples (>= 1).
         seed: seeds the sampler.
-        callback: called with a dict (``beta``, ``stage``, ``moves``, ``fraction`` (0 to 1: how
-            far the sampler is), ``elapsed_s``) after the start and every tempering step.
+        callback: called with a dict (``beta``, ``stage``, ``moves`` of the current run, ``run``
+            (its index), ``fraction`` (0 to 1: how far the sampler is over all runs),
+            ``elapsed_s``) after each run's start and every tempering step.
         should_stop: polled between moves; True raises InferenceError (nothing half-sampled is
             returned).
     Returns:
@@ -472,15 +484,30 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
     proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
     if proper:  # the prior is a proper distribution: temper from it, propose from it too
         q.prior, q.prior_share = post, PRIOR_SHARE
-    smc = _SMC(post, q, n, seed, callback, should_stop, from_prior=proper)
-    smc.run()
+    runs_wanted = RUNS if n >= RUNS * MIN_RUN_SIZE else 1
+    sizes = [n // runs_wanted + (1 if i < n % runs_wanted else 0) for i in range(runs_wanted)]
+    t0 = time.perf_counter()
+    runs = []
+    for i, size in enumerate(sizes):
+        def report(info, i=i):
+            if callback is not None:
+                callback({**info, "fraction": (i + info["fraction"]) / len(sizes), "run": i,
+                          "elapsed_s": time.perf_counter() - t0})
+        smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper)
+        smc.run()
+        runs.append(smc)
+    x = torch.cat([r.x for r in runs])
+    lp = torch.cat([r.lp for r in runs])
+    run = torch.cat([torch.full((r.n,), i, dtype=torch.long) for i, r in enumerate(runs)])
     weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
-    stats = {"method": "smc", "reference_components": int(q.means.shape[0]), "stages": smc.stages,
-             "moves": smc.moves, "mean_acceptance": sum(smc.acceptance) / max(len(smc.acceptance), 1),
-             "final_acceptance": smc.acceptance[-1] if smc.acceptance else None,
-             "first_step_ess": smc.ess_steps[0] if smc.ess_steps else None,
-             "unique_samples": int(torch.unique(smc.x, dim=0).shape[0]),
-             "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - smc.t0}
-    nearest_mode = torch.cdist(smc.x, q.means).argmin(-1)  # in scaled parameters
-    return PosteriorSamples(x=smc.x, weights=weights, log_density=smc.lp, component=nearest_mode,
+    acceptance = [a for r in runs for a in r.acceptance]
+    stats = {"method": "smc", "runs": len(runs), "reference_components": int(q.means.shape[0]),
+             "stages": max(r.stages for r in runs), "moves": sum(r.moves for r in runs),
+             "mean_acceptance": sum(acceptance) / max(len(acceptance), 1),
+             "final_acceptance": runs[-1].acceptance[-1] if runs[-1].acceptance else None,
+             "first_step_ess": runs[0].ess_steps[0] if runs[0].ess_steps else None,
+             "unique_samples": int(torch.unique(x, dim=0).shape[0]),
+             "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - t0}
+    nearest_mode = torch.cdist(x, q.means).argmin(-1)  # in scaled parameters
+    return PosteriorSamples(x=x, weights=weights, log_density=lp, component=nearest_mode, run=run,
                             mode_index=mode_index, stats=stats)

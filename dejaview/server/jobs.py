@@ -186,7 +186,7 @@ def _solve(scene, overrides, out_dir, progress, stop):
     if "posterior" in result.settings:
         post = result.settings["posterior"]
         summary["posterior"] = {"samples": post["samples"], "modes": post["modes"],
-                                "intervals": post["intervals"]}
+                                "intervals": post["intervals"], "agreement": post.get("agreement")}
     return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
 
 

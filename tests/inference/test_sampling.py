@@ -22,8 +22,11 @@ from dejaview.inference.posterior_report import (
     CSV_HEADER,
     PATHS,
     PATHS_HEADER,
+    RHAT_LIMIT,
     path_samples,
     read_csv,
+    rhat,
+    summary,
     weighted_quantiles,
 )
 from dejaview.inference.reference import Mixture, log_base_density
@@ -219,6 +222,17 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     data = json.loads(paths["result"].read_text())
     post = data["posterior"]
     assert post["samples"] == 200 and sum(m["probability"] for m in post["modes"]) == pytest.approx(1.0, abs=1e-3)
+    # two independent runs of 100 that agree: the end pins the ramp's start
+    assert post["sampler"]["runs"] == 2 and torch.bincount(result.posterior.run).tolist() == [100, 100]
+    assert post["agreement"]["runs_agree"] and post["agreement"]["max_rhat"] <= RHAT_LIMIT
+    assert all(iv["rhat"] <= RHAT_LIMIT for iv in post["intervals"].values())
+    # the same samples with one run moved off: flagged
+    moved = result.posterior.x.clone()
+    second = result.posterior.run == 1
+    moved[second, 0] += 2 * moved[:, 0].std()
+    flagged = summary(replace(result.posterior, x=moved), result.problem.layout, result.optimization.modes)
+    assert not flagged["agreement"]["runs_agree"] and flagged["intervals"]["position.x"]["rhat"] > RHAT_LIMIT
+    assert flagged["intervals"]["position.y"]["rhat"] <= RHAT_LIMIT
     start = data["initial_state"]["position"]
     for axis, name in ((0, "position.x"), (1, "position.y")):
         iv = post["intervals"][name]
@@ -240,6 +254,38 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
         assert steps == sorted(steps) and steps[0] == 0 and steps[-1] == result.problem.duration_steps
         assert path[0][2:] == pytest.approx(states[index, 0:3].tolist(), abs=1e-6)
         assert path[-1][2:] == pytest.approx(end[b].tolist(), abs=1e-6)
+
+
+def test_rhat_is_one_for_runs_of_one_distribution_and_flags_runs_apart():
+    """Rank-normalised R-hat of two runs: about 1 for 300 + 300 draws of one distribution (also heavy
+    tailed, where the ranks matter), above the limit where one run's draws sit a deviation apart,
+    and not defined for one run."""
+    g = torch.Generator().manual_seed(3)
+    values = torch.randn(600, 3, generator=g, dtype=torch.float64)
+    values[:, 2] = values[:, 2] ** 3 * 100.0  # heavy tails and another unit
+    run = torch.cat([torch.zeros(300, dtype=torch.long), torch.ones(300, dtype=torch.long)])
+    same = rhat(values, run)
+    assert torch.all((same > 0.99) & (same < 1.02)), same
+    apart = values.clone()
+    apart[300:, 0] += 1.0
+    r = rhat(apart, run)
+    assert r[0] > RHAT_LIMIT and torch.all(r[1:] < 1.02), r
+    assert torch.isnan(rhat(values, torch.zeros(600, dtype=torch.long))).all()
+
+
+def test_the_samples_come_from_independent_runs_of_half_the_particles():
+    """n >= 40: two runs of n/2 (odd n: the first one more), labelled; fewer: one run."""
+    A = torch.eye(2, dtype=torch.float64)
+
+    def res(x):
+        return x @ A.T
+
+    post = FakePosterior(2, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
+    mode = Mode(torch.zeros(2, dtype=torch.float64), 0.0, 0.0, 0.0)
+    smp = sample_posterior(post, [mode], 101, seed=0)
+    assert smp.stats["runs"] == 2 and torch.bincount(smp.run).tolist() == [51, 50] and smp.x.shape == (101, 2)
+    few = sample_posterior(post, [mode], 30, seed=0)
+    assert few.stats["runs"] == 1 and bool((few.run == 0).all())
 
 
 def test_paths_are_drawn_by_weight_among_distinct_samples():
