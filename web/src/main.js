@@ -474,6 +474,7 @@ async function handleMessage(msg) {
     case 'result':
       app.result = msg.result ?? JSON.parse(await fetchText(msg.url));
       if (app.result && Number.isFinite(app.result.loss)) notify(`best loss ${app.result.loss.toPrecision(3)}`);
+      warnIfRunsDisagree(app.result?.posterior?.agreement);
       break;
     case 'error':
       if (job) job.error = msg;
@@ -520,6 +521,14 @@ function showHeatmap(grid) {
   const topZ = area ? Math.max(area.min[2], area.max[2]) : 1;
   app.heatmap = heatmapDecal(grid, world, surfaces, topZ);
   app.heatmap.visible = $('show-heatmap').checked;
+}
+
+// The sampler's two independent runs disagree (result.json's posterior.agreement): the posterior is
+// rugged and its samples, intervals and heatmap are not to be trusted.
+function warnIfRunsDisagree(agreement) {
+  if (!agreement || agreement.runs_agree) return;
+  notify(`posterior: the sampler's independent runs disagree (R-hat up to ${agreement.max_rhat.toFixed(2)} > `
+    + `${agreement.limit}); do not trust these samples`, 'warning');
 }
 
 // The posterior's samples of a done job (solve with samples, heatmap), when it drew any.

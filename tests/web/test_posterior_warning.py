@@ -1,0 +1,58 @@
+"""The viewer warns when a job's posterior is not to be trusted: result.json's
+``posterior.agreement`` says the sampler's independent runs disagree (``dejaview.inference.
+posterior_report.rhat``). The WebSocket is answered by a stand-in for the server (Playwright's
+``route_web_socket``), so the test sets the agreement itself; scenes still load from a real
+``dejaview serve``."""
+
+from __future__ import annotations
+
+import json
+import re
+
+from .conftest import load_scene, needs_browser, open_viewer, state
+
+pytestmark = needs_browser
+
+
+def fake_server(agreements: list[dict]):
+    """A WebSocket handler answering the n-th submit with accepted, a result whose posterior has
+    ``agreements[n]``, and done."""
+    submits = []
+
+    def handler(ws):
+        def on_message(text):
+            msg = json.loads(text)
+            if msg.get("type") != "submit":
+                return
+            n = len(submits)
+            submits.append(msg)
+            job = {"job_id": f"job{n}", "request_id": msg.get("request_id")}
+            ws.send(json.dumps({**job, "type": "accepted", "kind": msg["kind"], "state": "queued"}))
+            result = {"source": "cube", "loss": 0.001,
+                      "posterior": {"samples": 100, "modes": [], "intervals": {}, "agreement": agreements[n]}}
+            ws.send(json.dumps({**job, "type": "result", "result": result}))
+            ws.send(json.dumps({**job, "type": "done", "state": "done"}))
+
+        ws.on_message(on_message)
+
+    return handler
+
+
+def test_a_posterior_whose_runs_disagree_gets_a_warning(page, web_server, artifacts):
+    page.route_web_socket(re.compile(r".*/ws(\?.*)?$"), fake_server([
+        {"max_rhat": 1.01, "limit": 1.1, "runs_agree": True},
+        {"max_rhat": 1.42, "limit": 1.1, "runs_agree": False},
+    ]))
+    open_viewer(page, web_server)
+    load_scene(page, "scenes/toss.xml")
+
+    def run_and_wait(count):
+        page.click("#run-solve")
+        page.wait_for_function(f"window.dejaview.state().jobs.filter(j => j.state === 'done').length === {count}")
+        return [n for n in state(page)["notifications"] if n["kind"] == "warning"]
+
+    assert run_and_wait(1) == []  # the runs agree: no warning
+    warnings = run_and_wait(2)
+    assert len(warnings) == 1 and "disagree" in warnings[0]["text"] and "1.42" in warnings[0]["text"]
+    assert page.locator("#notifications li.warning").count() == 1
+    page.screenshot(path=artifacts / "posterior-warning.png")
