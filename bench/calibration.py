@@ -149,7 +149,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
 
     from dejaview.inference import solve
     from dejaview.inference.posterior import Posterior, PosteriorSettings
-    from dejaview.inference.posterior_report import physical, rhat, weighted_quantiles
+    from dejaview.inference.posterior_report import physical, weighted_quantiles
     from dejaview.inference.problem import InferenceProblem
     from dejaview.inference.reference import log_density
 
@@ -179,8 +179,8 @@ def run_case(name: str, index: int, samples: int) -> dict:
             if level == 0.9:
                 width.append(hi - lo)
     row["ranks"] = ranks
-    r = rhat(values, smp.run) if smp.run is not None else None
-    row["max_rhat"] = None if r is None or not bool(torch.isfinite(r).all()) else float(r.max())
+    agreement = result.settings["posterior"]["agreement"]  # the runs' R-hat, as the user sees it
+    row["max_rhat"] = None if agreement is None else agreement["max_rhat"]
     row["cover50"], row["cover90"] = cover[0.5], cover[0.9]
     row["sharpness"] = [wd / pw for wd, pw in zip(width, prior_width90(prior_post))]
     observed_post = Posterior(result.problem, PosteriorSettings.from_scene(observed))
@@ -225,7 +225,7 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     say(f"calibration: {', '.join(scenes)}; {truths} truths each, {samples} samples; load average {load:.1f}")
     rows = []
-    per_scene, mine_by = {}, {}
+    per_scene = {}
     for name in scenes:
         mine = []
         for i in range(truths):
@@ -238,7 +238,6 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
                     + f", {row['unique']} distinct, {row['stages']} steps, "
                     + f"{row['density_rank']:.2f} of the samples denser than the truth")
         per_scene[name] = summarize(mine)
-        mine_by[name] = mine
     say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram"
         f"  [density rank, 5 bins]")
     for name, s in per_scene.items():
@@ -246,7 +245,7 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
         say(f"{name:<16} {params:>6} {s['cover50']:>8.3f} {s['cover90']:>8.3f} {s['sharpness']:>6.3f} "
             f"{s['seconds']:>7.1f}  {' '.join(str(h) for h in s['histogram'])}  "
             f"[{' '.join(str(h) for h in s['density_histogram'])}]  {verdict(s)}; runs disagree on "
-            f"{s['flagged']} of {len(mine_by[name])} truths")
+            f"{s['flagged']} of {truths} truths")
     pooled = summarize(rows)
     say(f"{'pooled':<16} {'':>6} {pooled['cover50']:>8.3f} {pooled['cover90']:>8.3f} "
         f"{pooled['sharpness']:>6.3f} {pooled['seconds']:>7.1f}  "

@@ -91,11 +91,11 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
             click.echo(f"{result.candidates} posterior samples over {nx} x {ny} cells in {result.seconds:.1f} s; "
                        f"{len(result.solutions)} mode(s); the 90 % credible region covers "
                        f"{100 * credible_area(result.probability):.1f} % of the start area")
-            agree = result.settings.get("agreement")
-            if agree is not None and not agree["runs_agree"]:
-                click.echo(f"  warning: the sampler's independent runs disagree (R-hat up to {agree['max_rhat']:.2f} > "
-                           f"{agree['limit']:g}): the posterior is rugged; do not trust this heatmap "
-                           "(docs/inference.md)")
+            from dejaview.inference.posterior_report import agreement_warning
+
+            warning = agreement_warning(result.settings.get("agreement"), "this heatmap")
+            if warning:
+                click.echo("  " + warning)
         else:
             click.echo(f"{result.candidates} optimisations over {nx} x {ny} cells in {result.seconds:.1f} s; "
                        f"{len(result.solutions)} distinct solutions")

@@ -101,9 +101,9 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
                 lo, hi = iv["90%"]
                 click.echo(f"    {name:20s} median {iv['median']:8.3f}   90% [{lo:8.3f}, {hi:8.3f}]"
                            + (f"   R-hat {iv['rhat']:.3f}" if "rhat" in iv else ""))
-            agree = post.get("agreement")
-            if agree is not None and not agree["runs_agree"]:
-                click.echo(f"  warning: the sampler's {sampler['runs']} independent runs disagree (R-hat up to "
-                           f"{agree['max_rhat']:.2f} > {agree['limit']:g}): the posterior is rugged; do not trust "
-                           "these intervals and mode probabilities (docs/inference.md)")
+            from dejaview.inference.posterior_report import agreement_warning
+
+            warning = agreement_warning(post.get("agreement"), "these intervals and mode probabilities")
+            if warning:
+                click.echo("  " + warning)
         click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))

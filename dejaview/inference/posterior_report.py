@@ -80,7 +80,7 @@ def rhat(values: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
     z = torch.special.ndtri((ranks - 0.375) / (n + 0.25))
     means = torch.stack([z[run == k].mean(0) for k in labels])
     within = torch.stack([z[run == k].var(0) for k in labels]).mean(0)
-    m = float(torch.tensor([(run == k).sum() for k in labels], dtype=torch.float64).mean())
+    m = n / labels.numel()  # the runs' mean size
     between = means.var(0)  # B / m
     var_plus = (m - 1) / m * within + between
     return torch.sqrt(var_plus / within.clamp_min(1e-300))
@@ -101,7 +101,8 @@ def summary(samples, layout, modes) -> dict:
         qs += [(1 - level) / 2, (1 + level) / 2]
     quant = weighted_quantiles(values, w, qs)
     intervals = {}
-    r = rhat(values, samples.run) if samples.run is not None else torch.full((values.shape[1],), float("nan"))
+    run = samples.run if samples.run is not None else torch.zeros(values.shape[0], dtype=torch.long)
+    r = rhat(values, run)  # NaN for one run
     for j, name in enumerate(layout.names()):
         intervals[name] = {"median": float(quant[0, j]),
                            **{f"{int(level * 100)}%": [float(quant[1 + 2 * i, j]), float(quant[2 + 2 * i, j])]
@@ -123,6 +124,15 @@ def summary(samples, layout, modes) -> dict:
         "max_rhat": float(finite.max()), "limit": RHAT_LIMIT, "runs_agree": bool(finite.max() <= RHAT_LIMIT)}
     return {"samples": int(samples.x.shape[0]), "sampler": samples.stats, "modes": found,
             "intervals": intervals, "agreement": agreement}
+
+
+def agreement_warning(agreement: dict | None, what: str) -> str | None:
+    """The one-line warning the CLI prints where ``summary``'s ``agreement`` says the runs disagree
+    (None where they agree or there was one run); ``what``: what not to trust."""
+    if agreement is None or agreement["runs_agree"]:
+        return None
+    return (f"warning: the sampler's independent runs disagree (R-hat up to {agreement['max_rhat']:.2f} > "
+            f"{agreement['limit']:g}): the posterior is rugged; do not trust {what} (docs/inference.md)")
 
 
 def write_csv(path, samples, layout) -> Path:

@@ -23,6 +23,7 @@ from dejaview.inference.posterior_report import (
     PATHS,
     PATHS_HEADER,
     RHAT_LIMIT,
+    agreement_warning,
     path_samples,
     read_csv,
     rhat,
@@ -233,6 +234,9 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     flagged = summary(replace(result.posterior, x=moved), result.problem.layout, result.optimization.modes)
     assert not flagged["agreement"]["runs_agree"] and flagged["intervals"]["position.x"]["rhat"] > RHAT_LIMIT
     assert flagged["intervals"]["position.y"]["rhat"] <= RHAT_LIMIT
+    assert agreement_warning(post["agreement"], "these intervals") is None
+    line = agreement_warning(flagged["agreement"], "these intervals")
+    assert "disagree" in line and f"{flagged['agreement']['max_rhat']:.2f}" in line and "\n" not in line
     start = data["initial_state"]["position"]
     for axis, name in ((0, "position.x"), (1, "position.y")):
         iv = post["intervals"][name]
