@@ -293,18 +293,28 @@ class Posterior:
         """Physics variants the likelihood averages over (1 without model uncertainty)."""
         return 1 if self.model is None else self.model.count
 
+    def trajectories(self, x: torch.Tensor, checkpoint: bool = False) -> list:
+        """The rollouts of parameters x (B, P) the likelihood compares: one per physics variant
+        (``variants``), each a Trajectory (T, B, N, ...)."""
+        p = self.problem
+        if self.model is None:
+            return [p.simulate(x, checkpoint=checkpoint)]
+        return self.model.trajectories(p, x, checkpoint=checkpoint)
+
     def residuals(self, x: torch.Tensor, traj=None, checkpoint: bool = False
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """All residuals R (B, M) of parameters x (B, P), and the scene's loss (B,) in metres.
 
         Columns: the ``num_observed`` observation residuals of each of the ``variants`` physics
         variants first (each over sqrt(variants)), then the penalties' and the prior's. A given
-        ``traj`` is the one simulator's (no variants); the loss is the variants' mean."""
-        p = self.problem
-        if traj is not None or self.model is None:
-            trajs = [p.simulate(x, checkpoint=checkpoint) if traj is None else traj]
+        ``traj`` is the one simulator's (no variants), or a list of them (``trajectories``: one
+        per variant, as ``dejaview.inference.symmetry`` moves them); the loss is the variants'
+        mean."""
+        if traj is None:
+            trajs = self.trajectories(x, checkpoint=checkpoint)
         else:
-            trajs = self.model.trajectories(p, x, checkpoint=checkpoint)
+            trajs = list(traj) if isinstance(traj, (list, tuple)) else [traj]
+        p = self.problem
         scale = 1.0 / math.sqrt(len(trajs))
         obs, pens, losses = [], [], []
         for t in trajs:
@@ -328,11 +338,13 @@ class Posterior:
             dec = self.layout.decode(x)
         return torch.as_tensor(self.feasible_fn(dec["position"], dec["orientation"]), dtype=torch.bool)
 
-    def cost(self, x: torch.Tensor, feasibility: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def cost(self, x: torch.Tensor, feasibility: bool = True, trajs: list | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Negative log posterior (B,), observation chi-square (B,) and the scene's loss (B,) of
         parameters x (B, P), without gradients. Infeasible starts and non-finite results cost inf
         (infeasible ones are not simulated). ``feasibility=False``: every start is simulated as
-        if feasible (for a caller that checks only the starts it keeps)."""
+        if feasible (for a caller that checks only the starts it keeps). ``trajs``: the rollouts
+        of x already known (``trajectories``), so none is simulated."""
         b = x.shape[0]
         inf = torch.full((b,), math.inf, dtype=x.dtype)
         cost, chi2, loss = inf.clone(), inf.clone(), inf.clone()
@@ -341,8 +353,11 @@ class Posterior:
             return cost, chi2, loss
         xs = x[ok]
         with torch.no_grad():
-            r, l_ = self.residuals(xs)
-        self.rollouts += xs.shape[0]
+            if trajs is None:
+                r, l_ = self.residuals(xs)
+                self.rollouts += xs.shape[0]
+            else:
+                r, l_ = self.residuals(xs, traj=[t.select(ok) for t in trajs])
         c = 0.5 * (r * r).sum(-1)
         finite = torch.isfinite(c)
         obs = r[:, :self.num_observed * self.variants]  # ``residuals`` puts the observation's first

@@ -121,11 +121,13 @@ def log_base_density(post, x: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def log_density(post, x: torch.Tensor, feasibility: bool = True) -> torch.Tensor:
+def log_density(post, x: torch.Tensor, feasibility: bool = True, trajs: list | None = None) -> torch.Tensor:
     """Unnormalised log posterior density (B,) of parameters x (B, P): ``-cost + log base``,
-    ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates).
+    ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates,
+    unless their rollouts ``trajs`` are given: ``Posterior.trajectories``).
     ``feasibility=False``: as if every start were feasible (the caller checks those it keeps)."""
-    cost, _, _ = post.cost(x, feasibility=feasibility)
+    cost, _, _ = (post.cost(x, feasibility=feasibility) if trajs is None
+                  else post.cost(x, feasibility=feasibility, trajs=trajs))
     out = -cost + log_base_density(post, x)
     return torch.where(torch.isfinite(out), out, torch.full_like(out, -math.inf))
 

@@ -40,6 +40,13 @@ bridge starts from the mixture q below instead of the prior).
     estimate of the other half, so particles jump between the basins the
     population holds and the basins' shares follow their mass, where the walks
     stay in their basin.
+  - Where the scene has a symmetry (``dejaview.inference.symmetry``: a floor and nothing else
+    static, the source alone; ``SYMMETRY_MOVES``), each step also moves every particle along
+    its orbit (the start moved and turned so that its end lands on the observed one, drawn by
+    conditional importance sampling over such motions), and the random-walk and
+    differential-evolution steps act on the coordinates the motions leave alone, accepted by
+    the orbits' integrals (pseudo-marginal), so a walk is not undone by an end that lands a few
+    centimetres or degrees off.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 - The n samples are those of ``RUNS`` independent runs (n / RUNS particles
   each, seeds apart): where they disagree (``posterior_report.rhat``) the
@@ -63,6 +70,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference.reference import Mixture, laplace_mixture, log_density, log_prior_density, prior_draws
+from dejaview.inference.symmetry import FloorSymmetry, assign, orbit_walk
 
 ESS_FRACTION = 0.7
 """Effective sample size kept by each tempering step, as a fraction of the particles."""
@@ -90,6 +98,9 @@ RUNS = 2
 (``posterior_report.rhat``) says whether the samples can be trusted."""
 MIN_RUN_SIZE = 20
 """Fewer samples than ``RUNS`` times this: one run."""
+SYMMETRY_MOVES = True
+"""Each tempering step moves the particles along the scene's symmetry (``dejaview.inference.symmetry``:
+a floor's horizontal translations and turns), where it has one."""
 DIFFERENCE_MOVES = True
 """Every other random-walk move is a differential-evolution step (``_SMC.difference_move``);
 measured on the calibration bench: ``docs/benchmarks.md``, "Posterior: calibration and speed"."""
@@ -122,6 +133,29 @@ def _ess(logw: torch.Tensor) -> float:
     return float(1.0 / (w * w).sum())
 
 
+def _chol_of(points: torch.Tensor) -> torch.Tensor:
+    """(P, P) Cholesky factor of the covariance of points (M, P) (the identity for one point; the
+    diagonal's roots where the covariance is singular)."""
+    p = points.shape[1]
+    eye = torch.eye(p, dtype=points.dtype)
+    c = torch.cov(points.T).reshape(p, p) if points.shape[0] > 1 else eye.clone()
+    c = c + 1e-9 * eye * float(torch.diagonal(c).mean().clamp_min(1e-12))
+    chol, info = torch.linalg.cholesky_ex(c)
+    return chol if int(info) == 0 else torch.diag(torch.sqrt(torch.diagonal(c).clamp_min(1e-12)))
+
+
+def _difference_steps(population: torch.Tensor, r: int, gen: torch.Generator
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """r differential-evolution steps ``g (w_a - w_b)`` (r, P) between distinct members a, b of
+    ``population`` (M >= 2, P), and their jitters e (r, P) (``_SMC.difference_move``)."""
+    m, p = population.shape
+    a = torch.randint(m, (r,), generator=gen)
+    b = (a + torch.randint(1, m, (r,), generator=gen)) % m  # never a
+    jitter = 1e-4 * population.std(0).clamp_min(1e-12)
+    e = jitter * torch.randn((r, p), generator=gen, dtype=torch.float64)
+    return 2.38 / math.sqrt(2 * p) * (population[a] - population[b]), e
+
+
 def _systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Systematic resampling: (N,) indices."""
     n = logw.shape[0]
@@ -145,6 +179,10 @@ class _SMC:
         self.acceptance: list[float] = []
         self.ess_steps: list[float] = []
         self.t0 = time.perf_counter()
+        self.symmetry = FloorSymmetry.of(post) if SYMMETRY_MOVES else None
+        self.orbit_scale = self.scale
+        self.ends, self.ends_known = None, None
+        """The compared records of the particles' rollouts, and which of them hold (``orbit_walk``)."""
 
     def reference(self, x: torch.Tensor) -> torch.Tensor:
         """Log density (B,) of the bridge's start: the prior, or the mixture q."""
@@ -158,6 +196,7 @@ class _SMC:
         self.lr = self.reference(self.x)
         self.lq = self.q.log_prob(self.x)
         self.lp = log_density(self.post, self.x)
+        self.ends, self.ends_known = None, torch.zeros(self.n, dtype=torch.bool)
         if not bool(torch.isfinite(self.lp).any()):
             raise InferenceError("no draw from the prior or around the modes has a finite posterior density")
 
@@ -190,6 +229,8 @@ class _SMC:
         self.beta = new
         idx = _systematic(logw, self.gen)
         self.x, self.lr, self.lq, self.lp = self.x[idx], self.lr[idx], self.lq[idx], self.lp[idx]
+        if self.ends is not None:
+            self.ends, self.ends_known = [t.select(idx) for t in self.ends], self.ends_known[idx]
         self.stages += 1
 
     def target(self, lr: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
@@ -227,6 +268,8 @@ class _SMC:
             bad = idx[~self.post.feasible(y[idx])]
             lp_y[bad] = -math.inf
             ok[bad] = False
+        if self.ends is not None:  # their rollouts' ends (``orbit_walk``) are now unknown
+            self.ends_known[rows[ok]] = False
         self.x[rows] = torch.where(ok[:, None], y, self.x[rows])
         self.lr[rows] = torch.where(ok, lr_y, lr_x)
         self.lq[rows] = torch.where(ok, lq_y, lq_x)
@@ -238,6 +281,56 @@ class _SMC:
         y, _ = self.q.sample(self.n, self.gen)
         acc = self.metropolis(y, torch.arange(self.n), independence=True)
         self.moves += 1
+        return acc
+
+    def orbit_move(self) -> float:
+        """A move along each particle's orbit under the scene's symmetry (``symmetry.orbit_walk``
+        without a step: its end carried onto the observed one); one rollout per particle."""
+        y, lp, moved, ends = orbit_walk(self.post, self.symmetry, self.x, self.tempered, self.beta, self.gen,
+                                        known=self.known(torch.arange(self.n)))
+        self.x, self.lp = y, lp
+        self.lr, self.lq = self.reference(y), self.q.log_prob(y)
+        self.ends, self.ends_known = ends, torch.ones(self.n, dtype=torch.bool)
+        self.moves += 1
+        return float(moved.double().mean())
+
+    def known(self, rows: torch.Tensor) -> tuple | None:
+        """The known ends of the particles ``rows`` for ``orbit_walk``, or None."""
+        if self.ends is None:
+            return None
+        return [t.select(rows) for t in self.ends], self.ends_known[rows]
+
+    def tempered(self, y: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
+        """log pi_beta (B,) of parameters y (B, P) whose log posterior density is lp (B,)."""
+        return self.target(self.reference(y), lp)
+
+    def orbit_walk_move(self, difference: bool) -> float:
+        """Across orbits (``symmetry.orbit_walk`` with a step in the orbit coordinates r): a normal
+        step with the guides' covariance of r (``halves``), or with ``difference`` a
+        differential-evolution step between two guides; a rollout per particle (and of its own
+        start where its end is not known)."""
+        sym, lay = self.symmetry, self.post.layout
+        accepted = 0.0
+        for rows, guides in self.halves():
+            gr = torch.unique(sym.coordinates(lay, self.x[guides])[0], dim=0)
+            r = rows.shape[0]
+            if difference and gr.shape[0] >= 2:
+                step = sum(_difference_steps(gr, r, self.gen))
+            else:
+                z = torch.randn((r, gr.shape[1]), generator=self.gen, dtype=torch.float64)
+                step = self.orbit_scale * (z @ _chol_of(gr).T)
+            y, lp, ok, ends = orbit_walk(self.post, sym, self.x[rows], self.tempered, self.beta, self.gen,
+                                         step=step, known=self.known(rows))
+            self.x[rows], self.lp[rows] = y, lp
+            if self.ends is not None:
+                self.ends = assign(self.ends, rows, ends)
+                self.ends_known[rows] = True
+            self.lr[rows], self.lq[rows] = self.reference(y), self.q.log_prob(y)
+            accepted += float(ok.double().sum())
+        self.moves += 1
+        acc = accepted / self.n
+        if not difference:
+            self.orbit_scale = float(min(max(self.orbit_scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
         return acc
 
     def halves(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -273,20 +366,11 @@ class _SMC:
         Gaussian with 6 observed directions: central 90 % intervals held the truth 46 % of
         the time with nearest-neighbour steps alone, 86 % with the population's covariance)."""
         k, p = self.q.means.shape[0], w.shape[1]
-        eye = torch.eye(p, dtype=w.dtype)
-
-        def chol_of(points):
-            c = torch.cov(points.T).reshape(p, p) if points.shape[0] > 1 else eye.clone()
-            c = c + 1e-9 * eye * float(torch.diagonal(c).mean().clamp_min(1e-12))
-            chol, info = torch.linalg.cholesky_ex(c)
-            return chol if int(info) == 0 else torch.diag(torch.sqrt(torch.diagonal(c).clamp_min(1e-12)))
-
-        overall = chol_of(w)
-        out = overall.expand(k, p, p).clone()
+        out = _chol_of(w).expand(k, p, p).clone()
         for j in range(k):
             mine = own == j
             if int(mine.sum()) >= p + 2:
-                out[j] = chol_of(w[mine])
+                out[j] = _chol_of(w[mine])
         return out
 
     def to_walk(self, x: torch.Tensor) -> torch.Tensor:
@@ -406,8 +490,6 @@ class _SMC:
         ``halves``), g = 2.38 / sqrt(2 P), e a jitter of 1e-4 of the guides' spread: the step
         follows the population's own extent and direction (along a ridge the end leaves free).
         Symmetric given the guides."""
-        p = self.x.shape[1]
-        gamma = 2.38 / math.sqrt(2 * p)
         splits = self.halves()
         # fewer than two distinct guides on a side: a random walk instead (decided before either
         # half moves; a move never merges distinct values, so the count holds for the second half)
@@ -416,13 +498,9 @@ class _SMC:
         accepted = 0.0
         for rows, guides in splits:
             population = torch.unique(self.to_walk(self.x[guides]), dim=0)
-            m = population.shape[0]
             r = rows.shape[0]
-            a = torch.randint(m, (r,), generator=self.gen)
-            b = (a + torch.randint(1, m, (r,), generator=self.gen)) % m  # never a
-            jitter = 1e-4 * population.std(0).clamp_min(1e-12)
-            e = jitter * torch.randn((r, p), generator=self.gen, dtype=torch.float64)
-            y = self.to_walk(self.x[rows]) + gamma * (population[a] - population[b]) + e
+            d, e = _difference_steps(population, r, self.gen)
+            y = self.to_walk(self.x[rows]) + d + e
             accepted += self.walk_metropolis(rows, y, None) * r
         self.moves += 1
         return accepted / self.n
@@ -434,12 +512,16 @@ class _SMC:
         """One independence move, then random-walk moves, ``count`` in all, and more (up to
         ``MAX_MOVES``) while fewer than ``DISTINCT_FRACTION`` of the particles are distinct."""
         self.acceptance.append(self.independence_move())
+        if self.symmetry is not None:
+            self.acceptance.append(self.orbit_move())
         done = 1
         while done < count or (done < MAX_MOVES and self.distinct() < DISTINCT_FRACTION):
             if self.stopped():
                 return
             if POPULATION_MOVES and done == 1:
                 self.acceptance.append(self.population_move())
+            elif self.symmetry is not None:
+                self.acceptance.append(self.orbit_walk_move(difference=DIFFERENCE_MOVES and done % 2 == 0))
             else:
                 self.acceptance.append(self.difference_move() if DIFFERENCE_MOVES and done % 2 == 0
                                        else self.random_walk_move())

@@ -104,5 +104,9 @@ class Trajectory:
         """The last recorded State (B, N, ...)."""
         return State(*(t[-1] for t in self.states.tensors()))
 
+    def select(self, idx) -> "Trajectory":
+        """The records of the candidates ``idx`` (an index or mask of the batch dimension)."""
+        return Trajectory(State(*(t[:, idx] for t in self.states.tensors())), self.steps, self.dt)
+
     def __len__(self) -> int:
         return self.steps.shape[0]
