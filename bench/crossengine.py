@@ -184,6 +184,8 @@ FIDELITY = (
     ("box slides off the table", box("box", (0.0, 0, TABLE_TOP + BOX[2] / 2), (3.0, 0, 0)), 0.3),
     ("box-box hit (sliding into a resting box)", box("box", (1.0, 0, BOX[2] / 2), (2.5, 0, 0))
      + box("box2", (1.5, 0, BOX[2] / 2)), 0.3),
+    ("ball hits a resting box (ball-hits-box's start)", ball("ball", (0.8, 0, BALL_R), (2.0, 0, 0), (0, 40.0, 0))
+     + box("box2", (1.3, 0, BOX[2] / 2)), 0.3),
 )
 
 
