@@ -41,7 +41,8 @@ bridge starts from the mixture q below instead of the prior).
     population holds and the basins' shares follow their mass, where the walks
     stay in their basin.
   - Where the scene has a symmetry (``dejaview.inference.symmetry``: a floor and nothing else
-    static, the source alone; ``SYMMETRY_MOVES``), each step also moves every particle along
+    static, the source alone, its end compared at one record; ``SYMMETRY_MOVES``), each step
+    also moves every particle along
     its orbit (the start moved and turned so that its end lands on the observed one, drawn by
     conditional importance sampling over such motions), and the random-walk and
     differential-evolution steps act on the coordinates the motions leave alone, accepted by

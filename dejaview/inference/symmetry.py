@@ -112,12 +112,16 @@ class FloorSymmetry:
 
     @staticmethod
     def of(post) -> "FloorSymmetry | None":
-        """The symmetry of ``post``'s scene (a ``Posterior``), or None where it has none: another
+        """The symmetry of ``post``'s scene (a ``Posterior``), or None where it has none (another
         movable body, a static shape that is not a horizontal plane, gravity not vertical, a
-        position free in per-candidate boxes."""
+        position free in per-candidate boxes) or where the likelihood reads more than one record
+        of each rollout (``evaluate="best"`` without a target time, a ``<penalty>``): the moves
+        would carry every record of every candidate motion."""
         problem, lay = getattr(post, "problem", None), post.layout
         world = getattr(problem, "world", None)
         if world is None:  # not a simulated scene's posterior
+            return None
+        if problem.penalties or (problem.target.time is None and problem.evaluate == "best"):
             return None
         if world.mass.shape[0] != 1 or float(world.gravity[:2].abs().max()) > _TOL:
             return None
@@ -362,14 +366,11 @@ class FloorSymmetry:
 
 
 def compared_records(post, traj: Trajectory) -> Trajectory:
-    """The records of ``traj`` that ``Posterior.observation_residuals`` compares, where they do not
-    depend on the candidate (the last, or the one nearest the target's time) and no penalty reads
-    the whole trajectory; else ``traj``."""
+    """The one record of ``traj`` that ``Posterior.observation_residuals`` compares (the last, or
+    the one nearest the target's time; ``FloorSymmetry.of`` leaves the other cases out)."""
     from dejaview.losses.trajectory import nearest_record
 
     p = post.problem
-    if p.penalties or (p.target.time is None and p.evaluate == "best"):
-        return traj
     k = nearest_record(traj, p.target.time) if p.target.time is not None else len(traj) - 1
     return Trajectory(State(*(t[k:k + 1] for t in traj.states.tensors())), traj.steps[k:k + 1], traj.dt)
 
