@@ -448,7 +448,7 @@ def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, g: torch.Tensor, t
 
 
 def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float, gen: torch.Generator,
-               step: torch.Tensor | None = None, draws: int = DRAWS, known: tuple | None = None):
+               step: torch.Tensor | None = None, draws: int | None = None, known: tuple | None = None):
     """One move of the particles x (B, P) along and across the orbits (module docstring).
 
     With ``step`` None: a conditional importance-sampling move along each particle's orbit (its
@@ -470,6 +470,7 @@ def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float,
     """
     lay = post.layout
     b = x.shape[0]
+    draws = DRAWS if draws is None else draws
     r, g, _ = sym.coordinates(lay, x)
     base = ends(post, x, known)
     logw, ys, lps, rth, rt = _orbit_weights(post, sym, x, g, base, tempered, beta, gen, draws, keep_current=True)

@@ -63,6 +63,29 @@ def test_the_rollout_of_a_moved_start_is_the_moved_rollout():
     assert torch.allclose(start_y[:, :2], pivot[:, :2] + t, atol=1e-12)
 
 
+def test_every_physics_variant_of_model_uncertainty_moves_alike():
+    """With ``<model-uncertainty>`` the likelihood averages K variants' rollouts: the moved
+    rollouts give the density of fresh ones."""
+    from dejaview.inference.model_uncertainty import ModelVariants
+
+    scene = thrown_box()
+    problem = InferenceProblem.from_scene(scene)
+    model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
+    sym = FloorSymmetry.of(post)
+    gen = torch.Generator().manual_seed(4)
+    x = post.sample(4, gen)
+    x[:, :2] = 0.5 * x[:, :2].clamp(-1, 1)
+    theta = torch.tensor([0.5, -1.0, 2.0, 0.1], dtype=torch.float64)
+    t = 0.02 * torch.randn(4, 2, generator=gen, dtype=torch.float64)
+    y, _ = sym.act(post.layout, x, theta, t)
+    pivot = post.layout.decode(x)["position"]
+    trajs = post.trajectories(x)
+    assert len(trajs) == model.count > 1
+    moved = [sym.act_trajectory(tr, pivot, theta, t) for tr in trajs]
+    assert torch.allclose(log_density(post, y, trajs=moved), log_density(post, y), rtol=1e-9)
+
+
 def test_the_move_inverts_and_its_jacobian_is_the_determinant():
     post = posterior_of(thrown_box())
     sym = FloorSymmetry.of(post)
