@@ -64,8 +64,9 @@ import torch
 from dejaview.sim.rotation import quat_multiply, quat_rotate, quat_to_rotvec, rotvec_to_quat
 from dejaview.sim.state import State, Trajectory
 
-DRAWS = 32
-"""Motions drawn per orbit in ``orbit_walk``'s importance sampling (each costs no rollout)."""
+DRAWS = 128
+"""Motions drawn per orbit in ``orbit_walk``'s importance sampling (each costs no rollout; box_thrown
+calibrated better with 128 than 32, no better with 512: docs/benchmarks.md, "Symmetry moves")."""
 WIDTH = 1.5
 """The importance proposal's spread over the tempered observation noise."""
 _TOL = 1e-12
