@@ -115,10 +115,16 @@ def log_base_density(post, x: torch.Tensor) -> torch.Tensor:
     cols = lay.block_slice("orientation")
     if cols.stop > cols.start and post.settings.tilt is None:
         t = lay.scale["orientation"] * x[:, cols].norm(dim=-1)
-        haar = torch.where(t < 1e-4, torch.full_like(t, 0.5) - t * t / 24,
-                           (1 - torch.cos(t)) / (t * t).clamp_min(1e-300))
-        out = out + torch.where(t <= math.pi, torch.log(haar.clamp_min(1e-300)), torch.full_like(t, -math.inf))
+        out = out + torch.where(t <= math.pi, log_haar(t), torch.full_like(t, -math.inf))
     return out
+
+
+def log_haar(angle: torch.Tensor) -> torch.Tensor:
+    """log of ``(1 - cos t) / t^2`` (B,) at rotation angles t (B,): the Haar measure's density in
+    rotation-vector coordinates, up to a constant (series below 1e-4)."""
+    haar = torch.where(angle < 1e-4, torch.full_like(angle, 0.5) - angle * angle / 24,
+                       (1 - torch.cos(angle)) / (angle * angle).clamp_min(1e-300))
+    return torch.log(haar.clamp_min(1e-300))
 
 
 def log_density(post, x: torch.Tensor, feasibility: bool = True, trajs: list | None = None) -> torch.Tensor:
@@ -126,8 +132,7 @@ def log_density(post, x: torch.Tensor, feasibility: bool = True, trajs: list | N
     ``-inf`` where the start is infeasible or the rollout not finite (simulates B candidates,
     unless their rollouts ``trajs`` are given: ``Posterior.trajectories``).
     ``feasibility=False``: as if every start were feasible (the caller checks those it keeps)."""
-    cost, _, _ = (post.cost(x, feasibility=feasibility) if trajs is None
-                  else post.cost(x, feasibility=feasibility, trajs=trajs))
+    cost, _, _ = post.cost(x, feasibility=feasibility, trajs=trajs)
     out = -cost + log_base_density(post, x)
     return torch.where(torch.isfinite(out), out, torch.full_like(out, -math.inf))
 

@@ -42,12 +42,11 @@ bridge starts from the mixture q below instead of the prior).
     stay in their basin.
   - Where the scene has a symmetry (``dejaview.inference.symmetry``: a floor and nothing else
     static, the source alone, its end compared at one record; ``SYMMETRY_MOVES``), each step
-    also moves every particle along
-    its orbit (the start moved and turned so that its end lands on the observed one, drawn by
-    conditional importance sampling over such motions), and the random-walk and
-    differential-evolution steps act on the coordinates the motions leave alone, accepted by
-    the orbits' integrals (pseudo-marginal), so a walk is not undone by an end that lands a few
-    centimetres or degrees off.
+    also moves every particle along its orbit (the start moved and turned so that its end lands
+    on the observed one, drawn by conditional importance sampling over such motions), and the
+    random-walk and differential-evolution steps act on the coordinates the motions leave alone,
+    accepted by the orbits' integrals (pseudo-marginal), so a walk is not undone by an end that
+    lands a few centimetres or degrees off.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 - The n samples are those of ``RUNS`` independent runs (n / RUNS particles
   each, seeds apart): where they disagree (``posterior_report.rhat``) the
@@ -157,6 +156,11 @@ def _difference_steps(population: torch.Tensor, r: int, gen: torch.Generator
     return 2.38 / math.sqrt(2 * p) * (population[a] - population[b]), e
 
 
+def _adapted(scale: float, acceptance: float) -> float:
+    """A walk's step scale moved towards ``TARGET_ACCEPTANCE`` after a move accepting ``acceptance``."""
+    return float(min(max(scale * math.exp(acceptance - TARGET_ACCEPTANCE), 1e-3), 3.0))
+
+
 def _systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Systematic resampling: (N,) indices."""
     n = logw.shape[0]
@@ -197,7 +201,6 @@ class _SMC:
         self.lr = self.reference(self.x)
         self.lq = self.q.log_prob(self.x)
         self.lp = log_density(self.post, self.x)
-        self.ends, self.ends_known = None, torch.zeros(self.n, dtype=torch.bool)
         if not bool(torch.isfinite(self.lp).any()):
             raise InferenceError("no draw from the prior or around the modes has a finite posterior density")
 
@@ -331,7 +334,7 @@ class _SMC:
         self.moves += 1
         acc = accepted / self.n
         if not difference:
-            self.orbit_scale = float(min(max(self.orbit_scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
+            self.orbit_scale = _adapted(self.orbit_scale, acc)
         return acc
 
     def halves(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -442,7 +445,7 @@ class _SMC:
             accepted += self.walk_metropolis(rows, w_y, log_q_ratio) * rows.shape[0]
         self.moves += 1
         acc = accepted / self.n
-        self.scale = float(min(max(self.scale * math.exp(acc - TARGET_ACCEPTANCE), 1e-3), 3.0))
+        self.scale = _adapted(self.scale, acc)
         return acc
 
     def population_move(self) -> float:

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import torch
 
+from dejaview.inference.reference import log_density, log_haar
 from dejaview.sim.rotation import quat_multiply, quat_rotate, quat_to_rotvec, rotvec_to_quat
 from dejaview.sim.state import State, Trajectory
 
@@ -86,16 +87,6 @@ def _turn(v: torch.Tensor, theta: torch.Tensor, bodies: bool = False) -> torch.T
         c, s = c[:, None], s[:, None]
     x, y = v[..., 0], v[..., 1]
     return torch.stack([c * x - s * y, s * x + c * y, v[..., 2]], -1)
-
-
-def _log_haar(r: torch.Tensor) -> torch.Tensor:
-    """log of ``(1 - cos a) / a^2`` (B,) at rotation vectors r (B, 3), a = |r|: the Haar measure's
-    density in rotation-vector coordinates (up to a constant)."""
-    a2 = (r * r).sum(-1)
-    a = torch.sqrt(a2)
-    small = a < 1e-4
-    h = torch.where(small, 0.5 - a2 / 24, (1 - torch.cos(a)) / torch.where(small, torch.ones_like(a2), a2))
-    return torch.log(h)
 
 
 @dataclass(frozen=True)
@@ -177,7 +168,7 @@ class FloorSymmetry:
             r2 = quat_to_rotvec(quat_multiply(_rotation_z(theta), rotvec_to_quat(r)))
             y[:, cols] = r2 / sc
             ok = r.norm(dim=-1) <= math.pi
-            log_jac = log_jac + _log_haar(r) - _log_haar(r2)
+            log_jac = log_jac + log_haar(r.norm(dim=-1)) - log_haar(r2.norm(dim=-1))
             log_jac = torch.where(ok, log_jac, torch.full_like(log_jac, -math.inf))
             for block in ("linear_velocity", "angular_velocity"):
                 cols = lay.block_slice(block)
@@ -265,7 +256,6 @@ class FloorSymmetry:
                     log_vol = log_vol - torch.log(f * (1 - f))
             else:
                 r_parts.append(x[:, c:c + 1])
-        psi = torch.zeros(b, dtype=x.dtype)
         if self.rotate:
             q = dec["orientation"]
             psi = torch.remainder(2 * torch.atan2(q[:, 3], q[:, 0]) + math.pi, 2 * math.pi) - math.pi
@@ -276,7 +266,7 @@ class FloorSymmetry:
             small = a < 1e-6
             log_swing = torch.log(0.5 * torch.where(small, 1 - a * a / 6,
                                                     torch.sin(a) / torch.where(small, torch.ones_like(a), a)))
-            log_vol = log_vol + log_swing - _log_haar(rvec)
+            log_vol = log_vol + log_swing - log_haar(rvec.norm(dim=-1))
             log_vol = torch.where(rvec.norm(dim=-1) <= math.pi, log_vol, torch.full_like(log_vol, -math.inf))
             for block in ("linear_velocity", "angular_velocity"):
                 c = lay.block_slice(block)
@@ -338,6 +328,20 @@ class FloorSymmetry:
                     x[:, c] = r[:, k:k + 3]
                     k += 3
         return x, ok
+
+    def as_g(self, theta: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The motion (theta (B,), t (B, 2)) as an increment (B, G) of the coordinates g."""
+        cols = ([theta[:, None]] if self.rotate else []) + [t[:, a:a + 1] for a in self.axes]
+        return torch.cat(cols, -1)
+
+    def as_motion(self, dg: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The motion (theta (B,), t (B, 2)) of an increment dg (B, G) of the coordinates g."""
+        gi = 1 if self.rotate else 0
+        theta = dg[:, 0] if self.rotate else torch.zeros(dg.shape[0], dtype=dg.dtype)
+        t = torch.zeros(dg.shape[0], 2, dtype=dg.dtype)
+        for j, a in enumerate(self.axes):
+            t[:, a] = dg[:, gi + j]
+        return theta, t
 
     def log_proposal(self, g: torch.Tensor, centre: torch.Tensor, spread: tuple) -> torch.Tensor:
         """Log density (...,) of motions g (..., G) under the normal (wrapped in psi) around
@@ -412,17 +416,10 @@ def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, g: torch.Tensor, t
     Returns (B, M) log weights ``log pi(r, g_m) - log k(g_m)`` of M motions g_m (the first the
     current g of x where ``keep_current``), the M candidates' parameters (B, M, P), their log
     posterior densities (B, M), and the motions from x to them: theta (B, M), t (B, M, 2)."""
-    from dejaview.inference.reference import log_density
-
     lay = post.layout
     b = x.shape[0]
     pivot = lay.decode(x)["position"].detach()
-    theta, t = sym.aligning(post, trajs[0], pivot)
-    centre = g.clone()
-    if sym.rotate:
-        centre[:, 0] = g[:, 0] + theta
-    for j, a in enumerate(sym.axes):
-        centre[:, (1 if sym.rotate else 0) + j] = g[:, (1 if sym.rotate else 0) + j] + t[:, a]
+    centre = g + sym.as_g(*sym.aligning(post, trajs[0], pivot))
     spread = sym.spreads(post, beta)
     gs = sym.draw(centre, spread, draws, gen)
     if keep_current:
@@ -430,11 +427,7 @@ def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, g: torch.Tensor, t
     m = gs.shape[1]
     flat = gs.reshape(b * m, -1)
     rep = torch.arange(b).repeat_interleave(m)
-    rel_theta = (flat[:, 0] - g[rep, 0]) if sym.rotate else torch.zeros(b * m, dtype=x.dtype)
-    rel_t = torch.zeros(b * m, 2, dtype=x.dtype)
-    for j, a in enumerate(sym.axes):
-        col = (1 if sym.rotate else 0) + j
-        rel_t[:, a] = flat[:, col] - g[rep, col]
+    rel_theta, rel_t = sym.as_motion(flat - g[rep])
     y, log_jac = sym.act(lay, x[rep], rel_theta, rel_t)
     ok = torch.isfinite(log_jac)
     lp = torch.full((b * m,), -math.inf, dtype=x.dtype)

@@ -69,7 +69,7 @@ class FakePosterior:
         self.checked += x.shape[0]
         return torch.ones(x.shape[0], dtype=torch.bool) if self.feasible_fn is None else self.feasible_fn(x)
 
-    def cost(self, x, feasibility=True):
+    def cost(self, x, feasibility=True, trajs=None):
         self.rollouts += x.shape[0]
         c = self.neg_log(x)
         if feasibility:
