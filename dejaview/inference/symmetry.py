@@ -26,12 +26,14 @@ group adds to g and leaves r alone, and ``orbit_walk`` moves the particles in
 both (``dejaview.inference.sampling`` calls it):
 
 - along the orbit: conditional importance sampling (Andrieu, Lee and Vihola
-  2018) of g: ``DRAWS`` motions from a normal around the g that carries x's
-  end onto the observed end (position and heading; its spread the tempered
-  observation noise times ``WIDTH``), the current g among them, one drawn by
-  the weights ``pi(r, g) / k(g)``, pi the tempered density in (r, g), i.e. at
-  g x times ``|det dx/d(r, g)|`` (the start area's logit, the rotation
-  vector's Haar factor);
+  2018) of g: ``DRAWS`` motions around the g that carries x's end onto the
+  observed end (position and heading; the spread the tempered observation
+  noise times ``WIDTH``), each a turn drawn about the vertical through the
+  end point rather than the start (an end a metre away would otherwise move
+  by a metre times the turn) plus a normal translation, the current g among
+  them, one drawn by the weights ``pi(r, g) / k(g)``, pi the tempered
+  density in (r, g), i.e. at g x times ``|det dx/d(r, g)|`` (the start area's
+  logit, the rotation vector's Haar factor);
 - across orbits: a symmetric step in r (a normal step with the population's
   covariance of r, or a differential-evolution step), accepted with
   probability ``Z(r') / Z(r)``, Z the orbit's integral of pi over g, both
@@ -191,10 +193,12 @@ class FloorSymmetry:
                       angular_velocity=_turn(st.angular_velocity, theta, bodies=True))
         return Trajectory(moved, traj.steps, traj.dt)
 
-    def aligning(self, post, traj: Trajectory, pivot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def aligning(self, post, traj: Trajectory, pivot: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The motion (theta (B,), t (B, 2)) that carries the end of x's rollout ``traj`` onto the
         observed end: the heading of the observed orientation (where the loss compares
-        orientations), then the observed centre of mass (the origin for the ``position`` loss).
+        orientations), then the observed centre of mass (the origin for the ``position`` loss);
+        and the arm (B, 3) from the turns' axis ``pivot`` (x's start position) to that end point.
         The rollout's last record stands for the compared one."""
         problem = post.problem
         b = problem.source
@@ -209,11 +213,12 @@ class FloorSymmetry:
             goal = post._target_origin
         else:
             point, goal = com, post._target_com
-        moved = _turn(point - pivot, theta) + pivot
+        arm = point - pivot
+        moved = _turn(arm, theta) + pivot
         t = torch.zeros(com.shape[0], 2, dtype=com.dtype)
         for a in self.axes:
             t[:, a] = goal[a] - moved[:, a]
-        return theta, t
+        return theta, t, arm
 
     def spreads(self, post, beta: float) -> tuple[float, float]:
         """The proposal's standard deviations (theta in radians, t in metres) at beta: the
@@ -329,45 +334,51 @@ class FloorSymmetry:
                     k += 3
         return x, ok
 
-    def as_g(self, theta: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """The motion (theta (B,), t (B, 2)) as an increment (B, G) of the coordinates g."""
-        cols = ([theta[:, None]] if self.rotate else []) + [t[:, a:a + 1] for a in self.axes]
-        return torch.cat(cols, -1)
+    def following(self, theta: torch.Tensor, centre: tuple, arm: torch.Tensor) -> torch.Tensor:
+        """The translations (..., 2) that, after a turn by theta (...,) about the pivot, keep the
+        end point where the motion ``centre`` = (theta_c (...,), t_c (..., 2)) puts it (along
+        ``axes``; 0 along the others); ``arm`` (..., 3): from the pivot to the end point."""
+        theta_c, t_c = centre
+        shift = _turn(arm, theta_c) - _turn(arm, theta)
+        t = torch.zeros_like(t_c)
+        for a in self.axes:
+            t[..., a] = t_c[..., a] + shift[..., a]
+        return t
 
-    def as_motion(self, dg: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The motion (theta (B,), t (B, 2)) of an increment dg (B, G) of the coordinates g."""
-        gi = 1 if self.rotate else 0
-        theta = dg[:, 0] if self.rotate else torch.zeros(dg.shape[0], dtype=dg.dtype)
-        t = torch.zeros(dg.shape[0], 2, dtype=dg.dtype)
-        for j, a in enumerate(self.axes):
-            t[:, a] = dg[:, gi + j]
-        return theta, t
-
-    def log_proposal(self, g: torch.Tensor, centre: torch.Tensor, spread: tuple) -> torch.Tensor:
-        """Log density (...,) of motions g (..., G) under the normal (wrapped in psi) around
-        ``centre`` (..., G) with ``spread`` = (sd_psi, sd_t)."""
-        out = torch.zeros(g.shape[:-1], dtype=g.dtype)
-        start = 0
+    def log_proposal(self, theta: torch.Tensor, t: torch.Tensor, centre: tuple, arm: torch.Tensor,
+                     spread: tuple) -> torch.Tensor:
+        """Log density (...,) of motions (theta (...,), t (..., 2)) under ``draw``'s proposal around
+        the motion ``centre`` = (theta_c (...,), t_c (..., 2)) with end-point arm (..., 3)."""
+        out = torch.zeros(theta.shape, dtype=theta.dtype)
         if self.rotate:
-            k = torch.arange(-2, 3, dtype=g.dtype) * (2 * math.pi)
-            d = torch.remainder(g[..., 0] - centre[..., 0] + math.pi, 2 * math.pi) - math.pi
+            k = torch.arange(-2, 3, dtype=theta.dtype) * (2 * math.pi)
+            d = torch.remainder(theta - centre[0] + math.pi, 2 * math.pi) - math.pi
             z = (d[..., None] + k) / spread[0]
             out = out + torch.logsumexp(-0.5 * z * z, -1) - math.log(spread[0] * math.sqrt(2 * math.pi))
-            start = 1
-        z = (g[..., start:] - centre[..., start:]) / spread[1]
-        return out - 0.5 * (z * z).sum(-1) - (g.shape[-1] - start) * math.log(spread[1] * math.sqrt(2 * math.pi))
+        mean = self.following(theta, centre, arm)
+        for a in self.axes:
+            z = (t[..., a] - mean[..., a]) / spread[1]
+            out = out - 0.5 * z * z - math.log(spread[1] * math.sqrt(2 * math.pi))
+        return out
 
-    def draw(self, centre: torch.Tensor, spread: tuple, m: int, gen: torch.Generator) -> torch.Tensor:
-        """m motions (B, m, G) per row of ``centre`` (B, G) from ``log_proposal``'s normal."""
-        b, width = centre.shape
-        z = torch.randn(b, m, width, generator=gen, dtype=centre.dtype)
-        sd = torch.full((width,), spread[1], dtype=centre.dtype)
-        if self.rotate:
-            sd[0] = spread[0]
-        g = centre[:, None, :] + sd * z
-        if self.rotate:
-            g[..., 0] = torch.remainder(g[..., 0] + math.pi, 2 * math.pi) - math.pi
-        return g
+    def draw(self, centre: tuple, arm: torch.Tensor, spread: tuple, m: int, gen: torch.Generator
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """m motions per particle around its motion ``centre`` = (theta_c (B,), t_c (B, 2)): theta
+        (B, m) from a normal (wrapped) of sd ``spread[0]``; t (B, m, 2) turning about the end point
+        (``following``, ``arm`` (B, 3)) plus a normal of sd ``spread[1]`` along ``axes``.
+
+        Why about the end point: a turn about the start moves an end that lies a metre away by a
+        metre times the angle, which the translations' own spread cannot undo, so the proposal
+        would miss the observed end on every orbit whose body travels far."""
+        b = centre[0].shape[0]
+        z = torch.randn(b, m, 3, generator=gen, dtype=centre[0].dtype)
+        theta = centre[0][:, None] + spread[0] * z[..., 0] if self.rotate else torch.zeros_like(z[..., 0])
+        theta = torch.remainder(theta + math.pi, 2 * math.pi) - math.pi
+        expand = (centre[0][:, None].expand(b, m), centre[1][:, None].expand(b, m, 2))
+        t = self.following(theta, expand, arm[:, None].expand(b, m, 3))
+        for a in self.axes:
+            t[..., a] = t[..., a] + spread[1] * z[..., 1 + a]
+        return theta, t
 
 
 def compared_records(post, traj: Trajectory) -> Trajectory:
@@ -408,26 +419,26 @@ def assign(trajs: list, rows: torch.Tensor, new: list) -> list:
     return out
 
 
-def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, g: torch.Tensor, trajs: list, tempered,
-                   beta: float, gen: torch.Generator, draws: int, keep_current: bool):
+def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, trajs: list, tempered, beta: float,
+                   gen: torch.Generator, draws: int, keep_current: bool):
     """Importance sampling along the orbits of x (B, P), whose rollouts' compared records are
     ``trajs`` (``ends``).
 
     Returns (B, M) log weights ``log pi(r, g_m) - log k(g_m)`` of M motions g_m (the first the
-    current g of x where ``keep_current``), the M candidates' parameters (B, M, P), their log
-    posterior densities (B, M), and the motions from x to them: theta (B, M), t (B, M, 2)."""
+    identity, x itself, where ``keep_current``), the M candidates' parameters (B, M, P), their log
+    posterior densities (B, M), and the motions from x to them: theta (B, M), t (B, M, 2). The
+    proposal k of a motion depends on x's orbit alone (its end point and heading move with x)."""
     lay = post.layout
     b = x.shape[0]
     pivot = lay.decode(x)["position"].detach()
-    centre = g + sym.as_g(*sym.aligning(post, trajs[0], pivot))
+    theta_c, t_c, arm = sym.aligning(post, trajs[0], pivot)
     spread = sym.spreads(post, beta)
-    gs = sym.draw(centre, spread, draws, gen)
+    theta, t = sym.draw((theta_c, t_c), arm, spread, draws, gen)
     if keep_current:
-        gs[:, 0] = g
-    m = gs.shape[1]
-    flat = gs.reshape(b * m, -1)
+        theta[:, 0], t[:, 0] = 0.0, 0.0
+    m = theta.shape[1]
     rep = torch.arange(b).repeat_interleave(m)
-    rel_theta, rel_t = sym.as_motion(flat - g[rep])
+    rel_theta, rel_t = theta.reshape(b * m), t.reshape(b * m, 2)
     y, log_jac = sym.act(lay, x[rep], rel_theta, rel_t)
     ok = torch.isfinite(log_jac)
     lp = torch.full((b * m,), -math.inf, dtype=x.dtype)
@@ -435,10 +446,10 @@ def _orbit_weights(post, sym: FloorSymmetry, x: torch.Tensor, g: torch.Tensor, t
         moved = [sym.act_trajectory(tr.select(rep), pivot[rep], rel_theta, rel_t).select(ok) for tr in trajs]
         lp[ok] = log_density(post, y[ok], feasibility=False, trajs=moved)
     _, _, log_vol = sym.coordinates(lay, y)
-    logw = tempered(y, lp) + log_vol - sym.log_proposal(flat, centre[rep], spread)
+    logw = tempered(y, lp) + log_vol - sym.log_proposal(rel_theta, rel_t, (theta_c[rep], t_c[rep]), arm[rep],
+                                                        spread)
     logw = torch.where(ok & torch.isfinite(logw), logw, torch.full_like(logw, -math.inf))
-    return (logw.reshape(b, m), y.reshape(b, m, -1), lp.reshape(b, m), rel_theta.reshape(b, m),
-            rel_t.reshape(b, m, 2))
+    return logw.reshape(b, m), y.reshape(b, m, -1), lp.reshape(b, m), theta, t
 
 
 def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float, gen: torch.Generator,
@@ -467,7 +478,7 @@ def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float,
     draws = DRAWS if draws is None else draws
     r, g, _ = sym.coordinates(lay, x)
     base = ends(post, x, known)
-    logw, ys, lps, rth, rt = _orbit_weights(post, sym, x, g, base, tempered, beta, gen, draws, keep_current=True)
+    logw, ys, lps, rth, rt = _orbit_weights(post, sym, x, base, tempered, beta, gen, draws, keep_current=True)
     accept = torch.zeros(b, dtype=torch.bool)
     if step is not None:
         x_new, valid = sym.parameters(lay, r + step, g)
@@ -477,8 +488,8 @@ def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float,
         if bool(valid.any()):
             idx = valid.nonzero().squeeze(-1)
             other = ends(post, x_new[idx])
-            lw, yv, lv, th, tt = _orbit_weights(post, sym, x_new[idx], g[idx], other, tempered, beta, gen,
-                                                draws, keep_current=False)
+            lw, yv, lv, th, tt = _orbit_weights(post, sym, x_new[idx], other, tempered, beta, gen, draws,
+                                                keep_current=False)
             logw_new[idx], ys_new[idx], lps_new[idx], rth_new[idx], rt_new[idx] = lw, yv, lv, th, tt
             reps[idx] = x_new[idx]
         log_ratio = torch.logsumexp(logw_new, -1) - torch.logsumexp(logw, -1)

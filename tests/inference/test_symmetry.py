@@ -17,7 +17,7 @@ from dejaview.scene import (InferenceSettings, Observation, Optimize, Pose, Prio
                             SimulationSettings, StartArea, Target)
 
 
-def thrown_box(duration=0.6, statics=None, loss="pose", optimize=None):
+def thrown_box(duration=0.6, statics=None, loss="pose", optimize=None, speed=1.0):
     """A box tossed onto a floor (the calibration bench's ``box_thrown``, shorter)."""
     floor = SceneObject(id="floor", shape="plane", fixed=True)
     return Scene(
@@ -31,7 +31,7 @@ def thrown_box(duration=0.6, statics=None, loss="pose", optimize=None):
             optimize=optimize or Optimize(position=True, orientation=True, linear_velocity=True,
                                           angular_velocity=True),
             start_area=StartArea(min=(-0.3, -0.3, 0.3), max=(0.3, 0.3, 0.3)),
-            prior=Prior(speed=1.0, spin=3.0, tilt=0.3), observation=Observation(sigma=0.01, angle_sigma=0.1)))
+            prior=Prior(speed=speed, spin=3.0, tilt=0.3), observation=Observation(sigma=0.01, angle_sigma=0.1)))
 
 
 def posterior_of(scene):
@@ -142,13 +142,15 @@ def _ks_same(a, b):
     return float((cdf_a - cdf_b).abs().max()) < 1.95 * math.sqrt((n + m) / (n * m))
 
 
-@pytest.mark.parametrize("step, beta", [(None, 1e-3), (None, 0.05), (0.5, 0.05)])
-def test_the_orbit_walk_keeps_the_prior_when_it_is_the_target(step, beta):
+@pytest.mark.parametrize("step, beta, speed", [(None, 1e-3, 1.0), (None, 0.05, 1.0), (0.5, 0.05, 1.0),
+                                               (None, 0.05, 5.0)])
+def test_the_orbit_walk_keeps_the_prior_when_it_is_the_target(step, beta, speed):
     """With the prior as its target, 2000 prior draws moved five times stay prior draws: the
     Jacobians, the importance weights and the pseudo-marginal acceptance are right (checked:
     without the coordinates' volume the first case fails, without the proposal's density in
-    the weights the second)."""
-    post = posterior_of(thrown_box(duration=0.1))
+    the weights the second; at 5 m/s the ends lie half a metre from the starts, so the
+    proposal's turn about the end point matters)."""
+    post = posterior_of(thrown_box(duration=0.1, speed=speed))
     sym = FloorSymmetry.of(post)
     lay = post.layout
     gen = torch.Generator().manual_seed(11)
@@ -161,7 +163,7 @@ def test_the_orbit_walk_keeps_the_prior_when_it_is_the_target(step, beta):
         dx = None if step is None else step * torch.randn(n, d, generator=gen, dtype=torch.float64)
         x, _, ok, _ = orbit_walk(post, sym, x, lambda y, lp: log_prior_density(post, y), beta, gen, step=dx)
         moved |= ok
-    assert float(moved.double().mean()) > 0.15
+    assert float(moved.double().mean()) > 0.1
     fresh = prior_draws(post, n, torch.Generator().manual_seed(12))
     for j, name in enumerate(lay.names()):
         f = torch.sigmoid if name.startswith("position") else (lambda v: v)
@@ -193,6 +195,35 @@ def test_the_orbit_walk_carries_ends_onto_the_observation():
     fresh = compared_records(post, post.problem.simulate(z))
     assert torch.allclose(ends_z[0].states.position, fresh.states.position, atol=1e-9)
     assert torch.allclose(lp_z, log_density(post, z), rtol=1e-8)
+
+
+def test_the_orbit_proposal_turns_about_the_end_point():
+    """A box that ends a metre from its start: the proposal's motions keep its end near the
+    observed one whatever their turn (a turn of 0.1 rad about the start would move it 10 cm)."""
+    post = posterior_of(thrown_box())
+    sym = FloorSymmetry.of(post)
+    lay = post.layout
+    x = torch.zeros(1, lay.size, dtype=torch.float64)
+    x[0, lay.block_slice("linear_velocity")] = torch.tensor([2.5, 1.0, 0.0]) / lay.scale["linear_velocity"]
+    traj = post.problem.simulate(x)
+    pivot = lay.decode(x)["position"]
+    end = traj.states.position[-1, 0, post.problem.source]
+    assert float((end - pivot[0])[:2].norm()) > 0.8
+    theta_c, t_c, arm = sym.aligning(post, traj, pivot)
+    spread = sym.spreads(post, 1.0)
+    theta, t = sym.draw((theta_c, t_c), arm, spread, 2000, torch.Generator().manual_seed(5))
+    assert float(theta.std()) > 0.1  # the turns spread as the heading's noise says
+    moved = sym.act_trajectory(compared_records(post, traj).select(torch.zeros(2000, dtype=torch.long)),
+                               pivot.expand(2000, 3), theta[0], t[0])
+    off = moved.states.position[-1, :, post.problem.source, :2] - post._target_com[:2]
+    assert float(off.norm(dim=-1).max()) < 6 * spread[1]
+    # its density is that of the normal it draws from: the end's offset and the turn
+    z = off / spread[1]
+    d = (theta[0] - theta_c) / spread[0]
+    expected = (-0.5 * (z * z).sum(-1) - 0.5 * d * d
+                - math.log(spread[0] * math.sqrt(2 * math.pi)) - 2 * math.log(spread[1] * math.sqrt(2 * math.pi)))
+    got = sym.log_proposal(theta[0], t[0], (theta_c.expand(2000), t_c.expand(2000, 2)), arm.expand(2000, 3), spread)
+    assert torch.allclose(got, expected, atol=1e-9)
 
 
 @pytest.mark.parametrize("case", ["table", "fixed_tilt_with_velocity", "tilted_floor", "best_record"])
