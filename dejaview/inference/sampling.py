@@ -49,7 +49,8 @@ bridge starts from the mixture q below instead of the prior).
     lands a few centimetres or degrees off.
 - At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
 - The n samples are those of ``RUNS`` independent runs (n / RUNS particles
-  each, seeds apart): where they disagree (``posterior_report.rhat``) the
+  each, seeds apart; below ``PARTICLES`` samples a random n / RUNS of each
+  run's twice as many): where they disagree (``posterior_report.rhat``) the
   posterior is rugged, each run holds other branches of it, and the report
   says so (measured on the calibration bench: docs/inference.md).
 
@@ -69,6 +70,7 @@ from dataclasses import dataclass, field
 import torch
 
 from dejaview.errors import InferenceError
+from dejaview.inference.population import adapted, chol_of, difference_steps, ess, systematic
 from dejaview.inference.reference import Mixture, laplace_mixture, log_density, log_prior_density, prior_draws
 from dejaview.inference.symmetry import FloorSymmetry, assign, orbit_walk
 
@@ -97,7 +99,10 @@ RUNS = 2
 """Independent SMC runs that share the samples (each ``n / RUNS`` particles): their agreement
 (``posterior_report.rhat``) says whether the samples can be trusted."""
 MIN_RUN_SIZE = 20
-"""Fewer samples than ``RUNS`` times this: one run."""
+"""Fewer particles than ``RUNS`` times this: one run."""
+PARTICLES = 600
+"""Fewer samples than this are a random subset of twice as many particles, up to this many
+(all runs together); measured on box_thrown: docs/benchmarks.md, "More particles"."""
 SYMMETRY_MOVES = True
 """Each tempering step moves the particles along the scene's symmetry (``dejaview.inference.symmetry``:
 a floor's horizontal translations and turns), where it has one."""
@@ -126,47 +131,6 @@ class PosteriorSamples:
     mode_index: list
     run: torch.Tensor | None = None
     stats: dict = field(default_factory=dict)
-
-
-def _ess(logw: torch.Tensor) -> float:
-    w = torch.softmax(logw, 0)
-    return float(1.0 / (w * w).sum())
-
-
-def _chol_of(points: torch.Tensor) -> torch.Tensor:
-    """(P, P) Cholesky factor of the covariance of points (M, P) (the identity for one point; the
-    diagonal's roots where the covariance is singular)."""
-    p = points.shape[1]
-    eye = torch.eye(p, dtype=points.dtype)
-    c = torch.cov(points.T).reshape(p, p) if points.shape[0] > 1 else eye.clone()
-    c = c + 1e-9 * eye * float(torch.diagonal(c).mean().clamp_min(1e-12))
-    chol, info = torch.linalg.cholesky_ex(c)
-    return chol if int(info) == 0 else torch.diag(torch.sqrt(torch.diagonal(c).clamp_min(1e-12)))
-
-
-def _difference_steps(population: torch.Tensor, r: int, gen: torch.Generator
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """r differential-evolution steps ``g (w_a - w_b)`` (r, P) between distinct members a, b of
-    ``population`` (M >= 2, P), and their jitters e (r, P) (``_SMC.difference_move``)."""
-    m, p = population.shape
-    a = torch.randint(m, (r,), generator=gen)
-    b = (a + torch.randint(1, m, (r,), generator=gen)) % m  # never a
-    jitter = 1e-4 * population.std(0).clamp_min(1e-12)
-    e = jitter * torch.randn((r, p), generator=gen, dtype=torch.float64)
-    return 2.38 / math.sqrt(2 * p) * (population[a] - population[b]), e
-
-
-def _adapted(scale: float, acceptance: float) -> float:
-    """A walk's step scale moved towards ``TARGET_ACCEPTANCE`` after a move accepting ``acceptance``."""
-    return float(min(max(scale * math.exp(acceptance - TARGET_ACCEPTANCE), 1e-3), 3.0))
-
-
-def _systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """Systematic resampling: (N,) indices."""
-    n = logw.shape[0]
-    w = torch.softmax(logw, 0)
-    u = (torch.rand(1, generator=gen, dtype=w.dtype) + torch.arange(n, dtype=w.dtype)) / n
-    return torch.searchsorted(torch.cumsum(w, 0), u).clamp_max(n - 1)
 
 
 class _SMC:
@@ -217,21 +181,21 @@ class _SMC:
         """Advance beta as far as keeps ``ESS_FRACTION`` of the particles; resample."""
         d = torch.where(torch.isfinite(self.lp), self.lp - self.lr, torch.full_like(self.lp, -math.inf))
         target = ESS_FRACTION * self.n
-        if _ess((1.0 - self.beta) * d) >= target:
+        if ess((1.0 - self.beta) * d) >= target:
             new = 1.0
         else:
             lo, hi = self.beta, 1.0
             for _ in range(60):
                 mid = 0.5 * (lo + hi)
-                if _ess((mid - self.beta) * d) >= target:
+                if ess((mid - self.beta) * d) >= target:
                     lo = mid
                 else:
                     hi = mid
             new = max(lo, self.beta + 1e-6)
         logw = (new - self.beta) * d
-        self.ess_steps.append(_ess(logw))
+        self.ess_steps.append(ess(logw))
         self.beta = new
-        idx = _systematic(logw, self.gen)
+        idx = systematic(logw, self.gen)
         self.x, self.lr, self.lq, self.lp = self.x[idx], self.lr[idx], self.lq[idx], self.lp[idx]
         if self.ends is not None:
             self.ends, self.ends_known = [t.select(idx) for t in self.ends], self.ends_known[idx]
@@ -319,10 +283,10 @@ class _SMC:
             gr = torch.unique(sym.coordinates(lay, self.x[guides])[0], dim=0)
             r = rows.shape[0]
             if difference and gr.shape[0] >= 2:
-                step = sum(_difference_steps(gr, r, self.gen))
+                step = sum(difference_steps(gr, r, self.gen))
             else:
                 z = torch.randn((r, gr.shape[1]), generator=self.gen, dtype=torch.float64)
-                step = self.orbit_scale * (z @ _chol_of(gr).T)
+                step = self.orbit_scale * (z @ chol_of(gr).T)
             y, lp, ok, ends = orbit_walk(self.post, sym, self.x[rows], self.tempered, self.beta, self.gen,
                                          step=step, known=self.known(rows))
             self.x[rows], self.lp[rows] = y, lp
@@ -334,7 +298,7 @@ class _SMC:
         self.moves += 1
         acc = accepted / self.n
         if not difference:
-            self.orbit_scale = _adapted(self.orbit_scale, acc)
+            self.orbit_scale = adapted(self.orbit_scale, acc, TARGET_ACCEPTANCE)
         return acc
 
     def halves(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -370,11 +334,11 @@ class _SMC:
         Gaussian with 6 observed directions: central 90 % intervals held the truth 46 % of
         the time with nearest-neighbour steps alone, 86 % with the population's covariance)."""
         k, p = self.q.means.shape[0], w.shape[1]
-        out = _chol_of(w).expand(k, p, p).clone()
+        out = chol_of(w).expand(k, p, p).clone()
         for j in range(k):
             mine = own == j
             if int(mine.sum()) >= p + 2:
-                out[j] = _chol_of(w[mine])
+                out[j] = chol_of(w[mine])
         return out
 
     def to_walk(self, x: torch.Tensor) -> torch.Tensor:
@@ -445,7 +409,7 @@ class _SMC:
             accepted += self.walk_metropolis(rows, w_y, log_q_ratio) * rows.shape[0]
         self.moves += 1
         acc = accepted / self.n
-        self.scale = _adapted(self.scale, acc)
+        self.scale = adapted(self.scale, acc, TARGET_ACCEPTANCE)
         return acc
 
     def population_move(self) -> float:
@@ -503,7 +467,7 @@ class _SMC:
         for rows, guides in splits:
             population = torch.unique(self.to_walk(self.x[guides]), dim=0)
             r = rows.shape[0]
-            d, e = _difference_steps(population, r, self.gen)
+            d, e = difference_steps(population, r, self.gen)
             y = self.to_walk(self.x[rows]) + d + e
             accepted += self.walk_metropolis(rows, y, None) * r
         self.moves += 1
@@ -570,8 +534,10 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
     proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
     if proper:  # the prior is a proper distribution: temper from it, propose from it too
         q.prior, q.prior_share = post, PRIOR_SHARE
-    runs_wanted = RUNS if n >= RUNS * MIN_RUN_SIZE else 1
-    sizes = [n // runs_wanted + (1 if i < n % runs_wanted else 0) for i in range(runs_wanted)]
+    m = max(n, min(PARTICLES, 2 * n))  # particles
+    runs_wanted = RUNS if m >= RUNS * MIN_RUN_SIZE else 1
+    sizes = [m // runs_wanted + (1 if i < m % runs_wanted else 0) for i in range(runs_wanted)]
+    keep = [n // runs_wanted + (1 if i < n % runs_wanted else 0) for i in range(runs_wanted)]
     t0 = time.perf_counter()
     runs = []
     for i, size in enumerate(sizes):
@@ -582,12 +548,14 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
         smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper)
         smc.run()
         runs.append(smc)
-    x = torch.cat([r.x for r in runs])
-    lp = torch.cat([r.lp for r in runs])
-    run = torch.cat([torch.full((r.n,), i, dtype=torch.long) for i, r in enumerate(runs)])
+    pick = torch.Generator().manual_seed(int(seed) * 7 + 3)
+    rows = [torch.randperm(r.n, generator=pick)[:k].sort().values for r, k in zip(runs, keep)]
+    x = torch.cat([r.x[i] for r, i in zip(runs, rows)])
+    lp = torch.cat([r.lp[i] for r, i in zip(runs, rows)])
+    run = torch.cat([torch.full((k,), i, dtype=torch.long) for i, k in enumerate(keep)])
     weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
     acceptance = [a for r in runs for a in r.acceptance]
-    stats = {"method": "smc", "runs": len(runs), "reference_components": int(q.means.shape[0]),
+    stats = {"method": "smc", "runs": len(runs), "particles": m, "reference_components": int(q.means.shape[0]),
              "stages": max(r.stages for r in runs), "moves": sum(r.moves for r in runs),
              "mean_acceptance": sum(acceptance) / max(len(acceptance), 1),
              "final_acceptance": runs[-1].acceptance[-1] if runs[-1].acceptance else None,

@@ -31,6 +31,7 @@ from dejaview.inference.posterior_report import (
     weighted_quantiles,
 )
 from dejaview.inference.reference import Mixture, log_base_density
+from dejaview.inference import sampling
 from dejaview.inference.sampling import sample_posterior
 from dejaview.inference.sampling import PosteriorSamples as Samples
 from dejaview.inference.search import Mode
@@ -277,8 +278,10 @@ def test_rhat_is_one_for_runs_of_one_distribution_and_flags_runs_apart():
     assert torch.isnan(rhat(values, torch.zeros(600, dtype=torch.long))).all()
 
 
-def test_the_samples_come_from_independent_runs_of_half_the_particles():
-    """n >= 40: two runs of n/2 (odd n: the first one more), labelled; fewer: one run."""
+def test_the_samples_come_from_independent_runs_of_half_the_particles(monkeypatch):
+    """Two runs of half the particles (odd: the first one more); n samples below ``PARTICLES``
+    come from twice as many particles (at most ``PARTICLES``), n/2 of each run's, labelled;
+    fewer than 40 particles: one run."""
     A = torch.eye(2, dtype=torch.float64)
 
     def res(x):
@@ -287,9 +290,14 @@ def test_the_samples_come_from_independent_runs_of_half_the_particles():
     post = FakePosterior(2, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
     mode = Mode(torch.zeros(2, dtype=torch.float64), 0.0, 0.0, 0.0)
     smp = sample_posterior(post, [mode], 101, seed=0)
-    assert smp.stats["runs"] == 2 and torch.bincount(smp.run).tolist() == [51, 50] and smp.x.shape == (101, 2)
-    few = sample_posterior(post, [mode], 30, seed=0)
-    assert few.stats["runs"] == 1 and bool((few.run == 0).all())
+    assert smp.stats["runs"] == 2 and smp.stats["particles"] == 202
+    assert torch.bincount(smp.run).tolist() == [51, 50] and smp.x.shape == (101, 2)
+    assert torch.unique(smp.x, dim=0).shape[0] > 90  # a subset of the particles, not copies
+    monkeypatch.setattr(sampling, "PARTICLES", 150)
+    assert sample_posterior(post, [mode], 101, seed=0).stats["particles"] == 150
+    assert sample_posterior(post, [mode], 160, seed=0).stats["particles"] == 160
+    few = sample_posterior(post, [mode], 15, seed=0)
+    assert few.stats["runs"] == 1 and few.stats["particles"] == 30 and bool((few.run == 0).all())
 
 
 def test_paths_are_drawn_by_weight_among_distinct_samples():
