@@ -96,7 +96,7 @@ POPULATION_MOVES = True
 """The first random-walk move of each step is ``_SMC.population_move`` (measured on the calibration
 bench: ``docs/benchmarks.md``, "Posterior: calibration and speed")."""
 RUNS = 2
-"""Independent SMC runs that share the samples (each ``n / RUNS`` particles): their agreement
+"""Independent SMC runs that share the particles and the samples equally: their agreement
 (``posterior_report.rhat``) says whether the samples can be trusted."""
 MIN_RUN_SIZE = 20
 """Fewer particles than ``RUNS`` times this: one run."""
