@@ -133,6 +133,11 @@ class PosteriorSamples:
     stats: dict = field(default_factory=dict)
 
 
+def _shares(total: int, parts: int) -> list[int]:
+    """``total`` split into ``parts`` near-equal counts, the first ones one more."""
+    return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
+
+
 class _SMC:
     """State of one run of ``sample_posterior``; its methods are the named steps."""
 
@@ -536,8 +541,7 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
         q.prior, q.prior_share = post, PRIOR_SHARE
     m = max(n, min(PARTICLES, 2 * n))  # particles
     runs_wanted = RUNS if m >= RUNS * MIN_RUN_SIZE else 1
-    sizes = [m // runs_wanted + (1 if i < m % runs_wanted else 0) for i in range(runs_wanted)]
-    keep = [n // runs_wanted + (1 if i < n % runs_wanted else 0) for i in range(runs_wanted)]
+    sizes, keep = _shares(m, runs_wanted), _shares(n, runs_wanted)
     t0 = time.perf_counter()
     runs = []
     for i, size in enumerate(sizes):
