@@ -186,6 +186,8 @@ FIDELITY = (
      + box("box2", (1.5, 0, BOX[2] / 2)), 0.3),
     ("ball hits a resting box (ball-hits-box's start)", ball("ball", (0.8, 0, BALL_R), (2.0, 0, 0), (0, 40.0, 0))
      + box("box2", (1.3, 0, BOX[2] / 2)), 0.3),
+    ("ball meets a box face 1 cm off centre", ball("ball", (0.8, 0.01, BALL_R), (2.0, 0, 0), (0, 40.0, 0))
+     + box("box2", (1.3, 0, BOX[2] / 2)), 0.3),
 )
 
 

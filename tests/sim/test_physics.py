@@ -149,6 +149,58 @@ def test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box(engine, 
     assert abs(slip) < 0.1  # 7 % of the impact speed (measured 0.01-0.07; 0.31-0.40 before)
 
 
+@pytest.mark.parametrize("engine", ["native", "torch"])
+@pytest.mark.parametrize("surface", ["wall", "heavy ball"])
+def test_ball_striking_a_surface_obliquely_leaves_it_as_a_rigid_sticking_impact(engine, surface):
+    """A ball (5 cm, solid) strikes a wall at 1.71 m/s with 0.68 m/s along it, without gravity:
+    Coulomb friction (mu 0.5) can stop the contact point's slip within the impact (it needs
+    |P_t| / P_n = 0.09), so a rigid ball leaves with 5/7 of its speed along the wall and rolls
+    off it (spin 9.7 rad/s about the wall's normal x its velocity), the normal speed e times the
+    incoming. On a static wall (an exact signed distance) and on the face of a ball of 1 m radius
+    and 10 t (a body pair of two exact spheres): the contact law is right for both kinds of
+    contact set (MuJoCo on the wall: -0.496 m/s along it, rigid -0.486). Where a packed box's face meets the ball the
+    ball leaves otherwise (the sphere packing's bumps; docs/physics-fidelity.md, "ball meets a box
+    face 1 cm off centre"). The native cases are skipped where the native extension does not build
+    (no compiler)."""
+    from dejaview.sim.world import BodySpec, World
+
+    if engine == "native":
+        from dejaview.sim import native
+
+        if not native.available():
+            pytest.skip("the native extension does not build here")
+    r, m, mu, e = 0.05, 0.4, 0.5, 0.3
+    vn, vt = 1.71, -0.68
+    ball = BodySpec("ball", m, 0.4 * m * r * r * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([r]),
+                    friction=mu, restitution=e)
+    if surface == "wall":
+        wall = StaticShape.make("wall", "box", position=(-0.5, 0.0, 0.0), half=(0.5, 1.0, 1.0),
+                                friction=mu, restitution=e)
+        world = World.build([ball], [wall], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
+                            restitution=e)
+        state = world.state([[0.1, 0.0, 0.0]], linear_velocity=[[-vn, vt, 0.0]])
+    else:
+        big, heavy = 1.0, 1e4
+        other = BodySpec("big", heavy, 0.4 * heavy * big * big * np.eye(3), np.zeros(3), np.zeros((1, 3)),
+                         np.array([big]), friction=mu, restitution=e)
+        world = World.build([ball, other], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
+                            restitution=e)
+        # the ball meets the big one 29 ms on, the impact lasts about 25 ms: started 2.8 cm to the
+        # side it is on the line of centres mid-impact, so the curved face's normal turns as much
+        # one way as the other (started on that line it pushes the ball on by 0.04 m/s)
+        state = world.state([[0.1, 0.028, 0.0], [-big, 0.0, 0.0]],
+                            linear_velocity=[[-vn, vt, 0.0], [0.0, 0.0, 0.0]])
+    traj = rollout(world, state, steps=100, engine=engine)  # the impact is over at about 0.06 s
+    v = traj.final.linear_velocity[0, 0].numpy()
+    w = traj.final.angular_velocity[0, 0].numpy()
+    assert abs(v[1] - 5.0 / 7.0 * vt) < 0.02, v  # measured -0.486 and -0.478 (rigid -0.486)
+    assert abs(w[2] - 5.0 / 7.0 * vt / r) < 0.5, w  # rolls off: spin = v_t / r about -z
+    # the rebound: measured 0.543 on the wall, 0.580 on the big ball (the normal there is the line
+    # of centres, 1.6 deg off x mid-impact); head-on 0.553 on either, e 0.32 at this speed
+    assert abs(v[0] - e * vn) < 0.15 * e * vn, v
+    assert abs(v[2]) < 1e-9 and abs(w[0]) < 1e-9 and abs(w[1]) < 1e-9
+
+
 def test_frictionless_elastic_collision_conserves_momentum():
     a = ball_body("a", mass=1.0, friction=0.0, restitution=1.0)
     b = ball_body("b", mass=1.0, friction=0.0, restitution=1.0)
