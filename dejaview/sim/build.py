@@ -81,10 +81,12 @@ def body_from_object(scene, obj, max_spheres: int = 256) -> BodySpec:
                 packing = _primitive_packing(obj.shape, size, obj.radius, obj.height, max_spheres)
     except GeometryError as exc:
         raise SceneError(f"object {obj.id!r}: {exc}", **_where(scene, obj)) from exc
+    box = obj.mesh is None and obj.shape == "box" and obj.size is not None
     return BodySpec(name=obj.id, mass=props.mass, inertia=np.asarray(props.inertia),
                     com=np.asarray(props.center_of_mass), centers=np.asarray(packing.centers),
                     radii=np.asarray(packing.radii), friction=obj.friction,
-                    restitution=obj.restitution)
+                    restitution=obj.restitution,
+                    box_half=tuple(0.5 * float(v) for v in obj.size) if box else None)
 
 
 def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:

@@ -85,6 +85,22 @@ T_N about zero, so nothing changes at rest. Body pairs alike, with the
 relative slip and the pair's normal force and torques on both bodies
 (``predicted_pair_slip_change``).
 
+Body pairs against a box. Where one body of a pair is a box (a primitive
+``box`` object: ``BodySpec.box_half``, ``World.pair_surface``) and the other
+is not, the other body's spheres meet the box's exact faces, edges and
+corners: each sphere i is paired with the box's closest point to its centre,
+q_i = x + R clamp(R^T (p_i - x), -half, half), as with a sphere of radius 0
+(``box_closest_point``), so delta_i = r_i - |p_i - q_i| and the normal is
+(q_i - p_i) / |q_i - p_i|; the law above is unchanged. The box's own spheres
+stay for its static contacts and for a pair of two boxes (sphere against
+sphere). Why: a box's packing is a union of spheres, bumpy on a ball's scale;
+a ball meeting a packed face 5-30 mm off a sphere's axis left it sideways at
+up to 0.15 m/s where a flat face sends it straight back, and MuJoCo's box
+sent a ball rolling into it 1 cm off centre 12 cm elsewhere by 1.5 s
+(docs/physics-fidelity.md; ``tests/sim/test_physics.py``). A sphere whose
+centre has entered the box (a penetration deeper than its radius) has no
+closest surface point here and gets no force from it.
+
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass.
 
@@ -111,7 +127,7 @@ from __future__ import annotations
 
 import torch
 
-from dejaview.sim.rotation import small_matmul
+from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
 
@@ -325,7 +341,11 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
 
 def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inertia_w: torch.Tensor,
                         pair_ids=None):
-    """Force and torque on every body from sphere-sphere contacts between movable bodies.
+    """Force and torque on every body from contacts between movable bodies.
+
+    A pair meets sphere against sphere, or, where one body is a box (``World.pair_surface``), the
+    other body's spheres against that box's exact surface (the module docstring, "Body pairs
+    against a box").
 
     Args:
         world: the World.
@@ -340,15 +360,49 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     """
     force = torch.zeros_like(state.position)
     torque = torch.zeros_like(state.position)
-    if world.pairs.shape[0] == 0:
+    n_pairs = world.pairs.shape[0]
+    if n_pairs == 0:
         return force, torque
-    pairs = world.pairs if pair_ids is None else world.pairs[pair_ids]
-    mu_p = world.mu_pair if pair_ids is None else world.mu_pair[pair_ids]
-    unload_p = world.unload_pair if pair_ids is None else world.unload_pair[pair_ids]
-    mass_p = world.mass_pair if pair_ids is None else world.mass_pair[pair_ids]
-    if pairs.shape[0] == 0:
-        return force, torque
-    ia, ib = pairs[:, 0], pairs[:, 1]
+    surface = world.pair_surface
+    if all(side < 0 for side in surface):  # no box: every pair sphere against sphere
+        groups = [(-1, pair_ids)]
+    else:  # a constant split (World's), so no data-dependent branch under transforms
+        ids = range(n_pairs) if pair_ids is None else [int(k) for k in pair_ids.tolist()]
+        groups = []
+        for side in (-1, 0, 1):
+            chosen = [k for k in ids if surface[k] == side]
+            if chosen:
+                groups.append((side, torch.tensor(chosen, dtype=torch.int64, device=world.pairs.device)))
+    rot = None
+    n_bodies = state.position.shape[1]
+    for side, sel in groups:
+        pairs = world.pairs if sel is None else world.pairs[sel]
+        if pairs.shape[0] == 0:
+            continue
+        pick = (lambda t: t) if sel is None else (lambda t: t[sel])  # noqa: E731
+        ia, ib = pairs[:, 0], pairs[:, 1]
+        if side < 0:
+            cand = _sphere_pair_candidates(world, spheres, ia, ib)
+        else:
+            if rot is None:
+                rot = quat_to_matrix(state.orientation)
+            cand = _surface_candidates(world, state, spheres, rot, ia, ib, side)
+        fb_tot, ta, tb = _pair_law(world, state, cand, ia, ib, pick(world.mu_pair), pick(world.unload_pair),
+                                   pick(world.mass_pair), h, inv_inertia_w)
+        # scatter to the bodies through one-hot incidence matrices (P, N), not ``index_add``:
+        # inductor (torch 2.13) miscompiled the index_add of a training graph of two substeps
+        # (forward values off by 1e-3 at the first body-pair contact; tests/sim/test_compile.py)
+        one_a = torch.nn.functional.one_hot(ia, n_bodies).to(fb_tot.dtype)
+        one_b = torch.nn.functional.one_hot(ib, n_bodies).to(fb_tot.dtype)
+        force = force + torch.einsum("bpk,pn->bnk", fb_tot, one_b - one_a)
+        torque = torque + torch.einsum("bpk,pn->bnk", ta, one_a) + torch.einsum("bpk,pn->bnk", tb, one_b)
+    return force, torque
+
+
+def _sphere_pair_candidates(world, spheres: torch.Tensor, ia: torch.Tensor, ib: torch.Tensor):
+    """Sphere pairs of body pairs (ia, ib) (P,): centres pa, pb (B, P, C, 3), radii ra, rb and
+    mask (B, P, C); every sphere of a against every sphere of b, or the ``max_pair_contacts``
+    deepest of them."""
     pa, pb = spheres[:, ia], spheres[:, ib]  # (B, P, S, 3)
     b, p, s = pa.shape[:3]
     ra, rb = world.radii[ia].expand(b, p, s), world.radii[ib].expand(b, p, s)  # (B, P, S)
@@ -368,10 +422,58 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
         pb = pb.unsqueeze(-3).expand(b, p, s, s, 3).reshape(b, p, s * s, 3)
         ra, ma = (t.unsqueeze(-1).expand(b, p, s, s).reshape(b, p, -1) for t in (ra, ma))
         rb, mb = (t.unsqueeze(-2).expand(b, p, s, s).reshape(b, p, -1) for t in (rb, mb))
+    return pa, pb, ra, rb, ma * mb
+
+
+def box_closest_point(points: torch.Tensor, centre: torch.Tensor, rot: torch.Tensor,
+                      half: torch.Tensor) -> torch.Tensor:
+    """Closest points (B, P, S, 3) of boxes to world points (B, P, S, 3) outside them.
+
+    Args:
+        centre: (B, P, 3) box centres; rot: (B, P, 3, 3) world-from-box rotations; half: (P, 3).
+    Returns:
+        ``x + R clamp(R^T (p - x), -half, half)``: on the box's surface for a point outside it
+        (the point itself inside: no direction to push along; a sphere whose centre has entered
+        the box is a penetration deeper than its radius).
+    """
+    local = small_matmul(points - centre.unsqueeze(-2), rot)  # rows R^T (p - x)
+    lim = half.unsqueeze(-2)
+    inside = torch.maximum(torch.minimum(local, lim), -lim)
+    return centre.unsqueeze(-2) + small_matmul(inside, rot.transpose(-1, -2))
+
+
+def _surface_candidates(world, state, spheres: torch.Tensor, rot: torch.Tensor, ia: torch.Tensor,
+                        ib: torch.Tensor, side: int):
+    """Body pairs (ia, ib) (P,) whose body ``side`` (0: a, 1: b) is a box: the other body's spheres
+    (each with the box's closest point, a sphere of radius 0) as ``_sphere_pair_candidates``
+    returns them, the ``max_pair_contacts`` deepest where there are more."""
+    box, other = (ia, ib) if side == 0 else (ib, ia)
+    p_o = spheres[:, other]  # (B, P, S, 3)
+    b, p, s = p_o.shape[:3]
+    r_o, m_o = world.radii[other].expand(b, p, s), world.mask[other].expand(b, p, s)
+    cap = world.contact.max_pair_contacts
+    if s > cap:
+        q0 = box_closest_point(p_o.detach(), state.position[:, box].detach(), rot[:, box].detach(),
+                               world.box_half[box])
+        depth0 = torch.relu(r_o - torch.linalg.vector_norm(p_o.detach() - q0, dim=-1)) * m_o
+        idx = deepest(depth0, cap)
+        p_o, r_o, m_o = take(p_o, idx), r_o.gather(2, idx), m_o.gather(2, idx)
+    q = box_closest_point(p_o, state.position[:, box], rot[:, box], world.box_half[box])
+    zero = torch.zeros_like(r_o)
+    if side == 0:
+        return q, p_o, zero, r_o, m_o
+    return p_o, q, r_o, zero, m_o
+
+
+def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torch.Tensor,
+              unload_p: torch.Tensor, mass_p: torch.Tensor, h: float, inv_inertia_w: torch.Tensor):
+    """The contact law on candidates (pa, pb, ra, rb, mask) of body pairs (ia, ib) (P,): the
+    force on b (B, P, 3) (minus it on a) and the torques on a and on b (B, P, 3)."""
+    pa, pb, ra, rb, mask = cand
     diff = pb - pa  # (B, P, C, 3) from a's sphere to b's
     dist = torch.sqrt((diff * diff).sum(-1) + 1e-24)
     n = diff / dist.unsqueeze(-1)
-    depth = torch.relu(ra + rb - dist) * (ma * mb)  # (B, P, C)
+    depth = torch.relu(ra + rb - dist) * mask  # (B, P, C)
     point = pa + n * ra.unsqueeze(-1)  # contact point on a's sphere
     xa = state.position[:, ia].unsqueeze(-2)  # (B, P, 1, 3)
     xb = state.position[:, ib].unsqueeze(-2)
@@ -398,18 +500,8 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     stick = weight / (inv_mass * h)
     ft = friction_force(vt, mu_p[None, :, None] * fn, stick)
     f_b = fn.unsqueeze(-1) * n + ft  # on b, (B, P, C, 3)
-    fb_tot = f_b.sum(2)
-    ta = torch.linalg.cross(arm_a, -f_b, dim=-1).sum(2)
-    tb = torch.linalg.cross(arm_b, f_b, dim=-1).sum(2)
-    # scatter to the bodies through one-hot incidence matrices (P, N), not ``index_add``:
-    # inductor (torch 2.13) miscompiled the index_add of a training graph of two substeps
-    # (forward values off by 1e-3 at the first body-pair contact; tests/sim/test_compile.py)
-    n_bodies = state.position.shape[1]
-    one_a = torch.nn.functional.one_hot(ia, n_bodies).to(fb_tot.dtype)
-    one_b = torch.nn.functional.one_hot(ib, n_bodies).to(fb_tot.dtype)
-    force = force + torch.einsum("bpk,pn->bnk", fb_tot, one_b - one_a)
-    torque = torque + torch.einsum("bpk,pn->bnk", ta, one_a) + torch.einsum("bpk,pn->bnk", tb, one_b)
-    return force, torque
+    return (f_b.sum(2), torch.linalg.cross(arm_a, -f_b, dim=-1).sum(2),
+            torch.linalg.cross(arm_b, f_b, dim=-1).sum(2))
 
 
 def pair_bounding_overlap(world, state, margin: float = 0.0) -> torch.Tensor:

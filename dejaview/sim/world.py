@@ -139,6 +139,9 @@ class BodySpec:
         centers: (S, 3) sphere centres in the object frame.
         radii: (S,) sphere radii.
         friction, restitution: material (None: the scene's).
+        box_half: (3,) half extents where the body is a box centred on its centre of mass along its
+            body axes (a primitive box): other bodies' spheres meet its exact faces, edges and
+            corners (``dejaview.sim.contacts``, "Body pairs against a box"); None otherwise.
     """
 
     name: str
@@ -149,6 +152,7 @@ class BodySpec:
     radii: np.ndarray
     friction: float | None = None
     restitution: float | None = None
+    box_half: tuple | None = None
 
 
 DEFAULT_MAX_STATIC_CONTACTS = 64
@@ -246,6 +250,10 @@ class World:
         unload_static: (N, K) unloading stiffness factor body vs static (restitution).
         pairs: (P, 2) movable body pairs checked for contact.
         mu_pair, unload_pair, mass_pair: (P,) friction, unloading factor, reduced mass per pair.
+        box_half: (N, 3) half extents of the bodies that are boxes (``BodySpec.box_half``), 0 for
+            the others.
+        pair_surface: (P,) per body pair, which body's exact box surface the other's spheres meet:
+            0 (a's), 1 (b's), or -1 (sphere against sphere: neither or both are boxes).
         gravity: (3,) m/s^2.
         dt: step (s); substeps: integration substeps per step; steps: default rollout length.
         contact: contact model numbers.
@@ -268,6 +276,8 @@ class World:
     mu_pair: torch.Tensor
     unload_pair: torch.Tensor
     mass_pair: torch.Tensor
+    box_half: torch.Tensor
+    pair_surface: tuple
     gravity: torch.Tensor
     dt: float
     substeps: int
@@ -329,6 +339,7 @@ class World:
         bound = np.zeros(n)
         inv_i_min = np.zeros(n)
         mass = np.zeros(n)
+        box_half = np.zeros((n, 3))
         for i, b in enumerate(bodies):
             if not (bounds.MIN_MASS <= b.mass <= bounds.MAX_MASS):
                 raise SimulationError(f"body {b.name!r}: mass {b.mass:.4g} kg is outside "
@@ -344,6 +355,12 @@ class World:
             com[i] = b.com
             mass[i] = b.mass
             bound[i] = float(np.max(np.linalg.norm(c, axis=1) + np.asarray(b.radii)))
+            if b.box_half is not None:
+                half = np.asarray(b.box_half, dtype=np.float64).reshape(3)
+                if not (np.all(np.isfinite(half)) and np.all(half > 0)):
+                    raise SimulationError(f"body {b.name!r}: box half extents {tuple(half)} must be positive")
+                box_half[i] = half
+                bound[i] = max(bound[i], float(np.linalg.norm(half)))  # the corners, not the spheres'
             i_min = float(np.linalg.eigvalsh(inertia[i]).min())
             if not i_min > 0:
                 raise SimulationError(f"body {b.name!r}: inertia is not positive definite")
@@ -366,6 +383,8 @@ class World:
         mu_pair = np.array([math.sqrt(mus[a] * mus[b]) for a, b in pairs])
         unload_pair = np.array([unload(0.5 * (es[a] + es[b])) for a, b in pairs])
         mass_pair = np.array([mass[a] * mass[b] / (mass[a] + mass[b]) for a, b in pairs])
+        is_box = [bool(np.any(box_half[i] > 0)) for i in range(n)]
+        pair_surface = tuple(-1 if is_box[a] == is_box[b] else (0 if is_box[a] else 1) for a, b in pairs)
         f = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
         world = World(
             names=tuple(b.name for b in bodies), mass=f(mass), inertia=f(inertia),
@@ -374,7 +393,7 @@ class World:
             mu_static=f(mu_static), unload_static=f(unload_static),
             pairs=torch.as_tensor(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)),
             mu_pair=f(mu_pair), unload_pair=f(unload_pair), mass_pair=f(mass_pair),
-            gravity=f(gravity), dt=float(dt), substeps=int(substeps),
+            box_half=f(box_half), pair_surface=pair_surface, gravity=f(gravity), dt=float(dt), substeps=int(substeps),
             steps=int(steps),
             contact=ContactSettings(frequency=omega,
                                     unload_velocity=float(unload_velocity),

@@ -35,12 +35,14 @@ def test_ball_motions_end_within_2_cm_of_mujoco(crossengine, motion):
 
 
 @pytest.mark.parametrize("motion", ["slide (box", "slide and spin", "tumble (box", "box lands on an edge",
-                                    "box-box hit", "ball hits a resting box"])
+                                    "box-box hit", "ball hits a resting box", "ball meets a box face"])
 def test_box_motions_end_within_2_cm_of_mujoco(crossengine, motion):
     """The primitive box's mirror-symmetric packing (geometry/box_spheres.py) keeps these within
     1.1 cm (the mesh-lattice packing: 0.13, 1.33, 1.31, -, 0.74 cm); the box landing on an edge
     within 0.8 cm since the friction on the predicted slip (3.65 cm before); the ball hitting a
-    resting box (ball-hits-box's start) within 0.4 cm."""
+    resting box (ball-hits-box's start) within 0.5 cm, and 1 cm off the box's centre line within
+    0.5 cm since a box body meets other bodies with its exact surface (7.3 cm before, against its
+    packing's spheres)."""
     rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion])
     assert rows and all(r["gap_1s_m"] <= crossengine.FIDELITY_TOL for r in rows), rows
 

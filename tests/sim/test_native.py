@@ -148,6 +148,57 @@ def test_native_gradients_through_body_pairs_equal_torch_autograd():
     assert torch.allclose(out, ref, rtol=1e-7, atol=1e-9 * float(ref.abs().max()))
 
 
+def _against_a_box(box_first: bool, other: str = "ball", batch: int = 1):
+    """A ball (or a packed box) thrown, spinning, at a tilted, spinning box whose exact surface it
+    meets (``BodySpec.box_half``), on a floor; the box body first or second in the pair."""
+    box = box_body("box", per_axis=(4, 3, 2), friction=0.6, restitution=0.3, box_half=(0.1, 0.075, 0.05))
+    thrown = (ball_body("ball", radius=0.05, mass=0.4, friction=0.5, restitution=0.4) if other == "ball"
+              else box_body("brick", size=(0.12, 0.08, 0.06), per_axis=(3, 2, 2), mass=0.5))
+    bodies = [box, thrown] if box_first else [thrown, box]
+    world = make_world(bodies, [StaticShape.make("floor", "plane")])
+    q = [math.cos(0.2), math.sin(0.2) * 0.6, 0.0, math.sin(0.2) * 0.8]
+    box_state = ([0.0, 0.0, 0.12], q, [0.0, 0.0, 0.0], [0.5, -1.0, 2.0])
+    thrown_state = ([-0.25, 0.03, 0.16], [1.0, 0.0, 0.0, 0.0], [2.0, -0.1, 0.3], [3.0, -5.0, 1.0])
+    order = [box_state, thrown_state] if box_first else [thrown_state, box_state]
+    state = world.state(*[[o[i] for o in order] for i in range(4)], batch_size=batch)
+    if batch > 1:  # different candidates
+        shift = torch.linspace(-0.03, 0.03, batch, dtype=torch.float64)
+        k = 1 if box_first else 0
+        pos = state.position.clone()
+        pos[:, k, 1] += shift
+        state = state.replace(position=pos)
+    return world, state
+
+
+@pytest.mark.parametrize("box_first", [True, False])
+@pytest.mark.parametrize("other", ["ball", "packed box"])
+def test_native_meets_a_box_body_as_the_torch_simulator_does(box_first, other):
+    """Body pairs against a box's exact surface (``dejaview.sim.contacts``): states to round-off,
+    reverse-mode gradients equal torch autograd, forward mode equals reverse mode; whether the box
+    is the pair's first body or its second, against a ball and against another body's spheres."""
+    world, state = _against_a_box(box_first, other, batch=2)
+    assert world.pair_surface == ((0,) if box_first else (1,))
+    ref = rollout(world, state, steps=120)
+    out = rollout(world, state, steps=120, engine="native")
+    k = 1 if box_first else 0  # the thrown body, at 2 m/s along x: the box stopped it
+    assert float(ref.final.linear_velocity[:, k, 0].max()) < 1.0
+    _close(out, ref)
+    one = state.index(0)
+    g_ref = _grad(world, one, "torch", 100)
+    g_out = _grad(world, one, "native", 100)
+    assert torch.allclose(g_out, g_ref, rtol=1e-7, atol=1e-9 * float(g_ref.abs().max()))
+    x0 = torch.cat(one.tensors(), -1)
+
+    def f(x):
+        return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
+                             steps=100, engine="native"))
+
+    jac_fwd = torch.func.jacfwd(f)(x0)
+    x = x0.clone().requires_grad_(True)
+    (jac_rev,) = torch.autograd.grad(f(x), x)
+    assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
+
+
 @pytest.mark.parametrize("record_every", [1, 7])
 def test_the_adjoint_reads_the_rollouts_contact_picks_as_if_it_selected_them_again(record_every):
     """Reverse mode reads the static contacts each substep picked from the rollout's pick log; the

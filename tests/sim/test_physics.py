@@ -158,9 +158,8 @@ def test_ball_striking_a_surface_obliquely_leaves_it_as_a_rigid_sticking_impact(
     off it (spin 9.7 rad/s about the wall's normal x its velocity), the normal speed e times the
     incoming. On a static wall (an exact signed distance) and on the face of a ball of 1 m radius
     and 10 t (a body pair of two exact spheres): the contact law is right for both kinds of
-    contact set (MuJoCo on the wall: -0.496 m/s along it, rigid -0.486). Where a packed box's face meets the ball the
-    ball leaves otherwise (the sphere packing's bumps; docs/physics-fidelity.md, "ball meets a box
-    face 1 cm off centre"). The native cases are skipped where the native extension does not build
+    contact set (MuJoCo on the wall: -0.496 m/s along it, rigid -0.486). A box body's exact faces:
+    ``test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight``. The native cases are skipped where the native extension does not build
     (no compiler)."""
     from dejaview.sim.world import BodySpec, World
 
@@ -199,6 +198,40 @@ def test_ball_striking_a_surface_obliquely_leaves_it_as_a_rigid_sticking_impact(
     # of centres, 1.6 deg off x mid-impact); head-on 0.553 on either, e 0.32 at this speed
     assert abs(v[0] - e * vn) < 0.15 * e * vn, v
     assert abs(v[2]) < 1e-9 and abs(w[0]) < 1e-9 and abs(w[1]) < 1e-9
+
+
+@pytest.mark.parametrize("engine", ["native", "torch"])
+def test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight(engine):
+    """A ball (5 cm) flies at 1.71 m/s straight onto a face of a resting box (10 t, so it stays),
+    without gravity, 0 to 30 mm off the face's centre: a flat face sends it straight back. The box
+    body meets other bodies with its exact faces (``BodySpec.box_half``); as a union of spheres
+    (its packing, ``geometry/box_spheres.py``) the face kicked the ball sideways at up to 0.15 m/s
+    (docs/physics-fidelity.md, "ball meets a box face 1 cm off centre")."""
+    from dejaview.geometry.box_spheres import box_spheres
+    from dejaview.sim.world import BodySpec, World
+
+    if engine == "native":
+        from dejaview.sim import native
+
+        if not native.available():
+            pytest.skip("the native extension does not build here")
+    r, e = 0.05, 0.3
+    size, heavy = (0.2, 0.15, 0.1), 1e4
+    centers, radii = box_spheres(size)
+    a, b, c = size
+    inertia = heavy / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+    box = BodySpec("box", heavy, inertia, np.zeros(3), centers, radii, restitution=e,
+                   box_half=tuple(0.5 * v for v in size))
+    offsets = [0.0, 0.005, 0.01, 0.015, 0.02, 0.03]
+    ball = BodySpec("ball", 0.4, 0.4 * 0.4 * r * r * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([r]),
+                    restitution=e)
+    world = World.build([ball, box], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, restitution=e)
+    state = world.state([[[0.25, y, 0.0], [0.0, 0.0, 0.0]] for y in offsets],
+                        linear_velocity=[[[-1.71, 0.0, 0.0], [0.0, 0.0, 0.0]]] * len(offsets))
+    traj = rollout(world, state, steps=100, engine=engine)
+    v = traj.final.linear_velocity[:, 0].numpy()
+    assert np.all(v[:, 0] > 0.4), v  # it rebounded (e 0.3 of 1.71 m/s)
+    assert np.abs(v[:, 1:]).max() < 1e-4, v  # the 10 t box turns a little: 2e-5 m/s at 30 mm
 
 
 def test_frictionless_elastic_collision_conserves_momentum():

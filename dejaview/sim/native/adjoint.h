@@ -427,6 +427,8 @@ struct PairAdjoint {
   struct Contact {
     ContactLaw<S> law;
     S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
+    int box = 0;           // 1: b's box surface (cb its clamped point), 2: a's (ca), 0: spheres
+    S rel[3], inside[3];   // the sphere's centre from the box's centre, where the clamp let it through
     S pab[3], pbb[3], depthb;
     S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
@@ -450,17 +452,36 @@ struct PairAdjoint {
     total = 0;
     for (int k = 0; k < m; ++k) {
       Contact& ct = contacts[k];
-      const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
-      const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
-      for (int i = 0; i < 3; ++i) {
-        ct.ca[i] = ca[i];
-        ct.cb[i] = cb[i];
-      }
-      ct.r_a = w.radii[a * w.s_max + picks[k].i];
-      const S r_b = w.radii[b * w.s_max + picks[k].j];
       S pa[3], pb[3];
-      sphere_center(st_a, rot_a, ca, pa);
-      sphere_center(st_b, rot_b, cb, pb);
+      ct.r_a = 0;
+      S r_b = 0;
+      ct.box = picks[k].j < 0 ? 1 : (picks[k].i < 0 ? 2 : 0);
+      if (picks[k].i >= 0) {
+        const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
+        for (int i = 0; i < 3; ++i) ct.ca[i] = ca[i];
+        ct.r_a = w.radii[a * w.s_max + picks[k].i];
+        sphere_center(st_a, rot_a, ca, pa);
+      }
+      if (picks[k].j >= 0) {
+        const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
+        for (int i = 0; i < 3; ++i) ct.cb[i] = cb[i];
+        r_b = w.radii[b * w.s_max + picks[k].j];
+        sphere_center(st_b, rot_b, cb, pb);
+      }
+      if (ct.box != 0) {  // the box's closest point to the other's sphere (box_closest)
+        const bool on_b = ct.box == 1;
+        const S* xbox = on_b ? st_b : st_a;
+        const S* rbox = on_b ? rot_b : rot_a;
+        const S* half = w.box_half + 3 * (on_b ? b : a);
+        const S* p = on_b ? pa : pb;
+        S* cl = on_b ? ct.cb : ct.ca;
+        box_closest(xbox, rbox, half, p, cl, on_b ? pb : pa);
+        for (int i = 0; i < 3; ++i) ct.rel[i] = p[i] - xbox[i];
+        for (int j = 0; j < 3; ++j) {
+          const S local = ct.rel[0] * rbox[j] + ct.rel[1] * rbox[3 + j] + ct.rel[2] * rbox[6 + j];
+          ct.inside[j] = (local > half[j] || local < -half[j]) ? S(0) : S(1);
+        }
+      }
       for (int i = 0; i < 3; ++i) ct.diff[i] = pb[i] - pa[i];
       ct.dist = std::sqrt(dot3(ct.diff, ct.diff) + S(1e-24));
       ContactLaw<S>& law = ct.law;
@@ -653,7 +674,23 @@ struct PairAdjoint {
           ct.pab[i] -= diffb;
         }
       }
-      // p_a = x_a + R_a c_a, p_b = x_b + R_b c_b
+      if (ct.box != 0) {  // the box's point x + R cl, cl = clamp(R^T (p - x)): the part through p - x
+        const bool on_b = ct.box == 1;
+        const S* rbox = on_b ? rot_b : rot_a;
+        const S* qb = on_b ? ct.pbb : ct.pab;  // the box point's cotangent
+        S* pother = on_b ? ct.pab : ct.pbb;    // the sphere centre's
+        S* xbox = on_b ? xbb : xab;
+        S* rb_ = on_b ? rbb : rab;
+        S lb[3], u[3];
+        for (int j = 0; j < 3; ++j) lb[j] = ct.inside[j] * (rbox[j] * qb[0] + rbox[3 + j] * qb[1] + rbox[6 + j] * qb[2]);
+        for (int i = 0; i < 3; ++i) u[i] = rbox[3 * i] * lb[0] + rbox[3 * i + 1] * lb[1] + rbox[3 * i + 2] * lb[2];
+        for (int i = 0; i < 3; ++i) {
+          pother[i] += u[i];
+          xbox[i] -= u[i];
+          for (int k = 0; k < 3; ++k) rb_[3 * i + k] += ct.rel[i] * lb[k];
+        }
+      }
+      // p_a = x_a + R_a c_a, p_b = x_b + R_b c_b (c the clamped point on a box)
       for (int i = 0; i < 3; ++i) {
         xab[i] += ct.pab[i];
         xbb[i] += ct.pbb[i];

@@ -32,6 +32,8 @@ struct World {
   const S *mu_static, *unload_static;  // (N, K)
   const int64_t* pairs;                 // (P, 2)
   const S *mu_pair, *unload_pair, *mass_pair;
+  const S* box_half;             // (N, 3): a box body's half extents, 0 for the others
+  const int64_t* pair_surface;   // (P): the box (0: a, 1: b) whose surface the other's spheres meet, or -1
   S gravity[3];
   S h, omega, unload_velocity;
   int substeps, cap_static, cap_pair;
@@ -231,6 +233,25 @@ void seed_state(const S* s, Dual<S, W>* out, int offset) {
 template <typename T, typename R, typename S>
 inline void sphere_center(const T* x, const R* rot, const S* c, T* p) {
   for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
+}
+
+// closest point q of a box body (centre x, world-from-body rot, half extents) to a world point p
+// outside it, and that point in the body's frame (cl = clamp(R^T (p - x), -half, half));
+// contacts.box_closest_point
+template <typename T, typename R, typename S>
+inline void box_closest(const T* x, const R* rot, const S* half, const T* p, T* cl, T* q) {
+  T rel[3] = {p[0] - x[0], p[1] - x[1], p[2] - x[2]};
+  for (int j = 0; j < 3; ++j) {
+    T local = rel[0] * rot[j] + rel[1] * rot[3 + j] + rel[2] * rot[6 + j];
+    if (val(local) > half[j]) {
+      cl[j] = T(half[j]);
+    } else if (val(local) < -half[j]) {
+      cl[j] = T(-half[j]);
+    } else {
+      cl[j] = local;
+    }
+  }
+  for (int i = 0; i < 3; ++i) q[i] = x[i] + (cl[0] * rot[3 * i] + cl[1] * rot[3 * i + 1] + cl[2] * rot[3 * i + 2]);
 }
 
 // hysteretic spring normal force of one contact (contacts.normal_force), in two parts: how much
@@ -483,7 +504,7 @@ struct PairPick {
 // Returns a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair (exact
 // distances for the pairs looked at, the mid phase's margin for the others).
 template <typename S>
-S select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
+S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
               std::vector<PairPick>& picks) {
   picks.clear();
   S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
@@ -511,6 +532,32 @@ S select_pair(const World<S>& w, int a, int b, const S* sa, const S* sb, const S
       }
     }
   };
+  const int64_t side = w.pair_surface[pi];
+  if (side >= 0) {  // the other body's spheres against the box's surface (j or i = -1: the box)
+    const int box = side == 0 ? a : b, other = side == 0 ? b : a;
+    const S* sbox = side == 0 ? sa : sb;
+    const S* sother = side == 0 ? sb : sa;
+    const S* rbox = side == 0 ? ra : rb;
+    const S* rother = side == 0 ? rb : ra;
+    const S* half = w.box_half + 3 * box;
+    for (int i = 0; i < w.count[other]; ++i) {
+      const S* c = w.centers + (static_cast<int64_t>(other) * w.s_max + i) * 3;
+      S p[3], cl[3], q[3];
+      sphere_center(sother, rother, c, p);
+      box_closest(sbox, rbox, half, p, cl, q);
+      S df[3] = {p[0] - q[0], p[1] - q[1], p[2] - q[2]};
+      const S depth = w.radii[other * w.s_max + i] - std::sqrt(dot3(df, df));
+      if (depth > 0) picks.push_back(side == 0 ? PairPick{-1, i, static_cast<double>(depth)}
+                                               : PairPick{i, -1, static_cast<double>(depth)});
+      bound = std::min(bound, -depth);
+    }
+    if (static_cast<int>(picks.size()) > w.cap_pair) {
+      std::nth_element(picks.begin(), picks.begin() + w.cap_pair, picks.end(),
+                       [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
+      picks.resize(w.cap_pair);
+    }
+    return bound;
+  }
   std::vector<int>& ia = pair_ids_a<S>();
   std::vector<int>& ib = pair_ids_b<S>();
   std::vector<S>& pa = pair_pts_a<S>();
@@ -559,12 +606,19 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   arm_b.resize(3 * m);
   T total = T(0);
   for (int k = 0; k < m; ++k) {
-    const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
-    const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
-    const S r_a = w.radii[a * w.s_max + picks[k].i], r_b = w.radii[b * w.s_max + picks[k].j];
-    T pa[3], pb[3], diff[3];
-    sphere_center(st_a, rot_a, ca, pa);
-    sphere_center(st_b, rot_b, cb, pb);
+    T pa[3], pb[3], diff[3], cl[3];
+    S r_a = 0, r_b = 0;
+    if (picks[k].i >= 0) {
+      sphere_center(st_a, rot_a, w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3, pa);
+      r_a = w.radii[a * w.s_max + picks[k].i];
+    }
+    if (picks[k].j >= 0) {
+      sphere_center(st_b, rot_b, w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3, pb);
+      r_b = w.radii[b * w.s_max + picks[k].j];
+    } else {  // b's box surface: its closest point to a's sphere (radius 0)
+      box_closest(st_b, rot_b, w.box_half + 3 * b, pa, cl, pb);
+    }
+    if (picks[k].i < 0) box_closest(st_a, rot_a, w.box_half + 3 * a, pb, cl, pa);  // a's box surface
     for (int i = 0; i < 3; ++i) diff[i] = pb[i] - pa[i];
     T dist = sqrt(dot3(diff, diff) + S(1e-24));
     for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;

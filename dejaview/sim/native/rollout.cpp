@@ -129,7 +129,7 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
       sc.pair_picks[pi].clear();
       continue;
     }
-    bound = select_pair(w, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b],
+    bound = select_pair(w, pi, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b],
                         sc.pair_picks[pi]);
   }
 }
@@ -546,6 +546,11 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
   w.mu_pair = t[MU_PAIR].data_ptr<S>();
   w.unload_pair = t[UNLOAD_PAIR].data_ptr<S>();
   w.mass_pair = t[MASS_PAIR].data_ptr<S>();
+  w.box_half = t[BOX_HALF].data_ptr<S>();
+  w.pair_surface = t[PAIR_SURFACE].data_ptr<int64_t>();
+  for (int pi = 0; pi < w.p; ++pi)
+    TORCH_CHECK(w.pair_surface[pi] >= -1 && w.pair_surface[pi] <= 1, "native world field 'pair_surface': pair ",
+                pi, " has ", w.pair_surface[pi], " (schema: -1, 0 or 1)");
   const S* rows = t[SHAPES].data_ptr<S>();
   const S* grid = t[GRID].numel() ? t[GRID].data_ptr<S>() : nullptr;
   const int64_t grid_size = t[GRID].numel();

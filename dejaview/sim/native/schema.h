@@ -22,9 +22,11 @@ enum WorldField : int {
   MU_PAIR = 11,  // float64 (P): friction coefficient per pair
   UNLOAD_PAIR = 12,  // float64 (P): unloading factor per pair
   MASS_PAIR = 13,  // float64 (P): reduced mass per pair, kg
-  SHAPES = 14,  // float64 (K, F): one row of SHAPE_COLUMNS per static shape
-  GRID = 15,  // float64 (G): the sampled distances of every grid static, one after another
-  WORLD_FIELD_COUNT = 16
+  BOX_HALF = 14,  // float64 (N, 3): half extents of a box body, m (0: not a box)
+  PAIR_SURFACE = 15,  // int64 (P): which body's box surface the other's spheres meet: 0 a, 1 b, -1 none
+  SHAPES = 16,  // float64 (K, F): one row of SHAPE_COLUMNS per static shape
+  GRID = 17,  // float64 (G): the sampled distances of every grid static, one after another
+  WORLD_FIELD_COUNT = 18
 };
 
 // symbolic dimensions of the arrays' shapes
@@ -45,6 +47,8 @@ constexpr FieldSpec WORLD_SPECS[WORLD_FIELD_COUNT] = {
   {"mu_pair", false, 1, {DIM_P, 0, 0}},
   {"unload_pair", false, 1, {DIM_P, 0, 0}},
   {"mass_pair", false, 1, {DIM_P, 0, 0}},
+  {"box_half", false, 2, {DIM_N, 3, 0}},
+  {"pair_surface", true, 1, {DIM_P, 0, 0}},
   {"shapes", false, 2, {DIM_K, DIM_F, 0}},
   {"grid", false, 1, {DIM_G, 0, 0}},
 };

@@ -58,6 +58,8 @@ WORLD_FIELDS = (
     Field("mu_pair", "float64", ("P",), "friction coefficient per pair"),
     Field("unload_pair", "float64", ("P",), "unloading factor per pair"),
     Field("mass_pair", "float64", ("P",), "reduced mass per pair, kg"),
+    Field("box_half", "float64", ("N", 3), "half extents of a box body, m (0: not a box)"),
+    Field("pair_surface", "int64", ("P",), "which body's box surface the other's spheres meet: 0 a, 1 b, -1 none"),
     Field("shapes", "float64", ("K", "F"), "one row of SHAPE_COLUMNS per static shape"),
     Field("grid", "float64", ("G",), "the sampled distances of every grid static, one after another"),
 )
@@ -163,7 +165,8 @@ def pack(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
         "mu_static": world.mu_static.reshape(world.num_bodies, k),
         "unload_static": world.unload_static.reshape(world.num_bodies, k),
         "pairs": world.pairs.reshape(-1, 2), "mu_pair": world.mu_pair, "unload_pair": world.unload_pair,
-        "mass_pair": world.mass_pair, "shapes": shapes,
+        "mass_pair": world.mass_pair, "box_half": world.box_half,
+        "pair_surface": torch.tensor(world.pair_surface, dtype=torch.int64).reshape(-1), "shapes": shapes,
         "grid": torch.cat(grids) if grids else torch.zeros(0, **f64),
     }
     tensors = [arrays[f.name].contiguous() for f in WORLD_FIELDS]
