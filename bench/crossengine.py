@@ -340,15 +340,16 @@ def _cases() -> tuple[Case, ...]:
 CASES = _cases()
 
 
-def case_scene(case: Case, target=None, uncertainty=None):
-    """The case's scene; with ``target`` (origin, orientation) the ``<inference>`` section."""
+def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0):
+    """The case's scene; with ``target`` (origin, orientation) the ``<inference>`` section (the
+    search's ``seed``)."""
     inference = ""
     if target is not None:
         lo, hi = case.area
         is_ball = 'shape="sphere"' in case.objects.split("</object>")[0]
         mu = ("" if uncertainty is None else
               f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
-        inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="0">
+        inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="{int(seed)}">
     <target position="{_v(target[0])}" orientation="{_v(target[1])}"/>
     <optimize position="true" orientation="{str(case.orientation).lower()}" linear-velocity="true" angular-velocity="true"/>
     <start-area min="{_v(lo)}" max="{_v(hi)}"/>
@@ -376,14 +377,15 @@ def angle_deg(q1, q2) -> float:
     return math.degrees(2 * math.acos(min(1.0, d)))
 
 
-def solve_case(case: Case, uncertainty, warp: bool, print_fn=print) -> dict:
-    """Observe the case in MuJoCo, solve, re-simulate the answer in MuJoCo (and Warp)."""
+def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 0) -> dict:
+    """Observe the case in MuJoCo, solve (the search's ``seed``), re-simulate the answer in MuJoCo
+    (and Warp)."""
     import dejaview
 
     truth = case_scene(case)
     end = mujoco_run(truth, (case.duration,))[case.duration]
     target = (end[0][0], end[1][0])
-    scene = case_scene(case, target, uncertainty)
+    scene = case_scene(case, target, uncertainty, seed)
     t0 = time.perf_counter()
     result = dejaview.solve(scene)
     seconds = time.perf_counter() - t0
@@ -393,7 +395,7 @@ def solve_case(case: Case, uncertainty, warp: bool, print_fn=print) -> dict:
     mj_err = float(np.linalg.norm(back[0][0] - target[0]))
     own = float(np.linalg.norm(_own_end(result) - target[0]))
     search = result.settings.get("search", {})
-    row = {"section": "inference", "case": case.name,
+    row = {"section": "inference", "case": case.name, "seed": int(seed),
            "model_uncertainty": "off" if uncertainty is None else f"{uncertainty[0]:g} {uncertainty[1]:g}",
            "seconds": seconds, "rollouts": search.get("rollouts"), "jacobians": search.get("jacobians"),
            "own_end_error_m": own, "mujoco_end_error_m": mj_err,
@@ -404,7 +406,7 @@ def solve_case(case: Case, uncertainty, warp: bool, print_fn=print) -> dict:
         w = warp_end(with_start(scene, initial))
         row["warp_end_error_m"] = None if w is None else float(np.linalg.norm(w - target[0]))
         row["warp_success"] = None if w is None else row["warp_end_error_m"] <= SUCCESS_TOL
-    print_fn(f"{case.name:<22} {row['model_uncertainty']:<8} {seconds:>7.1f} {1000 * own:>8.1f} "
+    print_fn(f"{case.name:<22} {seed:>4} {row['model_uncertainty']:<8} {seconds:>7.1f} {1000 * own:>8.1f} "
              f"{1000 * mj_err:>8.1f} {'yes' if row['success'] else 'no':<4}"
              + ("" if row.get("warp_end_error_m") is None else f" {1000 * row['warp_end_error_m']:>8.1f}"))
     return row
@@ -424,7 +426,7 @@ def _truth_start(scene) -> np.ndarray:
 
 
 def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
-        with_fidelity: bool = True, baseline: bool = True) -> list[dict]:
+        with_fidelity: bool = True, baseline: bool = True, seeds=(0,)) -> list[dict]:
     """Fidelity table and the inference cases with and without model uncertainty (module docstring).
 
     Args:
@@ -433,11 +435,18 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
         warp: also re-simulate the answers in Warp (where it is installed).
         with_fidelity: print the fidelity table first.
         baseline: also solve without model uncertainty.
+        seeds: the search's seeds (``<inference seed>``), one solve each per case and setting
+            (the same observation): several cases land within a few mm of the 3 cm bar, and
+            which side they land on changes with the search's path, so one seed's count is a
+            noisy estimate of the rate.
     Returns:
         rows (dicts) of both parts.
     """
     from dejaview.cli.bench import load_average
 
+    seeds = tuple(seeds)
+    if not seeds or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in seeds):
+        raise ValueError(f"seeds must be whole numbers >= 0, got {seeds!r}")
     chosen = [c for c in CASES if not cases or c.name in cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
@@ -451,11 +460,12 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     settings = ([None] if baseline else []) + [tuple(uncertainty)]
     print_fn(f"## inference: MuJoCo observes, DejaView solves, MuJoCo{' and Warp' if warp else ''} "
              f"re-simulate (success: within {100 * SUCCESS_TOL:g} cm)")
-    print_fn(f"{'case':<22} {'model-u':<8} {'seconds':>7} {'own mm':>8} {'mujoco mm':>8} ok  "
+    print_fn(f"{'case':<22} {'seed':>4} {'model-u':<8} {'seconds':>7} {'own mm':>8} {'mujoco mm':>8} ok  "
              + ("warp mm" if warp else ""))
     for case in chosen:
         for u in settings:
-            rows.append(solve_case(case, u, warp, print_fn))
+            for seed in seeds:
+                rows.append(solve_case(case, u, warp, print_fn, seed))
     summary(rows, print_fn)
     return rows
 
@@ -475,10 +485,19 @@ def summary(rows, print_fn=print) -> None:
         if w:
             line += f"; Warp {sum(r['warp_success'] for r in w)}/{len(w)}"
         print_fn(line)
+        seeds = sorted({r.get("seed", 0) for r in rs})
+        if len(seeds) > 1:
+            per_case = {}
+            for r in rs:
+                per_case.setdefault(r["case"], []).append(r["success"])
+            print_fn(f"  over {len(seeds)} seeds, cases solved by every seed: "
+                     f"{sum(all(v) for v in per_case.values())}/{len(per_case)}; by some: "
+                     f"{sum(any(v) for v in per_case.values())}/{len(per_case)}")
     if "off" in secs and len(secs) > 1:
         for key in secs:
             if key != "off":
-                pairs = [(a, b) for a in groups["off"] for b in groups[key] if a["case"] == b["case"]]
+                pairs = [(a, b) for a in groups["off"] for b in groups[key]
+                         if (a["case"], a.get("seed")) == (b["case"], b.get("seed"))]
                 ratio = np.median([b["seconds"] / a["seconds"] for a, b in pairs])
                 print_fn(f"cost with model uncertainty {key}: mean {secs[key] / secs['off']:.2f}x, "
                          f"median per case {ratio:.2f}x the solve without it")
@@ -491,13 +510,15 @@ def main(argv=None) -> int:
     parser.add_argument("--no-fidelity", action="store_true")
     parser.add_argument("--csv", type=Path, default=None)
     parser.add_argument("--no-baseline", action="store_true")
+    parser.add_argument("--seeds", default="0", help="comma-separated search seeds, one solve each per case")
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     args = parser.parse_args(argv)
     if args.timestep_study:
         rows = timestep_study()
     else:
         rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
-                   with_fidelity=not args.no_fidelity, baseline=not args.no_baseline)
+                   with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,
+                   seeds=tuple(int(v) for v in args.seeds.split(",") if v))
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

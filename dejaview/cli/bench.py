@@ -356,13 +356,15 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
               show_default=True, metavar="FRICTION RESTITUTION",
               help="Relative standard deviations of the runs with model uncertainty.")
 @click.option("--no-baseline", is_flag=True, help="Skip the solves without model uncertainty.")
+@click.option("--seeds", "seed_list", default="0", show_default=True,
+              help="Comma-separated search seeds, one solve each per case and setting (a rate, not one draw).")
 @click.option("--no-warp", is_flag=True, help="Do not re-simulate the answers in Warp.")
 @click.option("--no-fidelity", is_flag=True, help="Skip the fidelity table.")
 @click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
 @click.option("--timestep-study", is_flag=True,
               help="Only MuJoCo's time-step convergence on the fidelity rows (how its step was chosen).")
 @csv_option
-def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_only, timestep_study,
+def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, timestep_study,
                 csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
@@ -377,15 +379,20 @@ def crossengine(cases, uncertainty, no_baseline, no_warp, no_fidelity, fidelity_
     module = bench_module("crossengine")
     names = tuple(c for c in cases.replace(" ", "").split(",") if c)
     try:
+        seeds = tuple(int(v) for v in seed_list.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise click.BadParameter(f"{seed_list!r} is not a comma-separated list of whole numbers",
+                                 param_hint="--seeds") from None
+    try:
         if timestep_study:
             rows = module.timestep_study(click.echo)
         elif fidelity_only:
             rows = module.fidelity(click.echo)
         else:
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
-                              with_fidelity=not no_fidelity, baseline=not no_baseline)
+                              with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds)
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--cases") from None
+        raise click.BadParameter(str(exc), param_hint="--seeds" if "seeds" in str(exc) else "--cases") from None
     except ImportError as exc:
         raise click.ClickException(f"the crossengine bench needs MuJoCo: {exc}") from None
     _finish(rows, csv_path, False, [])

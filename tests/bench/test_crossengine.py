@@ -99,6 +99,26 @@ def test_unknown_cases_are_a_one_line_error():
     assert result.exit_code != 0 and "unknown case(s) nope" in result.output
 
 
+def test_bad_seeds_are_a_one_line_error():
+    for bad, says in (("x", "not a comma-separated list"), ("-1", "whole numbers >= 0")):
+        result = CliRunner().invoke(cli, ["bench", "crossengine", "--seeds", bad, "--no-fidelity"])
+        assert result.exit_code != 0 and says in result.output, result.output
+
+
+def test_each_seed_solves_each_case_once_and_the_summary_pools_them(crossengine):
+    """``--seeds 0,1``: one solve per seed (the scene's ``<inference seed>``), the same observation,
+    and the summary counts all of them and says which cases every seed solved."""
+    lines = []
+    rows = crossengine.run(print_fn=lines.append, cases=("ball-on-table",), warp=False, with_fidelity=False,
+                           baseline=False, seeds=(0, 1))
+    assert [(r["case"], r["seed"]) for r in rows] == [("ball-on-table", 0), ("ball-on-table", 1)]
+    ok = sum(r["success"] for r in rows)
+    assert any(f"MuJoCo {ok}/2 within 3 cm" in line for line in lines), lines
+    assert any("over 2 seeds, cases solved by every seed:" in line for line in lines), lines
+    (case,) = [c for c in crossengine.CASES if c.name == "ball-on-table"]
+    assert crossengine.case_scene(case, ((0, 0, 0.75), (1, 0, 0, 0)), None, seed=1).inference.seed == 1
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["ball-bounce-table", "box-slide-spin-floor"])
 def test_answers_with_model_uncertainty_end_within_3_cm_in_mujoco(crossengine, case):
