@@ -90,16 +90,18 @@ Body pairs against a box. Where one body of a pair is a box (a primitive
 is not, the other body's spheres meet the box's exact faces, edges and
 corners: each sphere i is paired with the box's closest point to its centre,
 q_i = x + R clamp(R^T (p_i - x), -half, half), as with a sphere of radius 0
-(``box_closest_point``), so delta_i = r_i - |p_i - q_i| and the normal is
-(q_i - p_i) / |q_i - p_i|; the law above is unchanged. The box's own spheres
+(``box_partner``), so delta_i = r_i - |p_i - q_i| and the normal is
+(q_i - p_i) / |q_i - p_i|; the law above is unchanged. A centre that has
+crossed the surface (a penetration deeper than the sphere's radius: a small
+sphere in a hard impact) is paired with a large sphere behind the nearest
+face, so delta_i stays r_i minus the signed distance and the force pushes it
+back out through that face. The box's own spheres
 stay for its static contacts and for a pair of two boxes (sphere against
 sphere). Why: a box's packing is a union of spheres, bumpy on a ball's scale;
 a ball meeting a packed face 5-30 mm off a sphere's axis left it sideways at
 up to 0.15 m/s where a flat face sends it straight back, and MuJoCo's box
 sent a ball rolling into it 1 cm off centre 12 cm elsewhere by 1.5 s
-(docs/physics-fidelity.md; ``tests/sim/test_physics.py``). A sphere whose
-centre has entered the box (a penetration deeper than its radius) has no
-closest surface point here and gets no force from it.
+(docs/physics-fidelity.md; ``tests/sim/test_physics.py``).
 
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass.
@@ -425,27 +427,38 @@ def _sphere_pair_candidates(world, spheres: torch.Tensor, ia: torch.Tensor, ib: 
     return pa, pb, ra, rb, ma * mb
 
 
-def box_closest_point(points: torch.Tensor, centre: torch.Tensor, rot: torch.Tensor,
-                      half: torch.Tensor) -> torch.Tensor:
-    """Closest points (B, P, S, 3) of boxes to world points (B, P, S, 3) outside them.
+def box_partner(points: torch.Tensor, centre: torch.Tensor, rot: torch.Tensor,
+                half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Boxes' surfaces as spheres partnering world points: centres (B, P, S, 3) and radii (B, P, S).
+
+    Outside a box: its closest point to the point, radius 0, ``x + R clamp(R^T (p - x), -half,
+    half)``. Inside (a sphere's centre that has crossed the surface: a penetration deeper than its
+    radius): on the normal of the nearest face, ``deep = 1 + |half|`` behind it, radius ``deep``.
+    Either way |p - q| - radius is the box's signed distance at p and (p - q) / |p - q| its
+    outward normal, so the sphere-pair law pushes the point out through the nearest face.
 
     Args:
-        centre: (B, P, 3) box centres; rot: (B, P, 3, 3) world-from-box rotations; half: (P, 3).
-    Returns:
-        ``x + R clamp(R^T (p - x), -half, half)``: on the box's surface for a point outside it
-        (the point itself inside: no direction to push along; a sphere whose centre has entered
-        the box is a penetration deeper than its radius).
+        points: (B, P, S, 3); centre: (B, P, 3) box centres; rot: (B, P, 3, 3) world-from-box
+            rotations; half: (P, 3) half extents.
     """
     local = small_matmul(points - centre.unsqueeze(-2), rot)  # rows R^T (p - x)
-    lim = half.unsqueeze(-2)
-    inside = torch.maximum(torch.minimum(local, lim), -lim)
-    return centre.unsqueeze(-2) + small_matmul(inside, rot.transpose(-1, -2))
+    lim = half.unsqueeze(-2)  # (P, 1, 3)
+    over = local.abs() - lim
+    outside = (over > 0).any(-1)  # (B, P, S)
+    clamped = torch.maximum(torch.minimum(local, lim), -lim)
+    deep = 1.0 + torch.linalg.vector_norm(half, dim=-1)[:, None]  # (P, 1)
+    face = torch.nn.functional.one_hot(over.detach().argmax(-1), 3).to(torch.bool)  # nearest face
+    sign = torch.where(local.detach() < 0, -1.0, 1.0).to(local.dtype)
+    behind = torch.where(face, sign * (lim - deep.unsqueeze(-1)), local)
+    inner = torch.where(outside.unsqueeze(-1), clamped, behind)
+    radius = torch.where(outside, torch.zeros_like(over[..., 0]), deep.expand_as(over[..., 0]))
+    return centre.unsqueeze(-2) + small_matmul(inner, rot.transpose(-1, -2)), radius
 
 
 def _surface_candidates(world, state, spheres: torch.Tensor, rot: torch.Tensor, ia: torch.Tensor,
                         ib: torch.Tensor, side: int):
-    """Body pairs (ia, ib) (P,) whose body ``side`` (0: a, 1: b) is a box: the other body's spheres
-    (each with the box's closest point, a sphere of radius 0) as ``_sphere_pair_candidates``
+    """Body pairs (ia, ib) (P,) whose body ``side`` (0: a, 1: b) is a box: the other body's spheres,
+    each with the box's surface as its partner (``box_partner``), as ``_sphere_pair_candidates``
     returns them, the ``max_pair_contacts`` deepest where there are more."""
     box, other = (ia, ib) if side == 0 else (ib, ia)
     p_o = spheres[:, other]  # (B, P, S, 3)
@@ -453,16 +466,15 @@ def _surface_candidates(world, state, spheres: torch.Tensor, rot: torch.Tensor, 
     r_o, m_o = world.radii[other].expand(b, p, s), world.mask[other].expand(b, p, s)
     cap = world.contact.max_pair_contacts
     if s > cap:
-        q0 = box_closest_point(p_o.detach(), state.position[:, box].detach(), rot[:, box].detach(),
-                               world.box_half[box])
-        depth0 = torch.relu(r_o - torch.linalg.vector_norm(p_o.detach() - q0, dim=-1)) * m_o
+        q0, rq0 = box_partner(p_o.detach(), state.position[:, box].detach(), rot[:, box].detach(),
+                              world.box_half[box])
+        depth0 = torch.relu(r_o + rq0 - torch.linalg.vector_norm(p_o.detach() - q0, dim=-1)) * m_o
         idx = deepest(depth0, cap)
         p_o, r_o, m_o = take(p_o, idx), r_o.gather(2, idx), m_o.gather(2, idx)
-    q = box_closest_point(p_o, state.position[:, box], rot[:, box], world.box_half[box])
-    zero = torch.zeros_like(r_o)
+    q, rq = box_partner(p_o, state.position[:, box], rot[:, box], world.box_half[box])
     if side == 0:
-        return q, p_o, zero, r_o, m_o
-    return p_o, q, r_o, zero, m_o
+        return q, p_o, rq, r_o, m_o
+    return p_o, q, r_o, rq, m_o
 
 
 def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torch.Tensor,

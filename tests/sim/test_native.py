@@ -152,13 +152,18 @@ def _against_a_box(box_first: bool, other: str = "ball", batch: int = 1):
     """A ball (or a packed box) thrown, spinning, at a tilted, spinning box whose exact surface it
     meets (``BodySpec.box_half``), on a floor; the box body first or second in the pair."""
     box = box_body("box", per_axis=(4, 3, 2), friction=0.6, restitution=0.3, box_half=(0.1, 0.075, 0.05))
-    thrown = (ball_body("ball", radius=0.05, mass=0.4, friction=0.5, restitution=0.4) if other == "ball"
-              else box_body("brick", size=(0.12, 0.08, 0.06), per_axis=(3, 2, 2), mass=0.5))
+    thrown = {"ball": lambda: ball_body("ball", radius=0.05, mass=0.4, friction=0.5, restitution=0.4),
+              # at 6 m/s it sinks about 2 cm, past its radius: its centre crosses the face
+              "small ball": lambda: ball_body("bead", radius=0.005, mass=0.01, friction=0.5, restitution=0.4),
+              "packed box": lambda: box_body("brick", size=(0.12, 0.08, 0.06), per_axis=(3, 2, 2), mass=0.5),
+              }[other]()
     bodies = [box, thrown] if box_first else [thrown, box]
     world = make_world(bodies, [StaticShape.make("floor", "plane")])
     q = [math.cos(0.2), math.sin(0.2) * 0.6, 0.0, math.sin(0.2) * 0.8]
     box_state = ([0.0, 0.0, 0.12], q, [0.0, 0.0, 0.0], [0.5, -1.0, 2.0])
     thrown_state = ([-0.25, 0.03, 0.16], [1.0, 0.0, 0.0, 0.0], [2.0, -0.1, 0.3], [3.0, -5.0, 1.0])
+    if other == "small ball":  # straight at the box's middle, 3 times as fast
+        thrown_state = ([-0.25, 0.02, 0.12], [1.0, 0.0, 0.0, 0.0], [6.0, -0.1, 0.0], [3.0, -5.0, 1.0])
     order = [box_state, thrown_state] if box_first else [thrown_state, box_state]
     state = world.state(*[[o[i] for o in order] for i in range(4)], batch_size=batch)
     if batch > 1:  # different candidates
@@ -171,17 +176,18 @@ def _against_a_box(box_first: bool, other: str = "ball", batch: int = 1):
 
 
 @pytest.mark.parametrize("box_first", [True, False])
-@pytest.mark.parametrize("other", ["ball", "packed box"])
+@pytest.mark.parametrize("other", ["ball", "small ball", "packed box"])
 def test_native_meets_a_box_body_as_the_torch_simulator_does(box_first, other):
     """Body pairs against a box's exact surface (``dejaview.sim.contacts``): states to round-off,
     reverse-mode gradients equal torch autograd, forward mode equals reverse mode; whether the box
-    is the pair's first body or its second, against a ball and against another body's spheres."""
+    is the pair's first body or its second, against a ball, a small ball whose centre crosses the
+    box's face (``box_partner``'s inside case) and another body's spheres."""
     world, state = _against_a_box(box_first, other, batch=2)
     assert world.pair_surface == ((0,) if box_first else (1,))
     ref = rollout(world, state, steps=120)
     out = rollout(world, state, steps=120, engine="native")
-    k = 1 if box_first else 0  # the thrown body, at 2 m/s along x: the box stopped it
-    assert float(ref.final.linear_velocity[:, k, 0].max()) < 1.0
+    k = 1 if box_first else 0  # the thrown body: the box took a metre per second or more off it
+    assert float((state.linear_velocity[:, k, 0] - ref.final.linear_velocity[:, k, 0]).min()) > 1.0
     _close(out, ref)
     one = state.index(0)
     g_ref = _grad(world, one, "torch", 100)
@@ -196,7 +202,7 @@ def test_native_meets_a_box_body_as_the_torch_simulator_does(box_first, other):
     jac_fwd = torch.func.jacfwd(f)(x0)
     x = x0.clone().requires_grad_(True)
     (jac_rev,) = torch.autograd.grad(f(x), x)
-    assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
+    assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-10 * float(jac_rev.abs().max()))
 
 
 @pytest.mark.parametrize("record_every", [1, 7])

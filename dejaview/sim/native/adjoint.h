@@ -428,7 +428,7 @@ struct PairAdjoint {
     ContactLaw<S> law;
     S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
     int box = 0;           // 1: b's box surface (cb its clamped point), 2: a's (ca), 0: spheres
-    S rel[3], inside[3];   // the sphere's centre from the box's centre, where the clamp let it through
+    S rel[3], inside[3];   // the sphere's centre from the box's centre, box_partner's free
     S pab[3], pbb[3], depthb;
     S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
@@ -468,19 +468,15 @@ struct PairAdjoint {
         r_b = w.radii[b * w.s_max + picks[k].j];
         sphere_center(st_b, rot_b, cb, pb);
       }
-      if (ct.box != 0) {  // the box's closest point to the other's sphere (box_closest)
+      if (ct.box != 0) {  // the box's surface as the other's sphere's partner (box_partner)
         const bool on_b = ct.box == 1;
         const S* xbox = on_b ? st_b : st_a;
         const S* rbox = on_b ? rot_b : rot_a;
         const S* half = w.box_half + 3 * (on_b ? b : a);
         const S* p = on_b ? pa : pb;
         S* cl = on_b ? ct.cb : ct.ca;
-        box_closest(xbox, rbox, half, p, cl, on_b ? pb : pa);
+        box_partner(xbox, rbox, half, p, cl, on_b ? pb : pa, ct.inside, on_b ? r_b : ct.r_a);
         for (int i = 0; i < 3; ++i) ct.rel[i] = p[i] - xbox[i];
-        for (int j = 0; j < 3; ++j) {
-          const S local = ct.rel[0] * rbox[j] + ct.rel[1] * rbox[3 + j] + ct.rel[2] * rbox[6 + j];
-          ct.inside[j] = (local > half[j] || local < -half[j]) ? S(0) : S(1);
-        }
       }
       for (int i = 0; i < 3; ++i) ct.diff[i] = pb[i] - pa[i];
       ct.dist = std::sqrt(dot3(ct.diff, ct.diff) + S(1e-24));

@@ -235,21 +235,41 @@ inline void sphere_center(const T* x, const R* rot, const S* c, T* p) {
   for (int i = 0; i < 3; ++i) p[i] = x[i] + (c[0] * rot[3 * i] + c[1] * rot[3 * i + 1] + c[2] * rot[3 * i + 2]);
 }
 
-// closest point q of a box body (centre x, world-from-body rot, half extents) to a world point p
-// outside it, and that point in the body's frame (cl = clamp(R^T (p - x), -half, half));
-// contacts.box_closest_point
+// A box body's surface as the partner of a sphere at world point p (contacts.box_partner): a
+// sphere of radius `radius` centred at q = x + R cl (box centre x, world-from-body rot) whose
+// surface touches the box's where the sphere's centre is nearest it. Outside the box: the closest
+// point, cl = clamp(R^T (p - x), -half, half), radius 0. Inside (a penetration deeper than the
+// sphere's radius): the nearest face k, cl = R^T (p - x) but cl_k = sign (half_k - deep), radius
+// deep = 1 + |half|, so the distance |p - q| - radius is the box's signed distance either way and
+// the normal its outward one. free[j]: 1 where cl_j is R^T (p - x)'s, 0 where it is a constant.
 template <typename T, typename R, typename S>
-inline void box_closest(const T* x, const R* rot, const S* half, const T* p, T* cl, T* q) {
+inline void box_partner(const T* x, const R* rot, const S* half, const T* p, T* cl, T* q, S* free, S& radius) {
   T rel[3] = {p[0] - x[0], p[1] - x[1], p[2] - x[2]};
+  T local[3];
+  S over[3];
+  bool outside = false;
+  int nearest = 0;
   for (int j = 0; j < 3; ++j) {
-    T local = rel[0] * rot[j] + rel[1] * rot[3 + j] + rel[2] * rot[6 + j];
-    if (val(local) > half[j]) {
-      cl[j] = T(half[j]);
-    } else if (val(local) < -half[j]) {
-      cl[j] = T(-half[j]);
+    local[j] = rel[0] * rot[j] + rel[1] * rot[3 + j] + rel[2] * rot[6 + j];
+    over[j] = std::abs(val(local[j])) - half[j];
+    if (over[j] > 0) outside = true;
+    if (over[j] > over[nearest]) nearest = j;
+  }
+  radius = S(0);
+  for (int j = 0; j < 3; ++j) {
+    if (outside && over[j] > 0) {
+      cl[j] = T(val(local[j]) < 0 ? -half[j] : half[j]);
+      free[j] = S(0);
     } else {
-      cl[j] = local;
+      cl[j] = local[j];
+      free[j] = S(1);
     }
+  }
+  if (!outside) {
+    const S deep = S(1) + std::sqrt(half[0] * half[0] + half[1] * half[1] + half[2] * half[2]);
+    cl[nearest] = T(val(local[nearest]) < 0 ? deep - half[nearest] : half[nearest] - deep);
+    free[nearest] = S(0);
+    radius = deep;
   }
   for (int i = 0; i < 3; ++i) q[i] = x[i] + (cl[0] * rot[3 * i] + cl[1] * rot[3 * i + 1] + cl[2] * rot[3 * i + 2]);
 }
@@ -542,11 +562,11 @@ S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb,
     const S* half = w.box_half + 3 * box;
     for (int i = 0; i < w.count[other]; ++i) {
       const S* c = w.centers + (static_cast<int64_t>(other) * w.s_max + i) * 3;
-      S p[3], cl[3], q[3];
+      S p[3], cl[3], q[3], free[3], deep;
       sphere_center(sother, rother, c, p);
-      box_closest(sbox, rbox, half, p, cl, q);
+      box_partner(sbox, rbox, half, p, cl, q, free, deep);
       S df[3] = {p[0] - q[0], p[1] - q[1], p[2] - q[2]};
-      const S depth = w.radii[other * w.s_max + i] - std::sqrt(dot3(df, df));
+      const S depth = w.radii[other * w.s_max + i] + deep - std::sqrt(dot3(df, df));
       if (depth > 0) picks.push_back(side == 0 ? PairPick{-1, i, static_cast<double>(depth)}
                                                : PairPick{i, -1, static_cast<double>(depth)});
       bound = std::min(bound, -depth);
@@ -615,10 +635,14 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     if (picks[k].j >= 0) {
       sphere_center(st_b, rot_b, w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3, pb);
       r_b = w.radii[b * w.s_max + picks[k].j];
-    } else {  // b's box surface: its closest point to a's sphere (radius 0)
-      box_closest(st_b, rot_b, w.box_half + 3 * b, pa, cl, pb);
+    } else {  // b's box surface as a's sphere's partner (box_partner)
+      S free[3];
+      box_partner(st_b, rot_b, w.box_half + 3 * b, pa, cl, pb, free, r_b);
     }
-    if (picks[k].i < 0) box_closest(st_a, rot_a, w.box_half + 3 * a, pb, cl, pa);  // a's box surface
+    if (picks[k].i < 0) {  // a's box surface
+      S free[3];
+      box_partner(st_a, rot_a, w.box_half + 3 * a, pb, cl, pa, free, r_a);
+    }
     for (int i = 0; i < 3; ++i) diff[i] = pb[i] - pa[i];
     T dist = sqrt(dot3(diff, diff) + S(1e-24));
     for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;
