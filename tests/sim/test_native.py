@@ -193,15 +193,7 @@ def test_native_meets_a_box_body_as_the_torch_simulator_does(box_first, other):
     g_ref = _grad(world, one, "torch", 100)
     g_out = _grad(world, one, "native", 100)
     assert torch.allclose(g_out, g_ref, rtol=1e-7, atol=1e-9 * float(g_ref.abs().max()))
-    x0 = torch.cat(one.tensors(), -1)
-
-    def f(x):
-        return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
-                             steps=100, engine="native"))
-
-    jac_fwd = torch.func.jacfwd(f)(x0)
-    x = x0.clone().requires_grad_(True)
-    (jac_rev,) = torch.autograd.grad(f(x), x)
+    jac_fwd, jac_rev, _, _ = _both_modes(world, one, 100)
     assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-10 * float(jac_rev.abs().max()))
 
 
@@ -230,17 +222,24 @@ def test_the_adjoint_reads_the_rollouts_contact_picks_as_if_it_selected_them_aga
             ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 1, counts, picks[:-1], starts)
 
 
-def test_native_forward_mode_equals_reverse_mode():
-    world, state = _tumbling_box("grid", batch=2)
-    x0 = torch.cat(state.tensors(), -1)  # (B, 1, 13)
+def _both_modes(world, state, steps: int):
+    """The native rollout's ``_loss`` differentiated by the state (B, N, 13) in forward mode
+    (``jacfwd``) and in reverse mode; the state as one tensor and the loss as a function of it."""
+    x0 = torch.cat(state.tensors(), -1)
 
     def f(x):
         return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
-                             steps=120, engine="native"))
+                             steps=steps, engine="native"))
 
     jac_fwd = torch.func.jacfwd(f)(x0)
     x = x0.clone().requires_grad_(True)
     (jac_rev,) = torch.autograd.grad(f(x), x)
+    return jac_fwd, jac_rev, x0, f
+
+
+def test_native_forward_mode_equals_reverse_mode():
+    world, state = _tumbling_box("grid", batch=2)
+    jac_fwd, jac_rev, x0, f = _both_modes(world, state, 120)
     assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
     # and a plain torch.func.jvp along one direction
     v = torch.randn_like(x0, generator=torch.Generator().manual_seed(0))

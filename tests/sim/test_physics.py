@@ -10,6 +10,18 @@ from tests.sim.conftest import ball_body, box_body, make_world
 G = 9.81
 
 
+def _weightless(bodies, statics, mu: float = 0.5, e: float = 0.3):
+    """A world without gravity (an impact alone acts), dt 2 ms in 2 substeps."""
+    from dejaview.sim.world import World
+
+    return World.build(bodies, statics, gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu, restitution=e)
+
+
+def _heavy_ball(mu: float, e: float):
+    """A ball of 1 m radius and 10 t: a curved surface that a body pair meets and that stays."""
+    return ball_body("big", radius=1.0, mass=1e4, friction=mu, restitution=e)
+
+
 def test_free_fall_matches_analytic_within_integrator_error():
     """Semi-implicit Euler: x_n = x0 + v0 t + g t^2 / 2 + g t h / 2 exactly (h the substep)."""
     world = make_world([ball_body()], [], dt=0.002, substeps=2)
@@ -102,7 +114,7 @@ def test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box(engine, 
     The native cases are skipped where the native extension does not build (no compiler).
     """
     from dejaview.geometry.box_spheres import box_spheres
-    from dejaview.sim.world import BodySpec, World
+    from dejaview.sim.world import BodySpec
 
     if engine == "native":
         from dejaview.sim import native
@@ -120,17 +132,11 @@ def test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box(engine, 
     speed = np.sqrt(2 * G * 0.1)
     q = [[np.cos(t / 2), 0.0, np.sin(t / 2), 0.0]]
     if surface == "floor":
-        floor = StaticShape.make("floor", "plane", friction=mu, restitution=e)
-        world = World.build([body], [floor], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
-                            restitution=e)
+        world = _weightless([body], [StaticShape.make("floor", "plane", friction=mu, restitution=e)], mu, e)
         state = world.state([[0.0, 0.0, 0.01 - low.min()]], orientation=q, linear_velocity=[[0.0, 0.0, -speed]])
     else:
-        big, heavy = 1.0, 1e4
-        ball = BodySpec("ball", heavy, 0.4 * heavy * big * big * np.eye(3), np.zeros(3), np.zeros((1, 3)),
-                        np.array([big]), friction=mu, restitution=e)
-        world = World.build([body, ball], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
-                            restitution=e)
-        state = world.state([[0.0, 0.0, 0.01 - low.min()], [0.0, 0.0, -big]], orientation=q + [[1.0, 0, 0, 0]],
+        world = _weightless([body, _heavy_ball(mu, e)], [], mu, e)
+        state = world.state([[0.0, 0.0, 0.01 - low.min()], [0.0, 0.0, -1.0]], orientation=q + [[1.0, 0, 0, 0]],
                             linear_velocity=[[0.0, 0.0, -speed], [0.0, 0.0, 0.0]])
     traj = rollout(world, state, steps=40, engine=engine)
     k = int(np.argmin(low))  # an edge sphere (the edge along y touches all along)
@@ -161,33 +167,25 @@ def test_ball_striking_a_surface_obliquely_leaves_it_as_a_rigid_sticking_impact(
     contact set (MuJoCo on the wall: -0.496 m/s along it, rigid -0.486). A box body's exact faces:
     ``test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight``. The native cases are skipped where the native extension does not build
     (no compiler)."""
-    from dejaview.sim.world import BodySpec, World
-
     if engine == "native":
         from dejaview.sim import native
 
         if not native.available():
             pytest.skip("the native extension does not build here")
-    r, m, mu, e = 0.05, 0.4, 0.5, 0.3
+    r, mu, e = 0.05, 0.5, 0.3
     vn, vt = 1.71, -0.68
-    ball = BodySpec("ball", m, 0.4 * m * r * r * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([r]),
-                    friction=mu, restitution=e)
+    ball = ball_body("ball", radius=r, mass=0.4, friction=mu, restitution=e)
     if surface == "wall":
         wall = StaticShape.make("wall", "box", position=(-0.5, 0.0, 0.0), half=(0.5, 1.0, 1.0),
                                 friction=mu, restitution=e)
-        world = World.build([ball], [wall], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
-                            restitution=e)
+        world = _weightless([ball], [wall], mu, e)
         state = world.state([[0.1, 0.0, 0.0]], linear_velocity=[[-vn, vt, 0.0]])
     else:
-        big, heavy = 1.0, 1e4
-        other = BodySpec("big", heavy, 0.4 * heavy * big * big * np.eye(3), np.zeros(3), np.zeros((1, 3)),
-                         np.array([big]), friction=mu, restitution=e)
-        world = World.build([ball, other], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, friction=mu,
-                            restitution=e)
+        world = _weightless([ball, _heavy_ball(mu, e)], [], mu, e)
         # the ball meets the big one 29 ms on, the impact lasts about 25 ms: started 2.8 cm to the
         # side it is on the line of centres mid-impact, so the curved face's normal turns as much
         # one way as the other (started on that line it pushes the ball on by 0.04 m/s)
-        state = world.state([[0.1, 0.028, 0.0], [-big, 0.0, 0.0]],
+        state = world.state([[0.1, 0.028, 0.0], [-1.0, 0.0, 0.0]],
                             linear_velocity=[[-vn, vt, 0.0], [0.0, 0.0, 0.0]])
     traj = rollout(world, state, steps=100, engine=engine)  # the impact is over at about 0.06 s
     v = traj.final.linear_velocity[0, 0].numpy()
@@ -208,7 +206,7 @@ def test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight(engine):
     (its packing, ``geometry/box_spheres.py``) the face kicked the ball sideways at up to 0.15 m/s
     (docs/physics-fidelity.md, "ball meets a box face 1 cm off centre")."""
     from dejaview.geometry.box_spheres import box_spheres
-    from dejaview.sim.world import BodySpec, World
+    from dejaview.sim.world import BodySpec
 
     if engine == "native":
         from dejaview.sim import native
@@ -223,9 +221,7 @@ def test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight(engine):
     box = BodySpec("box", heavy, inertia, np.zeros(3), centers, radii, restitution=e,
                    box_half=tuple(0.5 * v for v in size))
     offsets = [0.0, 0.005, 0.01, 0.015, 0.02, 0.03]
-    ball = BodySpec("ball", 0.4, 0.4 * 0.4 * r * r * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([r]),
-                    restitution=e)
-    world = World.build([ball, box], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, restitution=e)
+    world = _weightless([ball_body("ball", radius=r, mass=0.4, restitution=e), box], [], e=e)
     state = world.state([[[0.25, y, 0.0], [0.0, 0.0, 0.0]] for y in offsets],
                         linear_velocity=[[[-1.71, 0.0, 0.0], [0.0, 0.0, 0.0]]] * len(offsets))
     traj = rollout(world, state, steps=100, engine=engine)
@@ -241,7 +237,7 @@ def test_a_small_fast_ball_does_not_pass_through_a_box_body(engine):
     surface then partners it from behind the nearest face (``contacts.box_partner``) and it comes
     back out the way it went in, wherever on the face it lands farther from the face's border than
     it sinks (nearer, the nearest face is another one, as for a static box's distance)."""
-    from dejaview.sim.world import BodySpec, World
+    from dejaview.sim.world import BodySpec
 
     if engine == "native":
         from dejaview.sim import native
@@ -254,9 +250,7 @@ def test_a_small_fast_ball_does_not_pass_through_a_box_body(engine):
     box = BodySpec("box", heavy, heavy / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b]),
                    np.zeros(3), np.zeros((1, 3)), np.array([0.04]), restitution=0.3,
                    box_half=tuple(0.5 * v for v in size))
-    ball = BodySpec("ball", m, 0.4 * m * r * r * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([r]),
-                    restitution=0.3)
-    world = World.build([ball, box], [], gravity=(0.0, 0.0, 0.0), dt=0.002, substeps=2, restitution=0.3)
+    world = _weightless([ball_body("ball", radius=r, mass=m, restitution=0.3), box], [])
     starts = [[[0.2, y, z], [0.0, 0.0, 0.0]] for y, z in ((0.0, 0.0), (0.03, -0.02), (-0.04, 0.015))]
     state = world.state(starts, linear_velocity=[[[-6.0, 0.0, 0.0], [0.0, 0.0, 0.0]]] * len(starts))
     traj = rollout(world, state, steps=60, engine=engine)
