@@ -27,6 +27,7 @@ struct World {
   int n, s_max, k, p;
   std::vector<int> count;  // real spheres per body
   std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body
+  std::vector<S> pair_reach;  // ... and, for a box, its corners' (body pairs meet its surface)
   const S *mass, *inertia, *inv_inertia, *centers, *radii, *bound, *inv_i_min;
   std::vector<Shape<S>> shapes;
   const S *mu_static, *unload_static;  // (N, K)
