@@ -428,7 +428,7 @@ struct PairAdjoint {
     ContactLaw<S> law;
     S ca[3], cb[3], r_a, diff[3], dist, arm_a[3], arm_b[3];
     int box = 0;           // 1: b's box surface (cb its clamped point), 2: a's (ca), 0: spheres
-    S rel[3], inside[3];   // the sphere's centre from the box's centre, box_partner's free
+    S rel[3], free[3];     // the sphere's centre from the box's centre; box_partner's free
     S pab[3], pbb[3], depthb;
     S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
@@ -475,7 +475,7 @@ struct PairAdjoint {
         const S* half = w.box_half + 3 * (on_b ? b : a);
         const S* p = on_b ? pa : pb;
         S* cl = on_b ? ct.cb : ct.ca;
-        box_partner(xbox, rbox, half, p, cl, on_b ? pb : pa, ct.inside, on_b ? r_b : ct.r_a);
+        box_partner(xbox, rbox, half, p, cl, on_b ? pb : pa, ct.free, on_b ? r_b : ct.r_a);
         for (int i = 0; i < 3; ++i) ct.rel[i] = p[i] - xbox[i];
       }
       for (int i = 0; i < 3; ++i) ct.diff[i] = pb[i] - pa[i];
@@ -670,7 +670,7 @@ struct PairAdjoint {
           ct.pab[i] -= diffb;
         }
       }
-      if (ct.box != 0) {  // the box's point x + R cl, cl = clamp(R^T (p - x)): the part through p - x
+      if (ct.box != 0) {  // the box's point x + R cl (box_partner): the part through cl's free components
         const bool on_b = ct.box == 1;
         const S* rbox = on_b ? rot_b : rot_a;
         const S* qb = on_b ? ct.pbb : ct.pab;  // the box point's cotangent
@@ -678,7 +678,7 @@ struct PairAdjoint {
         S* xbox = on_b ? xbb : xab;
         S* rb_ = on_b ? rbb : rab;
         S lb[3], u[3];
-        for (int j = 0; j < 3; ++j) lb[j] = ct.inside[j] * (rbox[j] * qb[0] + rbox[3 + j] * qb[1] + rbox[6 + j] * qb[2]);
+        for (int j = 0; j < 3; ++j) lb[j] = ct.free[j] * (rbox[j] * qb[0] + rbox[3 + j] * qb[1] + rbox[6 + j] * qb[2]);
         for (int i = 0; i < 3; ++i) u[i] = rbox[3 * i] * lb[0] + rbox[3 * i + 1] * lb[1] + rbox[3 * i + 2] * lb[2];
         for (int i = 0; i < 3; ++i) {
           pother[i] += u[i];
@@ -686,7 +686,7 @@ struct PairAdjoint {
           for (int k = 0; k < 3; ++k) rb_[3 * i + k] += ct.rel[i] * lb[k];
         }
       }
-      // p_a = x_a + R_a c_a, p_b = x_b + R_b c_b (c the clamped point on a box)
+      // p_a = x_a + R_a c_a, p_b = x_b + R_b c_b (c a box's cl)
       for (int i = 0; i < 3; ++i) {
         xab[i] += ct.pab[i];
         xbb[i] += ct.pbb[i];
