@@ -243,7 +243,7 @@ class World:
         centers: (N, S, 3) sphere centres relative to the centre of mass, body axes.
         radii: (N, S) sphere radii (0 for padding).
         mask: (N, S) 1 for real spheres, 0 for padding.
-        bound: (N,) radius of a sphere about the centre of mass holding all spheres.
+        bound: (N,) radius of a sphere about the centre of mass holding all spheres (a box's: and its corners).
         inv_inertia_min: (N,) 1 / smallest principal moment (for contacts' effective masses).
         statics: K static shapes.
         mu_static: (N, K) friction coefficient body vs static.

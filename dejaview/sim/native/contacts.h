@@ -522,6 +522,14 @@ struct PairPick {
   double depth;
 };
 
+// the capacity's deepest picks of a body pair, the others dropped (contacts.deepest)
+inline void keep_deepest(std::vector<PairPick>& picks, int cap) {
+  if (static_cast<int>(picks.size()) <= cap) return;
+  std::nth_element(picks.begin(), picks.begin() + cap, picks.end(),
+                   [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
+  picks.resize(cap);
+}
+
 // Returns a lower bound on the clearance |p_i - p_j| - r_i - r_j of every sphere pair (exact
 // distances for the pairs looked at, the mid phase's margin for the others).
 template <typename S>
@@ -572,11 +580,7 @@ S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb,
                                                : PairPick{i, -1, static_cast<double>(depth)});
       bound = std::min(bound, -depth);
     }
-    if (static_cast<int>(picks.size()) > w.cap_pair) {
-      std::nth_element(picks.begin(), picks.begin() + w.cap_pair, picks.end(),
-                       [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
-      picks.resize(w.cap_pair);
-    }
+    keep_deepest(picks, w.cap_pair);
     return bound;
   }
   std::vector<int>& ia = pair_ids_a<S>();
@@ -595,12 +599,7 @@ S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb,
       bound = std::min(bound, -depth);
     }
   }
-  if (static_cast<int>(picks.size()) > w.cap_pair &&
-      static_cast<int64_t>(w.s_max) * w.s_max > w.cap_pair) {
-    std::nth_element(picks.begin(), picks.begin() + w.cap_pair, picks.end(),
-                     [](const PairPick& u, const PairPick& v) { return u.depth > v.depth; });
-    picks.resize(w.cap_pair);
-  }
+  keep_deepest(picks, w.cap_pair);
   return bound;
 }
 

@@ -13,7 +13,7 @@ enum WorldField : int {
   INV_INERTIA = 2,  // float64 (N, 3, 3): its inverse
   CENTERS = 3,  // float64 (N, S, 3): sphere centres relative to the centre of mass, body axes, m
   RADII = 4,  // float64 (N, S): sphere radii, m (0 for padding)
-  BOUND = 5,  // float64 (N): radius about the centre of mass holding all spheres, m
+  BOUND = 5,  // float64 (N): radius about the centre of mass holding all spheres (a box: its corners), m
   INV_INERTIA_MIN = 6,  // float64 (N): 1 / smallest principal moment
   COUNTS = 7,  // int64 (N): real spheres per body (the first ones of its row)
   MU_STATIC = 8,  // float64 (N, K): friction coefficient body vs static

@@ -49,7 +49,7 @@ WORLD_FIELDS = (
     Field("inv_inertia", "float64", ("N", 3, 3), "its inverse"),
     Field("centers", "float64", ("N", "S", 3), "sphere centres relative to the centre of mass, body axes, m"),
     Field("radii", "float64", ("N", "S"), "sphere radii, m (0 for padding)"),
-    Field("bound", "float64", ("N",), "radius about the centre of mass holding all spheres, m"),
+    Field("bound", "float64", ("N",), "radius about the centre of mass holding all spheres (a box: its corners), m"),
     Field("inv_inertia_min", "float64", ("N",), "1 / smallest principal moment"),
     Field("counts", "int64", ("N",), "real spheres per body (the first ones of its row)"),
     Field("mu_static", "float64", ("N", "K"), "friction coefficient body vs static"),
