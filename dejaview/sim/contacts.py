@@ -14,40 +14,21 @@ bodies) is fixed at the body level, ``k = m omega_0^2`` with m the body mass
 (reduced mass for a pair), and shared among the touching spheres in
 proportion to their depth, with weights ``w_i = delta_i / sum_j delta_j``:
 
-    f_n,i = w_i k delta_i (phi + (1 - phi) s_i)
+    f_n,i = w_i k delta_i (phi + (1 - phi) s_i),   s_i = sigmoid(-v_n,i / v_s)
 
 where v_n,i is the normal velocity of the contact point (negative when
-approaching). The contact is stiffer while loading (k, s_i = 1) than while
-unloading (phi k, s_i = 0): it returns the fraction phi of the stored energy,
-so the restitution is e = sqrt(phi) in continuous time; phi is calibrated
-against the discrete integrator (``World.restitution_to_unloading``) so that a
-simulated head-on impact rebounds with exactly e. Unlike a linear damper this
-force never pulls and never has to be clipped, and any e in [0, 1] is
-reachable. A body therefore behaves like one spring of natural frequency
+approaching). The contact is stiffer while loading (k) than while unloading
+(phi k): it returns the fraction phi of the stored energy, so the restitution
+is e = sqrt(phi) in continuous time; phi is calibrated against the discrete
+integrator (``World.restitution_to_unloading``) so that a simulated head-on
+impact rebounds with exactly e. Unlike a linear damper this force never
+pulls and never has to be clipped, and any e in [0, 1] is reachable; s_i
+blends the two stiffnesses over a few mm/s (v_s) so the force stays
+differentiable. A body therefore behaves like one spring of natural frequency
 omega_0 however many of its spheres touch, which keeps the explicit
 integrator stable (omega_0 h = 0.25 by default) and makes restitution
 independent of the packing. The weights are continuous in the state: a
 sphere that starts touching enters with weight zero.
-
-Loading fraction. The contact turns from loading to unloading inside a
-substep, and s_i is the fraction of the substep it still approaches:
-
-    s_i = ramp(1/2 - v_n,i / (h omega_0^2 D + v_s)),   D = sum_j w_j delta_j
-
-(h omega_0^2 D is the normal speed the set's spring takes off in one substep,
-D the set's depth; ramp a smooth clamp to [0, 1], ``loading_fraction``; v_s a
-few mm/s keeps it smooth at the first touch). At rest s_i = 1/2. A switch by
-the sign of v_n alone (``sigmoid(-v_n / v_s)``, before 2026-11-26) gave the
-whole substep in which the contact turns to one stiffness, so the rebound
-depended on where in a substep the contact began: e = 0.3 gave 0.296-0.363
-(docs/physics-fidelity.md); with the fraction, 0.298-0.301.
-
-Under gravity a hysteretic spring also takes part of the body's weight's work
-(m g delta_max while loading, phi of it back while unloading): a ball dropped
-at 2 m/s with e = 0.3 rebounds with 0.23, at 3 m/s with 0.26 (e = 0.7: 0.68
-and 0.69). An unloading spring about the depth that carries the weight gave
-e under gravity for balls but parted box impacts from MuJoCo further
-(docs/physics-fidelity.md): not kept.
 
 Friction is Coulomb's law with a velocity-level stick limit:
 
@@ -151,7 +132,6 @@ import torch
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
-LOADING_SHARPNESS = 20.0  # how sharply s_i's ramp bends at 0 and 1 (loading_fraction)
 
 
 def deepest(depth: torch.Tensor, capacity: int) -> torch.Tensor:
@@ -181,16 +161,8 @@ def depth_weights(depth: torch.Tensor) -> torch.Tensor:
     return depth / (total + torch.finfo(depth.dtype).tiny)
 
 
-def loading_fraction(t: torch.Tensor) -> torch.Tensor:
-    """``t`` (any shape) clamped to [0, 1], smoothly: ``(softplus(b t) - softplus(b (t - 1))) / b``
-    with b = ``LOADING_SHARPNESS`` (0.5 at t = 0.5, within 1e-9 of the clamp a unit from its ends)."""
-    b = LOADING_SHARPNESS
-    return (torch.nn.functional.softplus(b * t) - torch.nn.functional.softplus(b * (t - 1.0))) / b
-
-
 def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: torch.Tensor,
-                 stiffness: torch.Tensor, unload: torch.Tensor, unload_velocity: float,
-                 speed_per_depth: float) -> torch.Tensor:
+                 stiffness: torch.Tensor, unload: torch.Tensor, unload_velocity: float) -> torch.Tensor:
     """Depth-weighted hysteretic spring normal forces of one contact set.
 
     Args:
@@ -200,13 +172,10 @@ def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: tor
         stiffness: broadcastable to (B, C), body-level stiffness k.
         unload: broadcastable to (B, C), unloading stiffness factor phi in [0, 1].
         unload_velocity: blending speed v_s (m/s) between loading and unloading.
-        speed_per_depth: h omega_0^2 (1/s), the normal speed a substep of the set's spring
-            takes off per metre of its depth.
     Returns:
         (B, C) normal force magnitudes (>= 0).
     """
-    set_depth = (weight * depth).sum(-1, keepdim=True)
-    loading = loading_fraction(0.5 - normal_velocity / (speed_per_depth * set_depth + unload_velocity))
+    loading = torch.sigmoid(-normal_velocity / unload_velocity)
     return weight * stiffness * depth * (unload + (1.0 - unload) * loading)
 
 
@@ -361,7 +330,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     flat_depth = depth.reshape(b, nb, k * s)
     weight = depth_weights(flat_depth)
     fn = normal_force(flat_depth, weight, vn.reshape(b, nb, k * s), stiff, unload,
-                      world.contact.unload_velocity, h * omega ** 2).reshape(b, nb, k, s)
+                      world.contact.unload_velocity).reshape(b, nb, k, s)
     vt = vt + h * predicted_slip_change(fn, normal, arm, m, inv_inertia_w)
     inv_mass = (1.0 / m)[:, None, None] + _inverse_mass(arm, _slip_direction(vt), inv_inertia_w,
                                                        world.inv_inertia_min)
@@ -532,7 +501,7 @@ def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torc
     stiff = (mass_p * omega ** 2)[None, :, None]
     unload = unload_p[None, :, None]
     weight = depth_weights(depth)
-    fn = normal_force(depth, weight, vn, stiff, unload, world.contact.unload_velocity, h * omega ** 2)
+    fn = normal_force(depth, weight, vn, stiff, unload, world.contact.unload_velocity)
     vt = vt + h * predicted_pair_slip_change(fn, n, arm_a, arm_b, world.mass[ia], world.mass[ib],
                                              inv_inertia_w[:, ia], inv_inertia_w[:, ib])
     inv_i = world.inv_inertia_min

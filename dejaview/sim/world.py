@@ -18,7 +18,6 @@ import torch
 from dejaview.errors import SimulationError
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
-from dejaview.sim.contacts import LOADING_SHARPNESS
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
@@ -181,24 +180,15 @@ class ContactSettings:
 def _discrete_restitution(unload: float, omega_h: float) -> float:
     """Restitution of one hysteretic spring contact under the simulator's integrator.
 
-    Unit mass, omega = 1, step ``omega_h``, approach speed 1 (much faster than the blending
-    speed v_s), no gravity, contact from the start of a step: semi-implicit Euler of
-    ``a = delta * (unload + (1 - unload) s)``, s = ``contacts.loading_fraction(0.5 - v / (omega_h
-    delta))`` (``contacts.normal_force``) until separation; returns the separation speed.
+    Unit mass, omega = 1, step ``omega_h``, approach speed 1, no gravity:
+    semi-implicit Euler of ``a = delta * (1 if approaching else unload)``
+    until separation; returns the separation speed.
     """
-    b = LOADING_SHARPNESS
-
-    def softplus(u: float) -> float:
-        return max(u, 0.0) + math.log1p(math.exp(-abs(u)))
-
     x, v = 0.0, -1.0
     for _ in range(100000):
         depth = max(0.0, -x)
-        if depth > 0.0:
-            t = 0.5 - v / (omega_h * depth)
-            s = (softplus(b * t) - softplus(b * (t - 1.0))) / b
-            a = depth * (unload + (1.0 - unload) * s)
-            v += omega_h * a
+        a = depth * (1.0 if v < 0.0 else unload)
+        v += omega_h * a
         x += omega_h * v
         if x >= 0.0 and v > 0.0:
             return v

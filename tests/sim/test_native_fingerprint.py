@@ -3,14 +3,12 @@
 Issue 25 rewrote how the engine differentiates (the adjoint instead of full state Jacobians,
 then hand-written reverse mode) and how it culls contacts, under the contract that states and
 gradients stay those of the engine it was filed against (30cf17f) to 1e-9; this test held it
-there. The friction on the predicted slip (2026-11-25) and then the loading fraction (2026-11-26:
-the contact turns from its loading to its unloading stiffness by the fraction of a substep it
-still approaches, ``dejaview.sim.contacts``) changed the physics of impacts on purpose, and the
-record (``scripts/native_fingerprint.py`` on the bundled scenes: 150 steps, states every 10th,
-the reverse-mode gradient and a forward-mode derivative of a loss of them) is now of that
-engine: ``tests/fixtures/native/fingerprint-loading-fraction.npz``. A change to the C++ that
-should not change a number must keep this test passing; one that should must say why and
-re-record.
+there. The friction on the predicted slip (2026-11-25, ``dejaview.sim.contacts``) then changed
+the physics of impacts on purpose, and the record (``scripts/native_fingerprint.py`` on the
+bundled scenes: 150 steps, states every 10th, the reverse-mode gradient and a forward-mode
+derivative of a loss of them) is now of that engine:
+``tests/fixtures/native/fingerprint-predicted-slip.npz``. A change to the C++ that should not
+change a number must keep this test passing; one that should must say why and re-record.
 """
 
 import importlib.util
@@ -22,7 +20,7 @@ import pytest
 from dejaview.sim import native
 
 ROOT = Path(__file__).resolve().parents[2]
-BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-loading-fraction.npz"
+BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-predicted-slip.npz"
 TOLERANCE = 1e-9  # times max(1, the largest magnitude of the array)
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension does not build here")

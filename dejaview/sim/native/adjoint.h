@@ -69,13 +69,12 @@ template <typename S> inline void rotate_tensor_vjp(const S* r, const S* a, cons
 template <typename S>
 struct ContactLaw {
   int arms;  // 1: a static contact, 2: a body pair
-  S n[3], depth, weight, vel[3], stiff, unload, mu, inv_m, h;
-  S set_scale;  // the set's h omega^2 (sum_i w_i delta_i) + v_s (contacts.h: loading_of)
+  S n[3], depth, weight, vel[3], stiff, unload, mu, inv_m, h, unload_velocity;
   const S* arm[2];
   const S* inv_w[2];
   S inv_i_min[2];
   // forward values
-  S vn, vt[3], loading, slope, g, fn;
+  S vn, vt[3], loading, g, fn;
   S dv[3], dvn, pred[3], vs[3];  // the predicted slip: its rate of change, then vs = vt + pred
   S tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
@@ -90,7 +89,7 @@ struct ContactLaw {
   void forward_normal() {
     vn = dot3(vel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
-    loading = loading_fraction(S(0.5) - vn / set_scale, slope);
+    loading = sigmoid(-vn / unload_velocity);
     g = unload + (S(1) - unload) * loading;
     fn = weight * stiff * depth * g;
   }
@@ -193,22 +192,20 @@ struct ContactLaw {
 
   // backward_normal where y = fn n also entered the set's sums, with cotangent yb (3)
   void backward_normal_and_sum(S fnb, const S* yb, const S* vtb, S* nb, S* velb, S& depthb,
-                               S& weightb, S& scaleb) const {
+                               S& weightb) const {
     for (int i = 0; i < 3; ++i) nb[i] += fn * yb[i];
-    backward_normal(fnb + dot3(yb, n), vtb, nb, velb, depthb, weightb, scaleb);
+    backward_normal(fnb + dot3(yb, n), vtb, nb, velb, depthb, weightb);
   }
 
-  // the normal force's part: from fnb and vtb (3) to nb, velb (added to), depthb, scaleb (set),
-  // weightb (added to)
-  void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb, S& scaleb) const {
+  // the normal force's part: from fnb and vtb (3) to nb, velb (added to), depthb (set), weightb
+  // (added to)
+  void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb) const {
     S vtb[3] = {vtb_in[0], vtb_in[1], vtb_in[2]};
-    // fn = weight stiff depth g, g = unload + (1 - unload) loading,
-    // loading = loading_fraction(0.5 - vn / set_scale)
+    // fn = weight stiff depth g, g = unload + (1 - unload) sigmoid(-vn / uv)
     weightb += fnb * stiff * depth * g;
     depthb = fnb * weight * stiff * g;
-    const S tb = fnb * weight * stiff * depth * (S(1) - unload) * slope;
-    S vnb = -tb / set_scale;
-    scaleb = tb * vn / (set_scale * set_scale);
+    const S loadingb = fnb * weight * stiff * depth * (S(1) - unload);
+    S vnb = -loadingb * loading * (S(1) - loading) / unload_velocity;
     // vt = vel - vn n, vn = vel . n
     vnb -= dot3(vtb, n);
     for (int i = 0; i < 3; ++i) {
@@ -217,23 +214,6 @@ struct ContactLaw {
     }
   }
 };
-
-// The set's part of the way back, for contacts ct (ct.law, ct.depthb, ct.weightb, ct.scaleb from
-// backward_normal): scale = spd D + v_s with D = sum_i w_i delta_i, and w_i = delta_i / tt
-// (tt = total + tiny). Adds D's and w_i's parts to each ct.depthb; returns total's cotangent.
-template <typename Contacts, typename S>
-S set_depth_backward(Contacts& contacts, S spd, S tt) {
-  S setb = 0;
-  for (const auto& ct : contacts) setb += ct.scaleb;
-  setb *= spd;
-  S totalb = 0;
-  for (auto& ct : contacts) {
-    const S weightb = ct.weightb + setb * ct.law.depth;
-    ct.depthb += setb * ct.law.weight + weightb / tt;
-    totalb -= weightb * ct.law.depth / (tt * tt);
-  }
-  return totalb;
-}
 
 // ------------------------------------------------------------------ static contacts
 // wrench W_s (6) of body a's picked static contacts (static_wrench in contacts.h) and its vjp
@@ -244,10 +224,10 @@ struct StaticAdjoint {
     int shape, sphere;
     S r, c[3], p[3], d, gd[3], jn[9], arm[3];
     S pb[3], depthb;  // the way back
-    S fnb, vtb[3], nb[3], armb[3], weightb, scaleb;  // the way back, between its passes
+    S fnb, vtb[3], nb[3], armb[3], weightb;  // the way back, between its two passes
   };
   std::vector<Contact> contacts;
-  S rot[9], inv_w[9], total, set_depth, x[3], q[4], v[3], om[3];
+  S rot[9], inv_w[9], total, x[3], q[4], v[3], om[3];
   S tsum[3], alpha[3], acc[3];  // the set's normal torque, the accelerations it and its force give
   bool broken = false, empty = true;
 
@@ -301,9 +281,6 @@ struct StaticAdjoint {
     }
     const S tiny = std::numeric_limits<S>::min();
     const S mass = w.mass[a];
-    set_depth = 0;  // sum_j w_j delta_j, as static_wrench
-    for (int j = 0; j < m; ++j) set_depth += (contacts[j].law.depth / (total + tiny)) * contacts[j].law.depth;
-    const S scale = (w.h * w.omega * w.omega) * set_depth + w.unload_velocity;
     S fsum[3] = {0, 0, 0};  // the set's normal wrench, summed in pick order as static_wrench
     for (int i = 0; i < 3; ++i) tsum[i] = 0;
     for (int j = 0; j < m; ++j) {
@@ -319,7 +296,7 @@ struct StaticAdjoint {
       law.mu = w.mu_static[a * w.k + ct.shape];
       law.inv_m = S(1) / mass;
       law.h = w.h;
-      law.set_scale = scale;
+      law.unload_velocity = w.unload_velocity;
       law.arm[0] = ct.arm;
       law.inv_w[0] = inv_w;
       law.inv_i_min[0] = w.inv_i_min[a];
@@ -402,12 +379,15 @@ struct StaticAdjoint {
       S velb[3] = {0, 0, 0};
       S depthb;
       S weightb = ct.weightb;
-      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb, ct.scaleb);
+      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
       // vel = v + om x arm
       for (int i = 0; i < 3; ++i) vb[i] += velb[i];
       add_cross(ct.arm, velb, omb);
       add_cross(velb, om, armb);
-      ct.weightb = weightb;  // to depth and total below, once the set's depth has its cotangent
+      // weight = depth / (total + tiny)
+      const S tt = total + tiny;
+      depthb += weightb / tt;
+      totalb -= weightb * law.depth / (tt * tt);
       // arm = (p - x) - n r
       for (int i = 0; i < 3; ++i) {
         ct.pb[i] = armb[i];
@@ -417,7 +397,6 @@ struct StaticAdjoint {
       for (int k = 0; k < 3; ++k) ct.pb[k] += nb[0] * ct.jn[k] + nb[1] * ct.jn[3 + k] + nb[2] * ct.jn[6 + k];
       ct.depthb = depthb;
     }
-    totalb = set_depth_backward(contacts, w.h * w.omega * w.omega, total + tiny);
     for (Contact& ct : contacts) {
       const S depthb = ct.depthb + totalb;
       if (ct.r - ct.d > 0)  // depth = relu(r - d)
@@ -451,10 +430,10 @@ struct PairAdjoint {
     int box = 0;           // 1: b's box surface (cb its clamped point), 2: a's (ca), 0: spheres
     S rel[3], free[3];     // the sphere's centre from the box's centre; box_partner's free
     S pab[3], pbb[3], depthb;
-    S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb, scaleb;  // between the passes back
+    S fnb, vtb[3], nb[3], armab[3], armbb[3], weightb;  // between the two passes back
   };
   std::vector<Contact> contacts;
-  S rot_a[9], rot_b[9], iw_a[9], iw_b[9], total, set_depth;
+  S rot_a[9], rot_b[9], iw_a[9], iw_b[9], total;
   S tsa[3], tsb[3], alpha_a[3], alpha_b[3], inv_m = 0;
   int a = 0, b = 0;
 
@@ -512,9 +491,6 @@ struct PairAdjoint {
       total += law.depth;
     }
     const S tiny = std::numeric_limits<S>::min();
-    set_depth = 0;  // sum_k w_k delta_k, as pair_wrench
-    for (int k = 0; k < m; ++k) set_depth += (contacts[k].law.depth / (total + tiny)) * contacts[k].law.depth;
-    const S scale = (w.h * w.omega * w.omega) * set_depth + w.unload_velocity;
     S fsum[3] = {0, 0, 0}, acc[3];  // the pair's normal force (on b) and torques, in pick order
     for (int i = 0; i < 3; ++i) tsa[i] = tsb[i] = 0;
     for (int k = 0; k < m; ++k) {
@@ -531,7 +507,7 @@ struct PairAdjoint {
       law.mu = w.mu_pair[pi];
       law.inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
       law.h = w.h;
-      law.set_scale = scale;
+      law.unload_velocity = w.unload_velocity;
       law.arm[0] = ct.arm_a;
       law.arm[1] = ct.arm_b;
       law.inv_w[0] = iw_a;
@@ -650,7 +626,7 @@ struct PairAdjoint {
       S velb[3] = {0, 0, 0};
       S depthb;
       S weightb = ct.weightb;
-      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb, ct.scaleb);
+      law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
       // vel = (v_b + om_b x arm_b) - (v_a + om_a x arm_a)
       for (int i = 0; i < 3; ++i) {
         vbb[i] += velb[i];
@@ -661,7 +637,9 @@ struct PairAdjoint {
       S nvelb[3] = {-velb[0], -velb[1], -velb[2]};
       add_cross(ct.arm_a, nvelb, omab);
       add_cross(nvelb, om_a, armab);
-      ct.weightb = weightb;  // to depth and total below, once the set's depth has its cotangent
+      const S tt = total + tiny;
+      depthb += weightb / tt;
+      totalb -= weightb * law.depth / (tt * tt);
       // arm_a = point - x_a, arm_b = point - x_b, point = p_a + n r_a
       for (int i = 0; i < 3; ++i) {
         const S pointb = armab[i] + armbb[i];
@@ -683,7 +661,6 @@ struct PairAdjoint {
         ct.pab[i] -= diffb[i];
       }
     }
-    totalb = set_depth_backward(contacts, w.h * w.omega * w.omega, total + tiny);
     for (Contact& ct : contacts) {
       const S depthb = ct.depthb + totalb;
       if (ct.law.depth > 0) {  // depth = relu(r_a + r_b - dist), dist = sqrt(diff.diff + 1e-24)

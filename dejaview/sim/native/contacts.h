@@ -276,41 +276,9 @@ inline void box_partner(const T* x, const R* rot, const S* half, const T* p, T* 
 }
 
 // hysteretic spring normal force of one contact (contacts.normal_force), in two parts: how much
-// the contact is loading, s = loading_fraction(0.5 - vn / scale) from its normal velocity vn and
-// the set's scale = h omega^2 (sum_i w_i delta_i) + v_s, then the force.
-// loading_fraction(t) = (softplus(b t) - softplus(b (t - 1))) / b, b = LOADING_SHARPNESS; slope:
-// its derivative sigmoid(b t) - sigmoid(b (t - 1))
-// softplus(u) and its slope as torch computes them (linear above its threshold 20)
-template <typename S>
-inline S softplus(S u, S& slope) {
-  if (u > S(20)) {
-    slope = S(1);
-    return u;
-  }
-  const S z = std::exp(u);
-  slope = z / (z + S(1));
-  return std::log1p(z);
-}
-template <typename S>
-inline S loading_fraction(S t, S& slope) {
-  const S b = S(schema::LOADING_SHARPNESS);
-  S slope_u, slope_v;
-  const S sp_u = softplus(b * t, slope_u);
-  const S sp_v = softplus(b * (t - S(1)), slope_v);
-  slope = slope_u - slope_v;
-  return (sp_u - sp_v) / b;
-}
-inline double loading_of(double vn, double scale) {
-  double slope;
-  return loading_fraction(0.5 - vn / scale, slope);
-}
-template <typename S, int W>
-inline Dual<S, W> loading_of(const Dual<S, W>& vn, const Dual<S, W>& scale) {
-  const Dual<S, W> t = S(0.5) - vn / scale;
-  S slope;
-  const S value = loading_fraction(t.v, slope);
-  return chain(t, value, slope);
-}
+// the contact is loading (from its normal velocity vn), then the force
+template <typename T, typename S>
+inline T loading_of(const T& vn, S unload_velocity) { return sigmoid(-vn / unload_velocity); }
 
 template <typename T, typename S>
 inline T normal_force(const T& depth, const T& weight, const T& loading, S stiff, S unload) {
@@ -462,11 +430,8 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     }
     vn[j] = dot3(vel, n);
   }
+  for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], uv);
   const T denom = total + tiny;
-  T set_depth = T(0);  // sum_j w_j delta_j
-  for (int j = 0; j < m; ++j) set_depth = set_depth + (dep[j] / denom) * dep[j];
-  const T scale = (h * w.omega * w.omega) * set_depth + uv;
-  for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], scale);
   // loop invariants as locals (no reloads through pointers the stores below might alias)
   T iw[9];
   for (int i = 0; i < 9; ++i) iw[i] = inv_w[i];
@@ -733,11 +698,8 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     }
     vn[k] = dot3(vrel, nr + 3 * k);
   }
+  for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], uv);
   const T denom = total + tiny;
-  T set_depth = T(0);  // sum_k w_k delta_k
-  for (int k = 0; k < m; ++k) set_depth = set_depth + (dep[k] / denom) * dep[k];
-  const T scale = (h * w.omega * w.omega) * set_depth + uv;
-  for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], scale);
   // the normal forces first (fts's rows hold fn n and its torques for now), their sums, and the
   // relative acceleration they give (static_wrench: the predicted slip)
 #pragma GCC ivdep

@@ -91,7 +91,6 @@ constexpr int INT_COUNT = 3;
 // model constants (CONSTANTS)
 constexpr double SLIP_EPS = 0.001;  // m/s: friction direction regulariser (dejaview.sim.contacts)
 constexpr double SMOOTH_MIN_POWER = 8.0;  // power of the friction's smooth minimum
-constexpr double LOADING_SHARPNESS = 20.0;  // how sharply the loading fraction's ramp bends (contacts.loading_fraction)
 constexpr double CLEAR_MARGIN = 1e-09;  // m: a sphere or pair whose clearance bound stays above this cannot touch and is skipped (native culling only)
 
 }  // namespace schema

@@ -92,8 +92,6 @@ INTS = ("substeps", "max_static_contacts", "max_pair_contacts")
 CONSTANTS = {
     "SLIP_EPS": (contacts.SLIP_EPS, "m/s: friction direction regulariser (dejaview.sim.contacts)"),
     "SMOOTH_MIN_POWER": (contacts.SMOOTH_MIN_POWER, "power of the friction's smooth minimum"),
-    "LOADING_SHARPNESS": (contacts.LOADING_SHARPNESS, "how sharply the loading fraction's ramp bends "
-                          "(contacts.loading_fraction)"),
     "CLEAR_MARGIN": (1e-9, "m: a sphere or pair whose clearance bound stays above this cannot touch "
                            "and is skipped (native culling only)"),
 }
