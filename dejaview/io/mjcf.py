@@ -31,9 +31,13 @@ What carries over, and how (docs/robotics.md has the user-facing version):
   classic ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` holds for a spring-damper that
   may pull; MuJoCo's may not, and that formula made balls rebound too high
   and lively ones diverge (docs/physics-fidelity.md, "Mapping"). Importing inverts the mapping for
-  either solref form. MuJoCo combines two geoms' friction by their maximum
-  and their solref by the mean, DejaView friction by the geometric mean and
-  restitution by the mean: equal values agree.
+  either solref form. Every two geoms of different bodies, one movable, also
+  get an explicit ``<pair>`` (``_contact_pairs``): DejaView's combined
+  material (friction by the geometric mean, restitution by the mean, where
+  MuJoCo combines geoms' friction by their maximum and solref by the mean)
+  and ``solreffriction="0 -omega_0"``, the friction's own reference damping:
+  by default MuJoCo damps a slip with the normal contact's b, too slowly to
+  stop it within an impact as Coulomb friction does.
 * State: DejaView's linear velocity is the centre of mass's, world frame;
   a MuJoCo free joint's is the body origin's (world frame) and its angular
   velocity is in the body frame: both are converted.
@@ -203,12 +207,23 @@ def _initial_states(scene, state: dict | None) -> dict[str, dict]:
     return out
 
 
-def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP) -> list[str]:
-    """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``."""
+def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP, owner: str = "",
+          record: list | None = None) -> list[str]:
+    """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``, and
+    ``(geom name, owner, friction, restitution)`` of each geom to ``record`` (``_contact_pairs``;
+    ``owner`` the body's name, "" for the world)."""
     sim = scene.simulation
-    contact = contact_parameters(sim.friction if obj.friction is None else obj.friction,
-                                 sim.restitution if obj.restitution is None else obj.restitution,
-                                 scene_frequency(scene), timestep)
+    mu = sim.friction if obj.friction is None else obj.friction
+    e = sim.restitution if obj.restitution is None else obj.restitution
+    contact = contact_parameters(mu, e, scene_frequency(scene), timestep)
+    geoms = _geom_elements(scene, obj, assets, contact)
+    if record is not None:
+        record.extend((name, owner, float(mu), float(e)) for name, _ in geoms)
+    return [text for _, text in geoms]
+
+
+def _geom_elements(scene, obj, assets: list[str], contact: dict) -> list[tuple[str, str]]:
+    """(name, ``<geom>`` element) of each of one object's geoms."""
     attrs = {"name": obj.id}
     kind = obj.geometry_kind
     if kind == "plane":
@@ -229,12 +244,12 @@ def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP) -> list[
             name = obj.id if i == 0 else f"{obj.id}#{i}"
             assets.append(f'<mesh name="mesh_{_xml(name)}" vertex="{_vec(piece.vertices.ravel())}" '
                           f'face="{" ".join(str(int(k)) for k in piece.faces.ravel())}"/>')
-            geoms.append(_geom_text(dict(attrs, name=name, type="mesh", mesh=f"mesh_{name}"),
-                                    contact, obj.fixed))
+            geoms.append((name, _geom_text(dict(attrs, name=name, type="mesh", mesh=f"mesh_{name}"),
+                                           contact, obj.fixed)))
         return geoms
     else:
         raise MJCFError(f"object {obj.id!r}: geometry {kind!r} has no MJCF export")
-    return [_geom_text(attrs, contact, obj.fixed)]
+    return [(obj.id, _geom_text(attrs, contact, obj.fixed))]
 
 
 def _geom_text(attrs: dict, contact: dict, fixed: bool) -> str:
@@ -279,6 +294,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
 
     states = _initial_states(scene, state)
     assets: list[str] = []
+    geoms: list[tuple] = []
     world, qpos, qvel = [], [], []
     for obj in scene.objects:
         if obj.fixed:
@@ -286,7 +302,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
 
             # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
             for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
-                for geom in _geom(scene, part, assets, timestep):
+                for geom in _geom(scene, part, assets, timestep, "", geoms):
                     world.append(geom.replace("<geom ", f'<geom pos="{_vec(part.pose.position)}" '
                                                         f'quat="{_vec(part.pose.orientation)}" ', 1))
             continue
@@ -297,7 +313,8 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         world.append(f'<body name="{_xml(obj.id)}" pos="{_vec(s["position"])}" '
                      f'quat="{_vec(s["orientation"])}"><freejoint name="{_xml(obj.id)}"/>'
                      f'<inertial pos="{_vec(props.center_of_mass)}" mass="{_num(props.mass)}" '
-                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep))}</body>')
+                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep, obj.id, geoms))}'
+                     '</body>')
         rot = quaternion_matrices(s["orientation"])
         omega = np.asarray(s["angular_velocity"], dtype=np.float64)
         # free joint: velocity of the body origin (world), angular velocity in the body frame
@@ -314,14 +331,45 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
                 f"\n  </keyframe>" if qpos else "")
     asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
     body = "\n    ".join(world)
+    pairs = _contact_pairs(scene, geoms, timestep)
+    contact = ("\n  <contact>\n    " + "\n    ".join(pairs) + "\n  </contact>") if pairs else ""
     return f"""<mujoco model="{_xml(scene.name or 'dejaview-scene')}">{comment}
   <compiler angle="radian"/>
   <option timestep="{_num(timestep)}" gravity="{_vec(scene.gravity)}" {option}/>{asset}
   <worldbody>
     {body}
-  </worldbody>{keyframe}
+  </worldbody>{contact}{keyframe}
 </mujoco>
 """
+
+
+def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
+    """``<pair>`` elements for every two geoms of different bodies, one of them movable, from
+    ``geoms`` ((name, owner, friction, restitution), owner "" for the world).
+
+    Each pair has DejaView's combined material (friction by the geometric mean, restitution by
+    the mean; MuJoCo's own rule for geoms takes the larger friction) and its friction's
+    reference acceleration ``solreffriction = (0, -omega_0)``: a slip decays at the contact's
+    own rate, in a third of an impact's duration (pi / omega_0). MuJoCo otherwise damps the
+    friction dimensions with the normal contact's damping b = 2 zeta omega_0 (61 /s at e = 0.7),
+    and a ball dropped 0.5 m with 0.3 m/s sideways left the floor still slipping at 0.14 m/s,
+    where Coulomb friction (and DejaView) stops the slip within the impact; at omega_0 it leaves
+    rolling, and a box sliding off a table still tips over the edge at the rigid reference's
+    rate (at 1000 /s it tipped 70 % faster; docs/physics-fidelity.md). An explicit pair replaces
+    MuJoCo's automatic contact of the same two geoms.
+    """
+    frequency = scene_frequency(scene)
+    out = []
+    for i, (name_a, owner_a, mu_a, e_a) in enumerate(geoms):
+        for name_b, owner_b, mu_b, e_b in geoms[i + 1:]:
+            if owner_a == owner_b:  # one body's own geoms, or two world geoms
+                continue
+            mu = math.sqrt(mu_a * mu_b)
+            c = contact_parameters(mu, 0.5 * (e_a + e_b), frequency, timestep)
+            out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" condim="{c["condim"]}" '
+                       f'friction="{_num(mu)} {_num(mu)} 0 0 0" solref="{c["solref"]}" '
+                       f'solimp="{c["solimp"]}" solreffriction="0 {_num(-frequency)}"/>')
+    return out
 
 
 def read_state(path) -> dict:

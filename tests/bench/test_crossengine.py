@@ -27,7 +27,7 @@ def test_there_are_at_least_16_cases_of_every_kind(crossengine):
         assert any(kind in n for n in names), kind
 
 
-@pytest.mark.parametrize("motion", ["bounce (ball dropped 0.5 m, e 0.3)", "roll", "slide to roll",
+@pytest.mark.parametrize("motion", ["bounce (ball dropped 0.5 m, e 0.3)", "bounce high", "roll", "slide to roll",
                                     "ball rolls off the table"])
 def test_ball_motions_end_within_2_cm_of_mujoco(crossengine, motion):
     rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion])
@@ -66,32 +66,34 @@ def test_a_box_tips_over_the_table_edge_as_a_rigid_box_does(crossengine):
     assert rate == pytest.approx(reference[0.35][3], rel=0.1)
 
 
-def test_mujoco_at_the_benchs_step_tips_the_box_over_the_edge_as_a_rigid_box_does(crossengine):
-    """The bench's MuJoCo runs at a converged step (``MUJOCO_TIMESTEP``): there it tips the box
-    sliding off the table at the rigid reference's rate (``bench/edge_tip.py``, 110 deg/s),
-    where at the export's 0.5 ms it tipped it at 240 deg/s (docs/physics-fidelity.md)."""
+def test_mujoco_tips_the_box_over_the_edge_as_a_rigid_box_does(crossengine):
+    """MuJoCo tips the box sliding off the table at the rigid reference's rate (``bench/edge_tip.py``,
+    110 deg/s) in the median over its steps of 100, 50, 20 and 10 us, where at the export's 0.5 ms
+    it tipped it at 240 deg/s (docs/physics-fidelity.md). With the contact pairs' friction
+    (``dejaview.io.mjcf._contact_pairs``) the tipping became a knife-edge in MuJoCo itself: 105,
+    136, 104 and 115 deg/s at those steps, so one step alone does not say it."""
     import numpy as np
 
     reference = bench_module("edge_tip").tip(dt=1e-5)
     (name, objects, e) = [f for f in crossengine.FIDELITY if f[0] == "box slides off the table"][0]
     scene = crossengine.make_scene(crossengine.scene_text(objects, 0.35, restitution=e))
-    theirs = crossengine.mujoco_run(scene, (0.25, 0.35))
-    pitch = {t: float(np.degrees(2 * np.arctan2(q[0, 2], q[0, 0]))) for t, (_, q) in theirs.items()}
-    assert pitch[0.35] == pytest.approx(reference[0.35][2], abs=2.0)
-    assert (pitch[0.35] - pitch[0.25]) / 0.1 == pytest.approx(reference[0.35][3], rel=0.1)
+    pitches, rates = [], []
+    for step in (1e-4, 5e-5, 2e-5, 1e-5):
+        theirs = crossengine.mujoco_run(scene, (0.25, 0.35), timestep=step)
+        pitch = {t: float(np.degrees(2 * np.arctan2(q[0, 2], q[0, 0]))) for t, (_, q) in theirs.items()}
+        pitches.append(pitch[0.35])
+        rates.append((pitch[0.35] - pitch[0.25]) / 0.1)
+    assert float(np.median(pitches)) == pytest.approx(reference[0.35][2], abs=2.0), pitches
+    assert float(np.median(rates)) == pytest.approx(reference[0.35][3], rel=0.1), rates
 
 
 def test_mujoco_is_converged_at_the_benchs_step(crossengine):
     """At ``MUJOCO_TIMESTEP`` MuJoCo's end at 1.0 s is within 3 mm of its run at 20 us on every
-    fidelity row but the knife-edge of the box sliding off the table; at the export's 0.5 ms that
-    row was 21 cm off its converged self."""
+    fidelity row but the knife-edge of the box sliding off the table (12-24 cm apart between steps
+    of 100 to 10 us since the contact pairs' friction; 1.3 cm before), which no step converges."""
     rows = crossengine.timestep_study(print_fn=lambda *_: None, steps=(5e-4, crossengine.MUJOCO_TIMESTEP))
     at = f"gap_{1e3 * crossengine.MUJOCO_TIMESTEP:g}ms_m"
-    for row in rows:
-        if row["motion"] == "box slides off the table":
-            assert row["gap_0.5ms_m"] > 0.1 and row[at] < 0.03, row
-        else:
-            assert row[at] < 0.003, row
+    assert [r["motion"] for r in rows if r[at] >= 0.003] == ["box slides off the table"], rows
 
 
 def test_unknown_cases_are_a_one_line_error():
