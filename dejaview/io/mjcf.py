@@ -354,9 +354,9 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
     friction dimensions with the normal contact's damping b = 2 zeta omega_0 (61 /s at e = 0.7),
     and a ball dropped 0.5 m with 0.3 m/s sideways left the floor still slipping at 0.14 m/s,
     where Coulomb friction (and DejaView) stops the slip within the impact; at omega_0 it leaves
-    rolling, and a box sliding off a table still tips over the edge at the rigid reference's
-    rate (at 1000 /s it tipped 70 % faster; docs/physics-fidelity.md). An explicit pair replaces
-    MuJoCo's automatic contact of the same two geoms.
+    rolling, and a box sliding off a table tips over the edge at the rigid reference's rate in
+    the median over MuJoCo's steps (at 1000 /s, 70 % faster; docs/physics-fidelity.md). An
+    explicit pair replaces MuJoCo's automatic contact of the same two geoms.
     """
     frequency = scene_frequency(scene)
     out = []
