@@ -369,11 +369,18 @@ class Posterior:
     def jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Residuals R (B, M) and their exact Jacobian dR/dx (B, M, P).
 
-        One rollout with gradients and one reverse pass per residual (the native engine keeps
-        the state Jacobians of the rollout, so each pass is a cheap product with them).
+        One rollout per physics variant with gradients and one reverse pass per residual. The
+        native engine's passes run its adjoint back through each rollout, or, where the rows that
+        reach a rollout (``variants`` x ``num_observed``) are at least as many as the 13N columns
+        of its state Jacobians, are products with the Jacobians it carried (``phi``: under model
+        uncertainty with one moving body; docs/benchmarks.md has the measured cost).
         """
+        from dejaview.sim import native
+
+        bodies = self.problem.world.num_bodies
+        path = "phi" if 13 * bodies <= self.variants * self.num_observed else "adjoint"
         x = x.detach().clone().requires_grad_(True)
-        with torch.enable_grad():
+        with torch.enable_grad(), native.preferring(path):
             r, _ = self.residuals(x, checkpoint=True)
             rows = []
             m = r.shape[1]

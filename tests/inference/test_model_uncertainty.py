@@ -85,6 +85,38 @@ def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
     assert r.shape[1] > 4 * post.num_observed
 
 
+def test_the_jacobian_with_model_uncertainty_uses_the_carried_jacobians_and_equals_the_adjoints(monkeypatch):
+    """Under model uncertainty a box's Jacobian has 4 x 6 rows through the rollouts against 13
+    columns of its state Jacobians: ``Posterior.jacobian`` asks the native engine for the carried
+    Jacobians (``preferring("phi")``, 1.4-1.6x faster solves on the crossengine boxes), and its
+    rows equal the adjoint's to round-off."""
+    from dejaview.sim import native
+
+    if not native.available():
+        pytest.skip("the native extension does not build here")
+    scene = shelf(duration=0.3, prior=Prior(speed=2.0))
+    problem = InferenceProblem.from_scene(scene)
+    model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
+    x = truth_x(problem) + 0.05
+    paths, preferring = [], native.preferring
+
+    def spy(path):
+        paths.append(path)
+        return preferring(path)
+
+    monkeypatch.setattr(native, "preferring", spy)
+    r, jac = post.jacobian(x)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "adjoint")
+    r_adj, jac_adj = post.jacobian(x)
+    assert paths == ["phi", "phi"]  # asked for; the environment's path wins the second time
+    assert torch.allclose(r, r_adj, rtol=0, atol=1e-12)  # the same rollouts (the carried path's by dual passes)
+    assert torch.allclose(jac, jac_adj, rtol=1e-8, atol=1e-10 * float(jac.abs().max()))
+    single = Posterior(problem, PosteriorSettings.from_scene(scene))
+    single.jacobian(x)
+    assert paths[-1] == "adjoint"  # 6 rows: one adjoint pass each
+
+
 def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_errors():
     scene = shelf(model_uncertainty=ModelUncertainty(friction=0.1, restitution=0.3))
     world = InferenceProblem.from_scene(scene).world

@@ -157,6 +157,20 @@ def test_random_worlds_adjoint_equals_the_dual_jacobian_path(monkeypatch, case):
     _same(adj, phi, rtol=1e-10)
 
 
+def test_a_block_prefers_a_path_and_the_environment_still_wins(monkeypatch):
+    monkeypatch.delenv("DEJAVIEW_NATIVE_GRADIENT", raising=False)
+    assert native.gradient_path() == "adjoint"
+    with native.preferring("phi"):
+        assert native.gradient_path() == "phi"
+        monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "adjoint")
+        assert native.gradient_path() == "adjoint"
+        monkeypatch.delenv("DEJAVIEW_NATIVE_GRADIENT")
+    assert native.gradient_path() == "adjoint"
+    with pytest.raises(ValueError, match="gradient path must be one of"):
+        with native.preferring("bogus"):
+            pass
+
+
 def test_unknown_gradient_path_is_a_one_line_error(monkeypatch):
     from dejaview.errors import SimulationError
 

@@ -21,7 +21,9 @@ contacts with 13 tangents, a touching body pair with 26, the integration with
   Jacobians ``Phi_t = d state_t / d state_0`` (13N x 13N) to every record and
   the tangent is ``Phi_t v`` (``_Rollout``; memory O(steps * (13N)^2)).
   ``DEJAVIEW_NATIVE_GRADIENT=phi`` sends reverse mode this way too
-  (``sum_t Phi_t^T g_t``), as before issue 25, for comparisons.
+  (``sum_t Phi_t^T g_t``), as before issue 25, for comparisons; a caller that
+  takes many reverse passes of the same rollouts asks for it with
+  ``preferring("phi")`` (``Posterior.jacobian`` under model uncertainty).
 
 Both give the same gradients to round-off (``tests/sim/test_native_gradients.py``),
 with no autograd graph of the rollout (no checkpointing needed). Without
@@ -44,6 +46,8 @@ killed half-way never blocks the next one).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import os
 import threading
@@ -279,9 +283,29 @@ the full state Jacobians (``_Rollout``) for reverse mode too (the engine before 
 kept for comparisons). Forward mode and ``torch.func`` transforms always use the Jacobians."""
 
 
+_PREFERRED = contextvars.ContextVar("dejaview_native_gradient", default="adjoint")
+
+
+@contextlib.contextmanager
+def preferring(path: str):
+    """Native rollouts made in this block differentiate in reverse mode by ``path``
+    (``GRADIENTS``) unless ``DEJAVIEW_NATIVE_GRADIENT`` names one. For a caller that takes many
+    reverse passes of the same rollouts, a Jacobian row by row (``Posterior.jacobian``): each
+    ``adjoint`` pass runs back through the whole trace, each ``phi`` pass is a product with the
+    Jacobians the rollout carried (13N wide, paid once)."""
+    if path not in GRADIENTS:
+        raise ValueError(f"gradient path must be one of {', '.join(GRADIENTS)}, got {path!r}")
+    token = _PREFERRED.set(path)
+    try:
+        yield
+    finally:
+        _PREFERRED.reset(token)
+
+
 def gradient_path() -> str:
-    """``DEJAVIEW_NATIVE_GRADIENT`` (``GRADIENTS``), default ``adjoint``."""
-    value = os.environ.get("DEJAVIEW_NATIVE_GRADIENT") or "adjoint"
+    """``DEJAVIEW_NATIVE_GRADIENT`` (``GRADIENTS``), else the block's ``preferring``, else
+    ``adjoint``."""
+    value = os.environ.get("DEJAVIEW_NATIVE_GRADIENT") or _PREFERRED.get()
     if value not in GRADIENTS:
         raise SimulationError(f"DEJAVIEW_NATIVE_GRADIENT must be one of {', '.join(GRADIENTS)}, "
                               f"got {value!r}")
