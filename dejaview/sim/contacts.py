@@ -378,10 +378,10 @@ def pair_contact_wrench(world, state, spheres: torch.Tensor, h: float, inv_inert
     rot = None
     n_bodies = state.position.shape[1]
     for side, sel in groups:
-        pairs = world.pairs if sel is None else world.pairs[sel]
+        pick = (lambda t: t) if sel is None else (lambda t: t[sel])  # noqa: E731
+        pairs = pick(world.pairs)
         if pairs.shape[0] == 0:
             continue
-        pick = (lambda t: t) if sel is None else (lambda t: t[sel])  # noqa: E731
         ia, ib = pairs[:, 0], pairs[:, 1]
         if side < 0:
             cand = _sphere_pair_candidates(world, spheres, ia, ib)

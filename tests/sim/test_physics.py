@@ -10,6 +10,15 @@ from tests.sim.conftest import ball_body, box_body, make_world
 G = 9.81
 
 
+def _needs(engine: str) -> None:
+    """Skip a native case where the native extension does not build (no compiler)."""
+    if engine == "native":
+        from dejaview.sim import native
+
+        if not native.available():
+            pytest.skip("the native extension does not build here")
+
+
 def _weightless(bodies, statics, mu: float = 0.5, e: float = 0.3):
     """A world without gravity (an impact alone acts), dt 2 ms in 2 substeps."""
     from dejaview.sim.world import World
@@ -20,6 +29,18 @@ def _weightless(bodies, statics, mu: float = 0.5, e: float = 0.3):
 def _heavy_ball(mu: float, e: float):
     """A ball of 1 m radius and 10 t: a curved surface that a body pair meets and that stays."""
     return ball_body("big", radius=1.0, mass=1e4, friction=mu, restitution=e)
+
+
+def _heavy_box(centers, radii, e: float):
+    """A box of 0.2 x 0.15 x 0.1 m and 10 t (so it stays), packed with spheres ``centers`` (S, 3)
+    and ``radii`` (S,), that other bodies meet on its exact surface (``BodySpec.box_half``)."""
+    from dejaview.sim.world import BodySpec
+
+    size, heavy = (0.2, 0.15, 0.1), 1e4
+    a, b, c = size
+    inertia = heavy / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
+    return BodySpec("box", heavy, inertia, np.zeros(3), np.asarray(centers), np.asarray(radii), restitution=e,
+                    box_half=tuple(0.5 * v for v in size))
 
 
 def test_free_fall_matches_analytic_within_integrator_error():
@@ -116,11 +137,7 @@ def test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box(engine, 
     from dejaview.geometry.box_spheres import box_spheres
     from dejaview.sim.world import BodySpec
 
-    if engine == "native":
-        from dejaview.sim import native
-
-        if not native.available():
-            pytest.skip("the native extension does not build here")
+    _needs(engine)
     size, mass, mu, e = (0.2, 0.15, 0.1), 1.0, 0.5, 0.3
     centers, radii = box_spheres(size)
     a, b, c = size
@@ -167,11 +184,7 @@ def test_ball_striking_a_surface_obliquely_leaves_it_as_a_rigid_sticking_impact(
     contact set (MuJoCo on the wall: -0.496 m/s along it, rigid -0.486). A box body's exact faces:
     ``test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight``. The native cases are skipped where the native extension does not build
     (no compiler)."""
-    if engine == "native":
-        from dejaview.sim import native
-
-        if not native.available():
-            pytest.skip("the native extension does not build here")
+    _needs(engine)
     r, mu, e = 0.05, 0.5, 0.3
     vn, vt = 1.71, -0.68
     ball = ball_body("ball", radius=r, mass=0.4, friction=mu, restitution=e)
@@ -206,20 +219,10 @@ def test_a_ball_meeting_a_box_face_off_centre_leaves_it_straight(engine):
     (its packing, ``geometry/box_spheres.py``) the face kicked the ball sideways at up to 0.15 m/s
     (docs/physics-fidelity.md, "ball meets a box face 1 cm off centre")."""
     from dejaview.geometry.box_spheres import box_spheres
-    from dejaview.sim.world import BodySpec
 
-    if engine == "native":
-        from dejaview.sim import native
-
-        if not native.available():
-            pytest.skip("the native extension does not build here")
+    _needs(engine)
     r, e = 0.05, 0.3
-    size, heavy = (0.2, 0.15, 0.1), 1e4
-    centers, radii = box_spheres(size)
-    a, b, c = size
-    inertia = heavy / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b])
-    box = BodySpec("box", heavy, inertia, np.zeros(3), centers, radii, restitution=e,
-                   box_half=tuple(0.5 * v for v in size))
+    box = _heavy_box(*box_spheres((0.2, 0.15, 0.1)), e)
     offsets = [0.0, 0.005, 0.01, 0.015, 0.02, 0.03]
     world = _weightless([ball_body("ball", radius=r, mass=0.4, restitution=e), box], [], e=e)
     state = world.state([[[0.25, y, 0.0], [0.0, 0.0, 0.0]] for y in offsets],
@@ -237,19 +240,9 @@ def test_a_small_fast_ball_does_not_pass_through_a_box_body(engine):
     surface then partners it from behind the nearest face (``contacts.box_partner``) and it comes
     back out the way it went in, wherever on the face it lands farther from the face's border than
     it sinks (nearer, the nearest face is another one, as for a static box's distance)."""
-    from dejaview.sim.world import BodySpec
-
-    if engine == "native":
-        from dejaview.sim import native
-
-        if not native.available():
-            pytest.skip("the native extension does not build here")
+    _needs(engine)
     r, m = 0.005, 0.01
-    size, heavy = (0.2, 0.15, 0.1), 1e4
-    a, b, c = size
-    box = BodySpec("box", heavy, heavy / 12.0 * np.diag([b * b + c * c, a * a + c * c, a * a + b * b]),
-                   np.zeros(3), np.zeros((1, 3)), np.array([0.04]), restitution=0.3,
-                   box_half=tuple(0.5 * v for v in size))
+    box = _heavy_box(np.zeros((1, 3)), np.array([0.04]), 0.3)
     world = _weightless([ball_body("ball", radius=r, mass=m, restitution=0.3), box], [])
     starts = [[[0.2, y, z], [0.0, 0.0, 0.0]] for y, z in ((0.0, 0.0), (0.03, -0.02), (-0.04, 0.015))]
     state = world.state(starts, linear_velocity=[[[-6.0, 0.0, 0.0], [0.0, 0.0, 0.0]]] * len(starts))
