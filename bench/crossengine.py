@@ -41,11 +41,15 @@ SUCCESS_TOL = 0.03
 FIDELITY_TOL = 0.02
 """Metres: the fidelity table's bar at 1.0 s."""
 FIDELITY_TIMES = (0.5, 1.0, 1.5)
-MUJOCO_TIMESTEP = 5e-5
-"""Seconds: MuJoCo's time step here, the reference's, converged (docs/physics-fidelity.md,
-"MuJoCo's time step"): at ``dejaview.io.mjcf``'s 0.5 ms MuJoCo's box sliding off the table ends
-21 cm from where its converged runs put it (it tips the box over the edge twice as fast as a
-rigid box), at 50 us every fidelity row is within 0.25 cm of its 20 us run but that one (1.3 cm)."""
+MUJOCO_TIMESTEP = 5e-6
+"""Seconds: MuJoCo's time step here, the reference's (docs/physics-fidelity.md, "MuJoCo's time
+step", ``timestep_study``): within 2 mm of its run at 2 us on every fidelity row and every
+inference case's true start but the box sliding off the table (1.7 cm at 1.0 s, 0.4 cm at 1.2 s),
+which lands on its edge and tips on or falls back. At 50 us MuJoCo's end there was 65-78 cm from
+its 2 us run, and with the pairs' friction at omega_0 it fell back at 50 and 10 us and tipped on at
+the other steps (a start 1-10 mm/s faster or slower flipped it at 50 and 20 us, moved it by 1 cm
+at 5 us); at the export's 0.5 ms it tipped the box over the table's edge twice as fast as a rigid
+box."""
 UNCERTAINTY = (0.2, 0.2)
 """Relative standard deviations (friction, restitution) of the runs with model uncertainty."""
 TABLE_TOP = 0.7
@@ -192,27 +196,34 @@ FIDELITY = (
 
 
 def fidelity(print_fn=print, names=None) -> list[dict]:
-    """The fidelity table: DejaView against MuJoCo from the same start (module docstring)."""
+    """The fidelity table: DejaView against MuJoCo from the same start (module docstring): the
+    distance between the centres of mass and the angle between the orientations (the largest over
+    the bodies) at ``FIDELITY_TIMES``; a box's centre can agree while its turn does not."""
     rows = []
-    print_fn(f"{'motion':<44} {'0.5 s':>7} {'1.0 s':>7} {'1.5 s':>7}  (cm, largest over the bodies)")
+    print_fn(f"{'motion':<44} {'0.5 s':>7} {'1.0 s':>7} {'1.5 s':>7} {'deg 0.5':>8} {'1.0':>6} {'1.5':>6}"
+             "  (cm between the centres, deg between the orientations; the largest over the bodies)")
     for name, objects, e in FIDELITY:
         if names and not any(n in name for n in names):
             continue
         scene = make_scene(scene_text(objects, max(FIDELITY_TIMES), restitution=e))
         a, b = dejaview_run(scene, FIDELITY_TIMES), mujoco_run(scene, FIDELITY_TIMES)
         gap = {t: float(np.linalg.norm(a[t][0] - b[t][0], axis=-1).max()) for t in FIDELITY_TIMES}
+        turn = {t: max(angle_deg(qa, qb) for qa, qb in zip(np.asarray(a[t][1]).reshape(-1, 4), b[t][1]))
+                for t in FIDELITY_TIMES}
         row = {"section": "fidelity", "motion": name,
                **{f"gap_{t:g}s_m": gap[t] for t in FIDELITY_TIMES},
+               **{f"angle_{t:g}s_deg": turn[t] for t in FIDELITY_TIMES},
                "within_2cm_at_1s": gap[1.0] <= FIDELITY_TOL}
         rows.append(row)
         print_fn(f"{name:<44} " + " ".join(f"{100 * gap[t]:>7.2f}" for t in FIDELITY_TIMES)
+                 + f" {turn[0.5]:>8.1f} {turn[1.0]:>6.1f} {turn[1.5]:>6.1f}"
                  + ("" if row["within_2cm_at_1s"] else "  > 2 cm at 1.0 s"))
     return rows
 
 
-TIMESTEP_STUDY = (5e-4, 2.5e-4, 1e-4, 5e-5)
+TIMESTEP_STUDY = (5e-4, 1e-4, 5e-5, 2e-5, 1e-5, 5e-6)
 """MuJoCo steps compared with ``STUDY_REFERENCE`` in ``timestep_study``."""
-STUDY_REFERENCE = 2e-5
+STUDY_REFERENCE = 2e-6
 SUBSTEP_STUDY = (2, 4, 8)
 """DejaView substeps per 2 ms step compared with ``SUBSTEP_REFERENCE`` (same contact stiffness)."""
 SUBSTEP_REFERENCE = 16
@@ -242,28 +253,41 @@ def _dejaview_end(world, scene, t: float) -> np.ndarray:
 
 
 def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFERENCE,
-                   substeps=SUBSTEP_STUDY) -> list[dict]:
-    """Are the engines converged at their steps? Per fidelity row, the end at 1.0 s (cm, the
+                   substeps=SUBSTEP_STUDY, cases: bool = True, names=None) -> list[dict]:
+    """Are the engines converged at their steps? Per fidelity row (at 1.0 s) and, with ``cases``,
+    per inference case's true start (at the case's duration, the observation), the end (cm, the
     largest over the bodies) of MuJoCo at each of ``steps`` against MuJoCo at ``reference``, and
     of DejaView at each of ``substeps`` against DejaView at ``SUBSTEP_REFERENCE`` substeps (the
     same contact stiffness): how ``MUJOCO_TIMESTEP`` was chosen, and how much of each row's gap
-    is the steps' rather than the models' (docs/physics-fidelity.md, "MuJoCo's time step")."""
+    is the steps' rather than the models' (docs/physics-fidelity.md, "MuJoCo's time step").
+    ``names``: only the rows whose motion contains one of them.
+
+    Returns:
+        rows: ``motion`` (a fidelity row's name or "case <name>"), ``gap_<ms>ms_m`` per MuJoCo
+        step, ``dv_gap_<k>_substeps_m`` per DejaView substep count.
+    """
     from dejaview.sim import World
 
+    runs = [(name, make_scene(scene_text(objects, 1.0, restitution=e)), 1.0) for name, objects, e in FIDELITY]
+    if cases:
+        runs += [(f"case {c.name}", case_scene(c), c.duration) for c in CASES]
+    if names:
+        runs = [r for r in runs if any(n in r[0] for n in names)]
     rows = []
     print_fn(f"{'motion':<44} " + " ".join(f"{'mj ' + format(1e3 * dt, 'g') + 'ms':>10}" for dt in steps)
              + " " + " ".join(f"{'dv ' + str(k) + ' sub':>9}" for k in substeps)
-             + f"  (cm at 1.0 s: MuJoCo from its {1e3 * reference:g} ms run, DejaView from its "
-               f"{SUBSTEP_REFERENCE} substeps)")
-    for name, objects, e in FIDELITY:
-        scene = make_scene(scene_text(objects, 1.0, restitution=e))
-        ref = mujoco_run(scene, (1.0,), timestep=reference)[1.0][0]
-        gaps = [float(np.linalg.norm(mujoco_run(scene, (1.0,), timestep=dt)[1.0][0] - ref, axis=-1).max())
+             + f"  (cm at 1.0 s or the case's end: MuJoCo from its {1e3 * reference:g} ms run, DejaView "
+               f"from its {SUBSTEP_REFERENCE} substeps)")
+    for name, scene, t in runs:
+        ref = mujoco_run(scene, (t,), timestep=reference)[t][0]
+        gaps = [float(np.linalg.norm(mujoco_run(scene, (t,), timestep=dt)[t][0] - ref, axis=-1).max())
                 for dt in steps]
-        world = World.from_scene(scene)
-        dv_ref = _dejaview_end(with_substeps(world, SUBSTEP_REFERENCE), scene, 1.0)
-        dv = [float(np.linalg.norm(_dejaview_end(with_substeps(world, k), scene, 1.0) - dv_ref, axis=-1).max())
-              for k in substeps]
+        dv = []
+        if substeps:
+            world = World.from_scene(scene)
+            dv_ref = _dejaview_end(with_substeps(world, SUBSTEP_REFERENCE), scene, t)
+            dv = [float(np.linalg.norm(_dejaview_end(with_substeps(world, k), scene, t) - dv_ref, axis=-1).max())
+                  for k in substeps]
         rows.append({"section": "timestep", "motion": name,
                      **{f"gap_{1e3 * dt:g}ms_m": g for dt, g in zip(steps, gaps)},
                      **{f"dv_gap_{k}_substeps_m": g for k, g in zip(substeps, dv)}})

@@ -77,6 +77,50 @@ def tip(friction: float = 0.5, speed: float = 3.0, dt: float = 2e-6, times=TIMES
     return out
 
 
+def edge_impact(pitch: float, velocity, pitch_rate: float, restitution: float = 0.3,
+                friction: float = 0.5) -> tuple[float, float, float]:
+    """A rigid impact of the box (side view, 1 kg) on its front-bottom edge on a floor.
+
+    The box, pitched nose down by ``pitch`` degrees (its lowest point the front-bottom edge),
+    moving at ``velocity`` (vx, vz) m/s and turning at ``pitch_rate`` degrees per second, meets
+    the floor at that edge: one instantaneous impulse with Newton's restitution on the edge's
+    normal speed and Coulomb friction (the edge sticks where the impulse that stops its slip
+    needs at most ``friction`` times the normal impulse, else it slides with the largest).
+    Where the edge sticks, Poisson's and Stronge's restitution give the same impulse.
+
+    Returns:
+        (vx, vz, pitch rate in degrees per second) just after the impact.
+    """
+    m, inertia = MASS, MASS * (LENGTH ** 2 + HEIGHT ** 2) / 12.0
+    th = math.radians(pitch)
+    c, s = math.cos(th), math.sin(th)
+    rx = c * LENGTH / 2 - s * HEIGHT / 2  # the edge from the centre of mass (x, z)
+    rz = -s * LENGTH / 2 - c * HEIGHT / 2
+    w = math.radians(pitch_rate)
+    vx, vz = float(velocity[0]), float(velocity[1])
+
+    def after(px: float, pz: float) -> tuple[float, float, float]:
+        w1 = w + (rz * px - rx * pz) / inertia
+        return vx + px / m, vz + pz / m, w1
+
+    def edge_velocity(v: tuple[float, float, float]) -> tuple[float, float]:
+        return v[0] + v[2] * rz, v[1] - v[2] * rx
+
+    u0 = edge_velocity((vx, vz, w))
+    # the edge's velocity change per unit impulse (a 2 x 2 matrix, columns: px, pz)
+    k = [[edge_velocity(after(*e))[i] - u0[i] for e in ((1.0, 0.0), (0.0, 1.0))] for i in range(2)]
+    target = (0.0, -restitution * u0[1])
+    det = k[0][0] * k[1][1] - k[0][1] * k[1][0]
+    b = (target[0] - u0[0], target[1] - u0[1])
+    px, pz = (b[0] * k[1][1] - k[0][1] * b[1]) / det, (k[0][0] * b[1] - k[1][0] * b[0]) / det
+    if abs(px) > friction * pz:  # it slides: the friction impulse at its bound, against the slip
+        d = -math.copysign(friction, u0[0])
+        pz = b[1] / (k[1][0] * d + k[1][1])
+        px = d * pz
+    v = after(px, pz)
+    return v[0], v[1], math.degrees(v[2])
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--friction", type=float, default=0.5)

@@ -362,7 +362,8 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--no-fidelity", is_flag=True, help="Skip the fidelity table.")
 @click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
 @click.option("--timestep-study", is_flag=True,
-              help="Only MuJoCo's time-step convergence on the fidelity rows (how its step was chosen).")
+              help="Only MuJoCo's time-step convergence on the fidelity rows and the cases' true starts "
+                   "(how its step was chosen).")
 @csv_option
 def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, timestep_study,
                 csv_path):

@@ -35,9 +35,9 @@ What carries over, and how (docs/robotics.md has the user-facing version):
   get an explicit ``<pair>`` (``_contact_pairs``): DejaView's combined
   material (friction by the geometric mean, restitution by the mean, where
   MuJoCo combines geoms' friction by their maximum and solref by the mean)
-  and ``solreffriction="0 -omega_0"``, the friction's own reference damping:
-  by default MuJoCo damps a slip with the normal contact's b, too slowly to
-  stop it within an impact as Coulomb friction does.
+  and ``solreffriction="0 -4 omega_0"`` (``FRICTION_DAMPING``), the friction's
+  own reference damping: by default MuJoCo damps a slip with the normal
+  contact's b, too slowly to stop it within an impact as Coulomb friction does.
 * State: DejaView's linear velocity is the centre of mass's, world frame;
   a MuJoCo free joint's is the body origin's (world frame) and its angular
   velocity is in the body frame: both are converted.
@@ -65,6 +65,10 @@ DEFAULT_FREQUENCY = 250.0
 """rad/s: DejaView's default contact frequency (0.25 / (dt / substeps) at dt 2 ms, 2 substeps)."""
 SOLIMP = (0.99, 0.99, 0.001)  # constant impedance: solref's stiffness and damping act as given
 OPTION = {"integrator": "implicitfast", "cone": "elliptic", "impratio": "10"}
+FRICTION_DAMPING = 4.0
+"""A contact pair's friction decays a slip at this many times the contact frequency
+(``solreffriction = (0, -FRICTION_DAMPING omega_0)``), in a sixth of an impact's loading phase:
+close to Coulomb friction's instant stick (``_contact_pairs`` has the measurements)."""
 
 
 class MJCFError(DejaViewError):
@@ -349,13 +353,20 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
 
     Each pair has DejaView's combined material (friction by the geometric mean, restitution by
     the mean; MuJoCo's own rule for geoms takes the larger friction) and its friction's
-    reference acceleration ``solreffriction = (0, -omega_0)``: a slip decays at the contact's
-    own rate, in a third of an impact's duration (pi / omega_0). MuJoCo otherwise damps the
+    reference acceleration ``solreffriction = (0, -FRICTION_DAMPING omega_0)``: a slip decays in
+    a quarter of 1 / omega_0, a sixth of an impact's loading phase. MuJoCo otherwise damps the
     friction dimensions with the normal contact's damping b = 2 zeta omega_0 (61 /s at e = 0.7),
     and a ball dropped 0.5 m with 0.3 m/s sideways left the floor still slipping at 0.14 m/s,
-    where Coulomb friction (and DejaView) stops the slip within the impact; at omega_0 it leaves
-    rolling, and a box sliding off a table tips over the edge at the rigid reference's rate in
-    the median over MuJoCo's steps (at 1000 /s, 70 % faster; docs/physics-fidelity.md). An
+    where Coulomb friction (and DejaView) stops the slip within the impact. The factor, measured
+    at MuJoCo's converged 5 us (docs/physics-fidelity.md, "Friction in impacts"): a box landing
+    on its front edge (40 deg, 2.2 m/s forward, 3.6 down, turning at 110 deg/s; the box sliding
+    off the table) leaves turning on at 84 deg/s in a rigid impact with Coulomb friction (it
+    sticks: the impulse needs mu 0.43 of 0.5) and 87 in DejaView; MuJoCo -6, 72, 99, 126 deg/s
+    at factors 1, 2, 4, 8: too little friction during the impact and the normal impulse, ahead of
+    the centre of mass, stops the turn. Over 14 random edge impacts the median error against
+    the rigid impact was 53, 31, 22, 25, 32 deg/s at factors 1, 2, 3, 4, 6 (DejaView 63), and
+    at 4 the fidelity rows of tumbling boxes came closest (tumble 1.15 -> 0.84 cm, edge landing
+    1.03 -> 0.35, the box off the table 12.2 -> 2.2, box-tumble-2 6.5 -> 5.0 at 1.0 s). An
     explicit pair replaces MuJoCo's automatic contact of the same two geoms.
     """
     frequency = scene_frequency(scene)
@@ -368,7 +379,7 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
             c = contact_parameters(mu, 0.5 * (e_a + e_b), frequency, timestep)
             out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" condim="{c["condim"]}" '
                        f'friction="{_num(mu)} {_num(mu)} 0 0 0" solref="{c["solref"]}" '
-                       f'solimp="{c["solimp"]}" solreffriction="0 {_num(-frequency)}"/>')
+                       f'solimp="{c["solimp"]}" solreffriction="0 {_num(-FRICTION_DAMPING * frequency)}"/>')
     return out
 
 

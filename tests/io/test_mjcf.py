@@ -227,7 +227,7 @@ def test_exported_ball_dropped_with_sideways_speed_leaves_the_floor_rolling(rest
     """A ball dropped 0.45 m at 0.3 m/s sideways (friction 0.5): Coulomb friction can stop its
     slip within the impact (it needs 2/7 of 0.3 m/s, the normal impulse gives up to 2.5 m/s), so
     it leaves rolling, at 5/7 of its speed, in DejaView as in a rigid impact. Each exported
-    contact pair's friction decays a slip at the contact frequency (``solreffriction``); with
+    contact pair's friction decays a slip at 4 times the contact frequency (``solreffriction``); with
     MuJoCo's default, the normal contact's damping (2 zeta omega_0: 61 /s at e = 0.7), it left
     slipping at 0.06, 0.14 and 0.24 m/s (e = 0.5, 0.7, 0.9)."""
     text = f"""<scene version="1"><simulation dt="0.002" duration="1" friction="0.5" restitution="{restitution}"/>
