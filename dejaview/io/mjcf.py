@@ -357,17 +357,13 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
     a quarter of 1 / omega_0, a sixth of an impact's loading phase. MuJoCo otherwise damps the
     friction dimensions with the normal contact's damping b = 2 zeta omega_0 (61 /s at e = 0.7),
     and a ball dropped 0.5 m with 0.3 m/s sideways left the floor still slipping at 0.14 m/s,
-    where Coulomb friction (and DejaView) stops the slip within the impact. The factor, measured
-    at MuJoCo's converged 5 us (docs/physics-fidelity.md, "Friction in impacts"): a box landing
-    on its front edge (40 deg, 2.2 m/s forward, 3.6 down, turning at 110 deg/s; the box sliding
-    off the table) leaves turning on at 84 deg/s in a rigid impact with Coulomb friction (it
-    sticks: the impulse needs mu 0.43 of 0.5) and 87 in DejaView; MuJoCo -6, 72, 99, 126 deg/s
-    at factors 1, 2, 4, 8: too little friction during the impact and the normal impulse, ahead of
-    the centre of mass, stops the turn. Over 14 random edge impacts the median error against
-    the rigid impact was 53, 31, 22, 25, 32 deg/s at factors 1, 2, 3, 4, 6 (DejaView 63), and
-    at 4 the fidelity rows of tumbling boxes came closest (tumble 1.15 -> 0.84 cm, edge landing
-    1.03 -> 0.35, the box off the table 12.2 -> 2.2, box-tumble-2 6.5 -> 5.0 at 1.0 s). An
-    explicit pair replaces MuJoCo's automatic contact of the same two geoms.
+    where Coulomb friction (and DejaView) stops the slip within the impact. The factor
+    (docs/physics-fidelity.md, "The friction's damping at 4 omega_0", measured at MuJoCo's
+    converged 5 us): a box landing on its front edge (40 deg, 2.2 m/s forward, 3.6 down, turning
+    at 110 deg/s: the box sliding off the table) turns on at 84 deg/s after a rigid impact with
+    Coulomb friction and at 87 in DejaView; MuJoCo at factors 1, 2, 4, 8: -6, 72, 99, 126. With too
+    little friction during the impact the normal impulse, ahead of the centre of mass, stops the
+    turn. An explicit pair replaces MuJoCo's automatic contact of the same two geoms.
     """
     frequency = scene_frequency(scene)
     out = []
