@@ -20,6 +20,15 @@ def crossengine():
     return bench_module("crossengine")
 
 
+def _pitch_deg(q) -> float:
+    """Degrees turned about +y (nose down for a box moving along +x) of the first body's
+    orientation: a (4,) quaternion (w x y z) or (N, 4) rows."""
+    import numpy as np
+
+    w, _, y, _ = np.asarray(q, dtype=np.float64).reshape(-1, 4)[0]
+    return float(np.degrees(2 * np.arctan2(y, w)))
+
+
 def test_there_are_at_least_16_cases_of_every_kind(crossengine):
     names = [c.name for c in crossengine.CASES]
     assert len(names) >= 16 and len(set(names)) == len(names)
@@ -52,17 +61,16 @@ def test_box_motions_end_within_2_cm_of_mujoco(crossengine, motion):
 
 
 def test_a_box_tips_over_the_table_edge_as_a_rigid_box_does(crossengine):
-    """The fidelity table's one box row over 2 cm: DejaView tips the box sliding off the table at
-    the rate of a rigid flat box over a sharp edge (``bench/edge_tip.py``, a 2D reference sharing no
-    code with the engines: 111 deg/s; MuJoCo 240 at the export's 0.5 ms step, 113 at 2 us)."""
-    import numpy as np
-
+    """One of the fidelity table's box rows over 2 cm (2.19 cm at 1.0 s): DejaView tips the box
+    sliding off the table at the rate of a rigid flat box over a sharp edge (``bench/edge_tip.py``, a
+    2D reference sharing no code with the engines: 111 deg/s; MuJoCo 240 at the export's 0.5 ms
+    step, 113 at 2 us)."""
     reference = bench_module("edge_tip").tip(dt=1e-5)
     (name, objects, e) = [f for f in crossengine.FIDELITY if f[0] == "box slides off the table"][0]
     scene = crossengine.make_scene(crossengine.scene_text(objects, 0.35, restitution=e))
     times = (0.25, 0.3, 0.35)
     ours = crossengine.dejaview_run(scene, times)
-    pitch = {t: float(np.degrees(2 * np.arctan2(ours[t][1][0, 2], ours[t][1][0, 0]))) for t in times}
+    pitch = {t: _pitch_deg(ours[t][1]) for t in times}
     for t in times:
         assert pitch[t] == pytest.approx(reference[t][2], abs=2.0), (t, pitch[t], reference[t])
         assert ours[t][0][0, 0] == pytest.approx(reference[t][0], abs=0.01)
@@ -83,7 +91,7 @@ def test_mujoco_tips_the_box_over_the_edge_as_a_rigid_box_does(crossengine):
     pitches, rates = [], []
     for step in (1e-5, 5e-6, 2e-6):
         theirs = crossengine.mujoco_run(scene, (0.25, 0.35), timestep=step)
-        pitch = {t: float(np.degrees(2 * np.arctan2(q[0, 2], q[0, 0]))) for t, (_, q) in theirs.items()}
+        pitch = {t: _pitch_deg(q) for t, (_, q) in theirs.items()}
         pitches.append(pitch[0.35])
         rates.append((pitch[0.35] - pitch[0.25]) / 0.1)
     assert float(np.median(pitches)) == pytest.approx(reference[0.35][2], abs=2.0), pitches
@@ -101,20 +109,17 @@ def test_a_box_landing_on_its_edge_turns_on_as_a_rigid_box_does_in_both_engines(
     ahead of the centre of mass, stopped the turn."""
     import math
 
-    import numpy as np
-
     rigid = bench_module("edge_tip").edge_impact(pitch, velocity, pitch_rate)
     th = math.radians(pitch)
-    lowest = math.sin(th) * 0.1 + math.cos(th) * 0.05  # the front-bottom edge below the centre
+    length, _, height = crossengine.BOX
+    lowest = math.sin(th) * length / 2 + math.cos(th) * height / 2  # the front-bottom edge below the centre
     box = crossengine.box("box", (3.0, 0.0, lowest + 0.0005), (velocity[0], 0, velocity[1]),
                           (0, math.radians(pitch_rate), 0), crossengine.about((0, 1, 0), pitch))
     scene = crossengine.make_scene(crossengine.scene_text(box, 0.05))
     t0, t1 = 0.036, 0.04  # the impact is over by 15 ms, the box in flight until 45 ms (2 ms records)
     for run in (crossengine.dejaview_run, crossengine.mujoco_run):
         out = run(scene, (t0, t1))
-        q = {t: np.asarray(out[t][1]).reshape(-1, 4)[0] for t in (t0, t1)}
-        pitches = {t: math.degrees(2 * math.atan2(q[t][2], q[t][0])) for t in (t0, t1)}
-        rate = (pitches[t1] - pitches[t0]) / (t1 - t0)
+        rate = (_pitch_deg(out[t1][1]) - _pitch_deg(out[t0][1])) / (t1 - t0)
         assert rate == pytest.approx(rigid[2], abs=max(25.0, 0.1 * abs(rigid[2]))), (run.__name__, rate, rigid)
 
 
