@@ -39,7 +39,7 @@ def test_there_are_at_least_16_cases_of_every_kind(crossengine):
 @pytest.mark.parametrize("motion", ["bounce (ball dropped 0.5 m, e 0.3)", "bounce high", "roll", "slide to roll",
                                     "ball rolls off the table"])
 def test_ball_motions_end_within_2_cm_of_mujoco(crossengine, motion):
-    rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion])
+    rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion], times=(1.0,))
     assert rows and all(r["gap_1s_m"] <= crossengine.FIDELITY_TOL for r in rows), rows
 
 
@@ -52,7 +52,7 @@ def test_box_motions_end_within_2_cm_of_mujoco(crossengine, motion):
     resting box (ball-hits-box's start) within 0.5 cm, and 1 cm off the box's centre line within
     0.5 cm since a box body meets other bodies with its exact surface (7.3 cm before, against its
     packing's spheres)."""
-    rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion])
+    rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion], times=(1.0,))
     assert rows and all(r["gap_1s_m"] <= crossengine.FIDELITY_TOL for r in rows), rows
     if motion in ("slide (box", "tumble (box", "box lands on an edge", "box-box hit"):
         # and they rest turned alike (0.0-0.7 deg apart; the spinning slide 15 deg apart in yaw,
