@@ -89,12 +89,15 @@ def population(num_params: int) -> int:
 
 @dataclass
 class Mode:
-    """A refined candidate: parameters (P,), negative log posterior, observation chi-square, loss."""
+    """A refined candidate: parameters (P,), negative log posterior, observation chi-square, loss;
+    under model uncertainty also its negative log posterior under the held-out physics variants
+    that rank the modes (``model_uncertainty.rank_on_heldout``), else None."""
 
     x: torch.Tensor
     cost: float
     chi2: float
     loss: float
+    heldout: float | None = None
 
 
 @dataclass

@@ -12,7 +12,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem
-from dejaview.inference.model_uncertainty import ModelVariants, design, vary_world
+from dejaview.inference.model_uncertainty import HELDOUT_SEED, ModelVariants, design, rank_on_heldout, vary_world
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.scene import ModelUncertainty, Prior
 from dejaview.sim.world import _discrete_restitution
@@ -74,6 +74,40 @@ def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more(
         assert chi2[0] == pytest.approx(float((r[:, :model.count * n] ** 2).sum()))
         costs.append(float(cost[0]))
     assert float(0.5 * (r0 ** 2).sum()) < 1e-3 < costs[0] < costs[1]
+
+
+def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fitted_to():
+    """``rank_on_heldout``: each mode's negative log posterior under 8 variants drawn apart from the
+    design (the same standard deviations, another stream), lowest first, whatever the order and
+    costs the refinement gave them: a start fitted to the design's four physics by chance (here a
+    worse start handed the lower cost) does not win on that."""
+    from dejaview.inference.search import Mode
+
+    scene = shelf(duration=0.3, evaluate="final")
+    problem = InferenceProblem.from_scene(scene)
+    x = truth_x(problem)
+    with torch.no_grad():
+        pos, q = problem.final_pose(problem.simulate(x))
+    inf = scene.inference
+    scene = replace(scene, inference=replace(inf, target=replace(inf.target, position=tuple(pos),
+                                                                 orientation=tuple(q))))
+    problem = InferenceProblem.from_scene(scene)
+    settings = PosteriorSettings.from_scene(scene)
+    model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
+    post = Posterior(problem, settings, model=model)
+    worse = x[0] + 0.1 * torch.ones_like(x[0])
+    modes = [Mode(worse, 1.0, 2.0, 0.01), Mode(x[0], 5.0, 10.0, 0.0)]
+    ranked, rollouts = rank_on_heldout(post, modes, seed=3)
+    assert torch.equal(ranked[0].x, x[0]) and torch.equal(ranked[1].x, worse)
+    assert [m.cost for m in ranked] == [5.0, 1.0]  # the fitted costs kept, the order the held-out one's
+    held = ModelVariants.from_world(problem.world, 0.2, 0.2, count=8, seed=HELDOUT_SEED + 3)
+    assert not any(torch.allclose(h, d) for h in held.levels for d in model.levels)
+    expected = Posterior(problem, settings, model=held).cost(torch.stack([x[0], worse]))[0]
+    assert [m.heldout for m in ranked] == pytest.approx(expected.tolist(), rel=1e-12)
+    assert rollouts == 2  # candidates, as Posterior.rollouts counts them (each under 8 physics)
+    assert ranked[0].heldout < ranked[1].heldout
+    one, spent = rank_on_heldout(post, modes[:1], seed=3)
+    assert one == modes[:1] and one[0].heldout is None and spent == 0
 
 
 def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
@@ -156,8 +190,13 @@ def test_the_cli_reads_the_element_and_the_flag_and_records_it(tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet"])
     assert result.exit_code == 0, result.output
-    mu = json.loads((out / "result.json").read_text())["model_uncertainty"]
+    data = json.loads((out / "result.json").read_text())
+    mu = data["model_uncertainty"]
     assert (mu["friction"], mu["restitution"], mu["variants"]) == (0.2, 0.1, 4)
+    modes = data["search"]["modes"]  # ranked on the held-out variants (3 modes here): the answer is the first
+    held = [m["heldout_neg_log_posterior"] for m in modes]
+    assert len(modes) >= 2 and held == sorted(held)
+    assert modes[0]["initial_state"]["position"] == pytest.approx(data["initial_state"]["position"])
     result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
                                       "--model-uncertainty", "0.05", "0"])
     assert result.exit_code == 0, result.output
