@@ -221,7 +221,9 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
     s.n_obs = max(1, post.num_observed)
     starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:CANDIDATES - 1]
     s.add_modes(s.refine(torch.stack(starts).to(torch.float64), iterations))
-    s.modes, heldout_rollouts = rank_on_heldout(post, s.modes, seed)
+    heldout_rollouts = 0
+    if not s.stopped:  # a cancelled solve returns at once, its modes as the refinement ranked them
+        s.modes, heldout_rollouts = rank_on_heldout(post, s.modes, seed)
     best = s.modes[0] if s.modes else s.best
     return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
                         candidate_x=torch.stack([m.x for m in s.modes or [best]]),
