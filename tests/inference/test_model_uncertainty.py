@@ -40,13 +40,9 @@ def test_a_variant_world_scales_friction_restitution_and_stiffness():
     assert e1 == pytest.approx(2.0 * e0, rel=1e-6)
 
 
-def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more():
-    """The truth explains its end exactly under the scene's physics; averaged over friction variants
-    (10 %, 20 %) its residuals are the variants' misfits over sqrt(K), and the cost is the mean of their
-    costs: larger, and larger still with more uncertainty."""
-    # at 0.3 s the box still slides along the shelf (its end moves 1.8 cm per 10 % of friction; by
-    # 0.5 s it rests against the corner wall, wherever the friction); "best" would find each
-    # variant's moment at the target
+def _shelf_observing_its_truth():
+    """(problem, settings, x): the shelf at 0.3 s observing the truth's own end, and the truth's
+    parameters x (1, P)."""
     scene = shelf(duration=0.3, evaluate="final")
     problem = InferenceProblem.from_scene(scene)
     x = truth_x(problem)
@@ -55,8 +51,17 @@ def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more(
     inf = scene.inference
     scene = replace(scene, inference=replace(inf, target=replace(inf.target, position=tuple(pos),
                                                                  orientation=tuple(q))))
-    problem = InferenceProblem.from_scene(scene)
-    settings = PosteriorSettings.from_scene(scene)
+    return InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene), x
+
+
+def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more():
+    """The truth explains its end exactly under the scene's physics; averaged over friction variants
+    (10 %, 20 %) its residuals are the variants' misfits over sqrt(K), and the cost is the mean of their
+    costs: larger, and larger still with more uncertainty."""
+    # at 0.3 s the box still slides along the shelf (its end moves 1.8 cm per 10 % of friction; by
+    # 0.5 s it rests against the corner wall, wherever the friction); "best" would find each
+    # variant's moment at the target
+    problem, settings, x = _shelf_observing_its_truth()
     exact = Posterior(problem, settings)
     r0, _ = exact.residuals(x)
     costs = []
@@ -83,16 +88,7 @@ def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fit
     worse start handed the lower cost) does not win on that."""
     from dejaview.inference.search import Mode
 
-    scene = shelf(duration=0.3, evaluate="final")
-    problem = InferenceProblem.from_scene(scene)
-    x = truth_x(problem)
-    with torch.no_grad():
-        pos, q = problem.final_pose(problem.simulate(x))
-    inf = scene.inference
-    scene = replace(scene, inference=replace(inf, target=replace(inf.target, position=tuple(pos),
-                                                                 orientation=tuple(q))))
-    problem = InferenceProblem.from_scene(scene)
-    settings = PosteriorSettings.from_scene(scene)
+    problem, settings, x = _shelf_observing_its_truth()
     model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
     post = Posterior(problem, settings, model=model)
     worse = x[0] + 0.1 * torch.ones_like(x[0])
