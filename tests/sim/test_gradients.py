@@ -166,6 +166,57 @@ def test_analytic_sdf_gradient_matches_autograd(shape):
     assert torch.allclose(n.norm(dim=-1), torch.ones(50, dtype=torch.float64), atol=1e-8)
 
 
+def _line_set(roll_spin: float, along_spin: float, clean: bool = False):
+    """Three contacts of a box's edge on the floor (along y, 0.2 m long, 0.1 m below and 0.08 m
+    beside the centre) and a fourth barely touching off the line, their depth weights, unit
+    normals, normal forces, and a spin of ``roll_spin`` about x (lifting one end of the edge) plus
+    ``along_spin`` about y (rolling over the edge): (fn, weight, arm, normal, spin, mass, inv_w).
+    ``clean``: the fourth contact not touching and the normals all +z (the line exactly along y)."""
+    arm = torch.tensor([[[[0.08, -0.1, -0.1], [0.08, 0.0, -0.1], [0.08, 0.1, -0.1], [0.0, 0.02, -0.1]]]],
+                       dtype=torch.float64)
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(1, 1, 4, 3).clone()
+    weight = torch.tensor([[[0.3, 0.35, 0.35, 0.0]]], dtype=torch.float64)
+    if not clean:
+        normal[0, 0, 1] = torch.tensor([0.05, 0.0, 1.0], dtype=torch.float64) / (1.0025 ** 0.5)
+        weight = torch.tensor([[[0.3, 0.35, 0.34, 0.01]]], dtype=torch.float64)
+    fn = torch.tensor([[[9.0, 10.0, 11.0, 0.2]]], dtype=torch.float64)
+    spin = torch.tensor([[[roll_spin, along_spin, 0.0]]], dtype=torch.float64)
+    inv_w = torch.diag(torch.tensor([300.0, 200.0, 150.0], dtype=torch.float64)).expand(1, 1, 3, 3)
+    return fn, weight, arm, normal, spin.squeeze(-2), torch.tensor([1.0], dtype=torch.float64), inv_w
+
+
+def test_line_roll_stick_holds_the_roll_of_an_edge_and_nothing_else():
+    """``contacts.line_roll_stick``: on an edge spinning about x (the roll that lifts one end) the
+    sinking end is pressed and the lifting end unloaded, by the forces that stop that roll in one
+    substep; a spin about the edge (rolling over it) changes nothing, nor does any spin on a set
+    that is not a line (four contacts at a square's corners); gradients exact (gradcheck)."""
+    h = 1e-3
+    fn, weight, arm, normal, spin, mass, inv_w = _line_set(2.0, 0.0)
+    out = contacts.line_roll_stick(fn, weight, arm, normal, spin, mass, inv_w, h)
+    # spin +x: the end at y = +0.1 moves up (+z), the end at y = -0.1 down
+    assert out[0, 0, 0] > fn[0, 0, 0] + 1.0 and out[0, 0, 2] < fn[0, 0, 2] - 1.0
+    assert torch.equal(out[0, 0, 2], torch.zeros((), dtype=torch.float64))  # unloaded, not pulled
+    rolled = contacts.line_roll_stick(*_line_set(0.0, 5.0, clean=True)[:5], mass, inv_w, h)
+    assert torch.allclose(rolled, fn, rtol=0, atol=1e-9)
+    square = torch.tensor([[[[0.1, 0.1, -0.1], [-0.1, 0.1, -0.1], [-0.1, -0.1, -0.1], [0.1, -0.1, -0.1]]]],
+                          dtype=torch.float64)
+    flat = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(1, 1, 4, 3)
+    assert torch.equal(contacts.line_roll_stick(fn, weight, square, flat, spin, mass, inv_w, h), fn)
+    # one sphere touching a floor and a wall (a ball in a corner): two contacts, so a "line", but
+    # a sphere's spin moves no contact point along its normal: nothing changes
+    corner = torch.tensor([[[[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]]],
+                          dtype=torch.float64)
+    ball = -0.05 * corner
+    two = torch.tensor([[[0.6, 0.4, 0.0, 0.0]]], dtype=torch.float64)
+    wild = torch.tensor([[3.0, -2.0, 5.0]], dtype=torch.float64)
+    assert torch.allclose(contacts.line_roll_stick(fn, two, ball, corner, wild, mass, inv_w, h), fn,
+                          rtol=0, atol=1e-9)
+    fn, weight, arm, normal, spin, mass, inv_w = _line_set(0.3, 1.0)
+    args = tuple(t.clone().requires_grad_(True) for t in (fn, weight, arm, normal, spin))
+    assert torch.autograd.gradcheck(
+        lambda *a: contacts.line_roll_stick(*a, mass, inv_w, h), args)
+
+
 def test_gradcheck_static_contact_wrench():
     floor = StaticShape.make("floor", "plane")
     world = make_world([box_body()], [floor])

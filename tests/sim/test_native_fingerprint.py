@@ -6,9 +6,12 @@ gradients stay those of the engine it was filed against (30cf17f) to 1e-9; this 
 there. The friction on the predicted slip (2026-11-25, ``dejaview.sim.contacts``) then changed
 the physics of impacts on purpose, and the record (``scripts/native_fingerprint.py`` on the
 bundled scenes: 150 steps, states every 10th, the reverse-mode gradient and a forward-mode
-derivative of a loss of them) is now of that engine:
-``tests/fixtures/native/fingerprint-predicted-slip.npz``. A change to the C++ that should not
-change a number must keep this test passing; one that should must say why and re-record.
+derivative of a loss of them) was of that engine; the roll stick of a line contact
+(2026-11-26, ``dejaview.sim.contacts``) changed the physics of bodies on an edge or a line on
+purpose (of the bundled scenes the two mugs and the box among boxes; the others bit for bit),
+and the record is now of that engine: ``tests/fixtures/native/fingerprint-roll-stick.npz``. A
+change to the C++ that should not change a number must keep this test passing; one that should
+must say why and re-record.
 """
 
 import importlib.util
@@ -20,7 +23,7 @@ import pytest
 from dejaview.sim import native
 
 ROOT = Path(__file__).resolve().parents[2]
-BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-predicted-slip.npz"
+BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-roll-stick.npz"
 TOLERANCE = 1e-9  # times max(1, the largest magnitude of the array)
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension does not build here")

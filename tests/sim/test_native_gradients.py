@@ -145,6 +145,39 @@ def test_adjoint_through_an_inference_problem_equals_the_jacobian_path(monkeypat
     _same(grad_f, grad_a)
 
 
+def test_adjoint_equals_forward_mode_and_torch_where_the_roll_stick_holds_an_edge(monkeypatch):
+    """A box landing on its edge while sliding along it and rolling about it and across it: the
+    roll stick of a line contact (``dejaview.sim.contacts.line_roll_stick``) acts for most of the
+    impact, and its hand-written reverse mode (``adjoint.h``'s ``RollStick``) must give the
+    gradients of the forward-mode duals and of torch's autograd through the torch engine."""
+    from dejaview.sim import contacts
+    from tests.sim.test_physics import _tilted_box, _weightless
+
+    body, _, _, mu, e, _, _, _, low, q = _tilted_box(35.0)
+    world = _weightless([body], [StaticShape.make("floor", "plane", friction=mu, restitution=e)], mu, e)
+    state = world.state([[0.0, 0.0, 0.01 - low.min()]], orientation=q, linear_velocity=[[0.0, 0.2, -1.4]],
+                        angular_velocity=[[0.3, 0.0, 0.1]])
+
+    def loss(traj):
+        s = traj.states
+        return ((s.position[-1] ** 2).sum() + (s.orientation[-1, ..., 1:] ** 2).sum()
+                + 0.1 * (s.angular_velocity[-1] ** 2).sum())
+
+    def torch_grad():
+        x = torch.cat(state.tensors(), -1).detach().requires_grad_(True)
+        traj = rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=30,
+                       engine="torch")
+        return torch.autograd.grad(loss(traj), x)[0]
+
+    adj = _reverse(world, state, 30, 1, "adjoint", monkeypatch, loss)
+    _same(adj, _reverse(world, state, 30, 1, "phi", monkeypatch, loss))
+    with_stick = torch_grad()
+    _same(adj, with_stick)
+    monkeypatch.setattr(contacts, "line_roll_stick", lambda fn, *args: fn)
+    without = torch_grad()  # the stick was acting: without it the gradient is another
+    assert float((without - with_stick).abs().max()) > 0.1 * float(with_stick.abs().max())
+
+
 @settings(max_examples=40, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                  HealthCheck.function_scoped_fixture])

@@ -215,6 +215,178 @@ struct ContactLaw {
   }
 };
 
+// ------------------------------------------------------------------ the roll stick of a line contact
+// contacts.h's line_roll_stick on values, with what the way back needs, and its vjp. Inputs per
+// contact j: weight w_j, arm r_j, normal n_j, normal force fn_j; per set: the spin om, the world
+// inverse inertia iw; out: dfn_j = max(fn_j + g_j, 0) - fn_j.
+template <typename S>
+struct RollStick {
+  struct Item {
+    S w, r[3], n[3], fn, d[3], sj, p[3], u, q[3], iq[3], inv_mn, g, fo, dfn, inv_mnb;
+  };
+  std::vector<Item> items;
+  bool on = false;
+  S centre[3], mean_n[3], zlen, z[3], sec[9], tr, sq, arg, spread, num, den, gate, half_p, roll[9], spin[3],
+      mean_u, om[3], iw[9], inv_m, h;
+
+  // items[j].w, r, n, fn set by the caller; on: whether the set is a line (dfn are zero if not)
+  void forward(const S* om_in, const S* iw_in, S inv_m_in, S h_in) {
+    const int m = static_cast<int>(items.size());
+    for (int i = 0; i < 3; ++i) om[i] = om_in[i];
+    for (int i = 0; i < 9; ++i) iw[i] = iw_in[i];
+    inv_m = inv_m_in;
+    h = h_in;
+    for (Item& it : items) it.dfn = 0;
+    for (int i = 0; i < 3; ++i) centre[i] = mean_n[i] = 0;
+    for (const Item& it : items)
+      for (int i = 0; i < 3; ++i) {
+        centre[i] += it.w * it.r[i];
+        mean_n[i] += it.w * it.n[i];
+      }
+    zlen = std::sqrt(dot3(mean_n, mean_n) + S(1e-30));
+    for (int i = 0; i < 3; ++i) z[i] = mean_n[i] / zlen;
+    for (int i = 0; i < 9; ++i) sec[i] = 0;
+    for (Item& it : items) {
+      for (int i = 0; i < 3; ++i) it.d[i] = it.r[i] - centre[i];
+      it.sj = dot3(it.d, z);
+      for (int i = 0; i < 3; ++i) it.p[i] = it.d[i] - it.sj * z[i];
+      for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) sec[3 * i + k] += it.w * it.p[i] * it.p[k];
+    }
+    tr = sec[0] + sec[4] + sec[8];
+    sq = 0;
+    for (int i = 0; i < 9; ++i) sq += sec[i] * sec[i];
+    arg = S(2) * sq - tr * tr;
+    spread = std::sqrt(relu(arg) + S(1e-30));
+    num = tr + spread - S(schema::LINE_ASPECT) * (tr - spread);
+    den = tr + spread + S(1e-30);
+    gate = relu(num / den);
+    on = gate > 0;
+    if (!on || m == 0) return;
+    half_p = S(0.5) * (S(1) + tr / spread);
+    for (int i = 0; i < 3; ++i)
+      for (int k = 0; k < 3; ++k)
+        roll[3 * i + k] = half_p * (S(i == k ? 1 : 0) - z[i] * z[k]) - sec[3 * i + k] / spread;
+    matvec(roll, om, spin);
+    mean_u = 0;
+    for (Item& it : items) {  // u = (spin x r) . n = spin . q, q = r x n
+      cross3(it.r, it.n, it.q);
+      it.u = dot3(spin, it.q);
+      mean_u += it.w * it.u;
+    }
+    for (Item& it : items) {
+      matvec(iw, it.q, it.iq);
+      it.inv_mn = inv_m + dot3(it.q, it.iq);
+      it.g = -(gate * it.w * (it.u - mean_u)) / (it.inv_mn * h);
+      it.fo = it.fn + it.g;
+      it.dfn = relu(it.fo) - it.fn;
+    }
+  }
+
+  // from dfnb (m), the cotangents of dfn, add to wb, rb (3 m), nb (3 m), fnb (m), omb (3), iwb (9)
+  void backward(const S* dfnb, S* wb, S* rb, S* nb, S* fnb, S* omb, S* iwb) {
+    if (!on) return;
+    const int m = static_cast<int>(items.size());
+    S gateb = 0, mean_ub = 0, spinb[3] = {0, 0, 0};
+    std::vector<S>& yb = scratch<S>(11);
+    yb.resize(m);
+    for (int j = 0; j < m; ++j) {  // dfn = relu(fn + g) - fn, g = -gate w (u - mean_u) / (inv_mn h)
+      Item& it = items[j];
+      const S gb = it.fo > 0 ? dfnb[j] : S(0);
+      fnb[j] += gb - dfnb[j];
+      const S y = it.u - mean_u, c = it.inv_mn * h;
+      gateb -= gb * it.w * y / c;
+      wb[j] -= gb * gate * y / c;
+      yb[j] = -gb * gate * it.w / c;
+      it.inv_mnb = -gb * it.g / it.inv_mn;
+      mean_ub -= yb[j];
+    }
+    std::vector<S>& db = scratch<S>(12);
+    db.assign(3 * m, S(0));
+    for (int j = 0; j < m; ++j) {  // mean_u = sum w u, u = spin . q; inv_mn = inv_m + q . iw q; q = r x n
+      const Item& it = items[j];
+      const S ub = yb[j] + mean_ub * it.w;
+      wb[j] += mean_ub * it.u;
+      S wtq[3], qb[3];
+      matvec_t(iw, it.q, wtq);
+      for (int i = 0; i < 3; ++i) {
+        spinb[i] += ub * it.q[i];
+        qb[i] = ub * spin[i] + it.inv_mnb * (it.iq[i] + wtq[i]);
+      }
+      for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) iwb[3 * i + k] += it.inv_mnb * it.q[i] * it.q[k];
+      add_cross(it.n, qb, rb + 3 * j);
+      add_cross(qb, it.r, nb + 3 * j);
+    }
+    // spin = roll om
+    S rollb[9];
+    for (int i = 0; i < 3; ++i)
+      for (int k = 0; k < 3; ++k) rollb[3 * i + k] = spinb[i] * om[k];
+    S rtb[3];
+    matvec_t(roll, spinb, rtb);
+    for (int i = 0; i < 3; ++i) omb[i] += rtb[i];
+    // roll = half_p (I - z z^T) - sec / spread, half_p = (1 + tr / spread) / 2
+    S half_pb = 0, zb[3] = {0, 0, 0}, secb[9], spreadb = 0, trb = 0;
+    for (int i = 0; i < 3; ++i)
+      for (int k = 0; k < 3; ++k) {
+        const S rb_ik = rollb[3 * i + k];
+        half_pb += rb_ik * (S(i == k ? 1 : 0) - z[i] * z[k]);
+        zb[i] -= half_p * rb_ik * z[k];
+        zb[k] -= half_p * rb_ik * z[i];
+        secb[3 * i + k] = -rb_ik / spread;
+        spreadb += rb_ik * sec[3 * i + k] / (spread * spread);
+      }
+    trb += S(0.5) * half_pb / spread;
+    spreadb -= S(0.5) * half_pb * tr / (spread * spread);
+    // gate = num / den (> 0 here), num = tr + spread - A (tr - spread), den = tr + spread + eps
+    const S numb = gateb / den, denb = -gateb * gate / den;
+    const S a = S(schema::LINE_ASPECT);
+    trb += (S(1) - a) * numb + denb;
+    spreadb += (S(1) + a) * numb + denb;
+    // spread = sqrt(relu(2 sq - tr^2) + eps)
+    if (arg > 0) {
+      const S argb = spreadb / (S(2) * spread);
+      const S sqb = S(2) * argb;
+      trb -= S(2) * tr * argb;
+      for (int i = 0; i < 9; ++i) secb[i] += S(2) * sqb * sec[i];
+    }
+    for (int i = 0; i < 3; ++i) secb[4 * i] += trb;
+    // sec = sum w p p^T, p = d - (d . z) z, d = r - centre
+    S centreb[3] = {0, 0, 0};
+    for (int j = 0; j < m; ++j) {
+      const Item& it = items[j];
+      S sp[3], stp[3], pb[3];
+      matvec(secb, it.p, sp);
+      matvec_t(secb, it.p, stp);
+      wb[j] += dot3(it.p, sp);
+      for (int i = 0; i < 3; ++i) pb[i] = it.w * (sp[i] + stp[i]);
+      S* dbj = &db[3 * j];
+      const S sb = -dot3(pb, z);
+      for (int i = 0; i < 3; ++i) {
+        dbj[i] += pb[i] + sb * z[i];
+        zb[i] += -it.sj * pb[i] + sb * it.d[i];
+      }
+      for (int i = 0; i < 3; ++i) {
+        rb[3 * j + i] += dbj[i];
+        centreb[i] -= dbj[i];
+      }
+    }
+    // z = mean_n / sqrt(mean_n . mean_n + eps)
+    S mean_nb[3];
+    const S zm = dot3(zb, mean_n) / (zlen * zlen * zlen);
+    for (int i = 0; i < 3; ++i) mean_nb[i] = zb[i] / zlen - mean_n[i] * zm;
+    // centre = sum w r, mean_n = sum w n
+    for (int j = 0; j < m; ++j) {
+      const Item& it = items[j];
+      wb[j] += dot3(mean_nb, it.n) + dot3(centreb, it.r);
+      for (int i = 0; i < 3; ++i) {
+        nb[3 * j + i] += it.w * mean_nb[i];
+        rb[3 * j + i] += it.w * centreb[i];
+      }
+    }
+  }
+};
+
 // ------------------------------------------------------------------ static contacts
 // wrench W_s (6) of body a's picked static contacts (static_wrench in contacts.h) and its vjp
 template <typename S>
@@ -229,6 +401,7 @@ struct StaticAdjoint {
   std::vector<Contact> contacts;
   S rot[9], inv_w[9], total, x[3], q[4], v[3], om[3];
   S tsum[3], alpha[3], acc[3];  // the set's normal torque, the accelerations it and its force give
+  RollStick<S> roll;  // the roll stick of a line contact
   bool broken = false, empty = true;
 
   void forward(const World<S>& w, int a, const S* st, const std::vector<Pick>& picks, S* out) {
@@ -328,6 +501,29 @@ struct StaticAdjoint {
         out[3 + i] += tq[i];
       }
     }
+    roll.items.resize(m);
+    for (int j = 0; j < m; ++j) {
+      const Contact& ct = contacts[j];
+      typename RollStick<S>::Item& it = roll.items[j];
+      it.w = ct.law.weight;
+      it.fn = ct.law.fn;
+      for (int i = 0; i < 3; ++i) {
+        it.r[i] = ct.arm[i];
+        it.n[i] = ct.law.n[i];
+      }
+    }
+    roll.forward(om, inv_w, inv_m, w.h);
+    if (roll.on)
+      for (int j = 0; j < m; ++j) {
+        const Contact& ct = contacts[j];
+        S f[3], tq[3];
+        for (int i = 0; i < 3; ++i) f[i] = roll.items[j].dfn * ct.law.n[i];
+        cross3(ct.arm, f, tq);
+        for (int i = 0; i < 3; ++i) {
+          out[i] += f[i];
+          out[3 + i] += tq[i];
+        }
+      }
   }
 
   // gs (13) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent
@@ -357,6 +553,36 @@ struct StaticAdjoint {
       for (int i = 0; i < 3; ++i) accb[i] += dvb[i];
       add_cross(ct.arm, dvb, alphab);
       add_cross(dvb, alpha, ct.armb);
+    }
+    if (roll.on) {  // the roll stick's force dfn n on each contact, and its torque arm x dfn n
+      const int m = static_cast<int>(contacts.size());
+      std::vector<S>& buf = scratch<S>(13);  // dfnb, wb, fnb (m each), rb, nb (3 m each)
+      buf.assign(9 * m, S(0));
+      S* dfnb = buf.data();
+      S* wb = dfnb + m;
+      S* fnb = wb + m;
+      S* rb = fnb + m;
+      S* nb = rb + 3 * m;
+      for (int j = 0; j < m; ++j) {
+        Contact& ct = contacts[j];
+        const S dfn = roll.items[j].dfn;
+        S fb[3] = {mf[0], mf[1], mf[2]}, f[3];
+        add_cross(mt, ct.arm, fb);
+        for (int i = 0; i < 3; ++i) f[i] = dfn * ct.law.n[i];
+        dfnb[j] = dot3(fb, ct.law.n);
+        for (int i = 0; i < 3; ++i) ct.nb[i] += dfn * fb[i];
+        add_cross(f, mt, ct.armb);
+      }
+      roll.backward(dfnb, wb, rb, nb, fnb, omb, iwb);
+      for (int j = 0; j < m; ++j) {
+        Contact& ct = contacts[j];
+        ct.fnb += fnb[j];
+        ct.weightb += wb[j];
+        for (int i = 0; i < 3; ++i) {
+          ct.armb[i] += rb[3 * j + i];
+          ct.nb[i] += nb[3 * j + i];
+        }
+      }
     }
     // acc = F / m, alpha = inv_w T
     const S inv_m = S(1) / w.mass[a];

@@ -187,7 +187,7 @@ template <typename S, int W> inline Dual<S, W> root8(const Dual<S, W>& a) {
 
 // per-thread scratch arrays of the wrench passes (no allocation per call); slot: which one
 template <typename T> inline std::vector<T>& scratch(int slot) {
-  thread_local std::vector<T> v[11];
+  thread_local std::vector<T> v[14];
   return v[slot];
 }
 
@@ -351,6 +351,72 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
   }
 }
 
+// The roll stick of a line contact (contacts.line_roll_stick): from the normal forces fn (m) of a
+// body's static contact set, with weights w = dep / denom, arms ar and normals nr (3 m, rows of 3),
+// the changes dfn (m) that make them max(fn + g, 0); false (dfn untouched) where the set is not
+// elongated, so nothing changes
+template <typename T, typename S>
+bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* ar, const T* fn, const T* om,
+                     const T* iw, S inv_m, S h, T* dfn) {
+  T centre[3] = {T(0), T(0), T(0)}, mean_n[3] = {T(0), T(0), T(0)};
+  for (int j = 0; j < m; ++j) {
+    const T wj = dep[j] / denom;
+    for (int i = 0; i < 3; ++i) {
+      centre[i] = centre[i] + wj * ar[3 * j + i];
+      mean_n[i] = mean_n[i] + wj * nr[3 * j + i];
+    }
+  }
+  const T zlen = sqrt(dot3(mean_n, mean_n) + S(1e-30));
+  T z[3];
+  for (int i = 0; i < 3; ++i) z[i] = mean_n[i] / zlen;
+  std::vector<T>& dbuf = scratch<T>(11);  // (3 m) arms from the centre
+  dbuf.resize(3 * m);
+  T sec[9];
+  for (int i = 0; i < 9; ++i) sec[i] = T(0);
+  for (int j = 0; j < m; ++j) {
+    const T wj = dep[j] / denom;
+    T* d = &dbuf[3 * j];
+    for (int i = 0; i < 3; ++i) d[i] = ar[3 * j + i] - centre[i];
+    const T sj = dot3(d, z);
+    T p[3];
+    for (int i = 0; i < 3; ++i) p[i] = d[i] - sj * z[i];
+    for (int i = 0; i < 3; ++i)
+      for (int k = 0; k < 3; ++k) sec[3 * i + k] = sec[3 * i + k] + wj * p[i] * p[k];
+  }
+  const T tr = sec[0] + sec[4] + sec[8];
+  T sq = T(0);
+  for (int i = 0; i < 9; ++i) sq = sq + sec[i] * sec[i];
+  const T spread = sqrt(relu(S(2) * sq - tr * tr) + S(1e-30));
+  const T gate = relu((tr + spread - S(schema::LINE_ASPECT) * (tr - spread)) / (tr + spread + S(1e-30)));
+  if (!(val(gate) > 0)) return false;
+  // a a^T of the roll axis a = z x e: (P - (2 S - T P) / D) / 2, P = I - z z^T
+  T roll[9];
+  const T half_p = S(0.5) * (S(1) + tr / spread);
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k)
+      roll[3 * i + k] = half_p * (S(i == k ? 1 : 0) - z[i] * z[k]) - sec[3 * i + k] / spread;
+  T spin[3];
+  matvec(roll, om, spin);
+  std::vector<T>& ubuf = scratch<T>(12);  // (m) normal velocities from the roll
+  ubuf.resize(m);
+  T mean_u = T(0);
+  for (int j = 0; j < m; ++j) {  // u = (spin x r) . n = spin . (r x n)
+    T q[3];
+    cross3(ar + 3 * j, nr + 3 * j, q);
+    ubuf[j] = dot3(spin, q);
+    mean_u = mean_u + (dep[j] / denom) * ubuf[j];
+  }
+  for (int j = 0; j < m; ++j) {
+    T q[3], iq[3];
+    cross3(ar + 3 * j, nr + 3 * j, q);
+    matvec(iw, q, iq);
+    const T inv_mn = inv_m + dot3(q, iq);
+    const T g = -(gate * (dep[j] / denom) * (ubuf[j] - mean_u)) / (inv_mn * h);
+    dfn[j] = relu(fn[j] + g) - fn[j];
+  }
+  return true;
+}
+
 // force and torque on body a from its picked static contacts; st = its 13 state numbers as T
 template <typename T, typename S>
 void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick>& picks, T* out) {
@@ -490,6 +556,19 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
       ftq[(3 + i) * m + j] = tq[i];
     }
   }
+  // the roll stick of a line contact: its changes of the normal forces (loading's slot holds fn)
+  std::vector<T>& dfn = scratch<T>(13);
+  dfn.resize(m);
+  if (line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, h, dfn.data()))
+    for (int j = 0; j < m; ++j) {
+      T f[3], tq[3];
+      for (int i = 0; i < 3; ++i) f[i] = dfn[j] * nr[3 * j + i];
+      cross3(ar + 3 * j, f, tq);
+      for (int i = 0; i < 3; ++i) {
+        ftq[i * m + j] = ftq[i * m + j] + f[i];
+        ftq[(3 + i) * m + j] = ftq[(3 + i) * m + j] + tq[i];
+      }
+    }
   for (int j = 0; j < m; ++j)
     for (int i = 0; i < 6; ++i) out[i] = out[i] + ftq[i * m + j];
 }
