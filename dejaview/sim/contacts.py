@@ -111,8 +111,8 @@ stick limit), gated to elongated sets, f = relu(1 - LINE_ASPECT l2 / l1)
 and so is any spin about the line itself (rolling over an edge, tipping).
 It pushes and unloads, never pulls. The friction's Coulomb limit and
 predicted slip read the spring forces f_n,i (the stick changes only the
-wrench). Measured: box-thrown's row 2.35 -> 0.98 cm at 1.0 s, the other rows
-unchanged; ungated it held a box's pitch after landing on an edge (the box
+wrench). Measured: box-thrown's row 2.35 -> 0.98 cm at 1.0 s, box-tumble-2's
+start 4.98 -> 1.39, the other rows unchanged; ungated it held a box's pitch after landing on an edge (the box
 off the table 2.19 -> 8.50 cm), and a stick on every difference of the
 contacts' normal velocities held any turn over an edge
 (docs/physics-fidelity.md; ``line_roll_stick``;
