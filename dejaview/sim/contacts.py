@@ -85,38 +85,10 @@ T_N about zero, so nothing changes at rest. Body pairs alike, with the
 relative slip and the pair's normal force and torques on both bodies
 (``predicted_pair_slip_change``).
 
-Roll stick of a line contact (static contacts). A body on an edge (its
-touching contacts along a line) should not roll about the axis that lifts
-one end of the line and presses the other: a rigid edge's end forces hold
-that roll within the impact, whatever friction's torque starts it. The
-penalty normal forces, springs on depth, resisted it only as the ends sank
-and lifted (over about 1/omega_0); a box landing on its edge while sliding
-along it (box-thrown, docs/physics-fidelity.md) left rolling at 0.66 rad/s
-where MuJoCo's box did not roll. So per body and substep, over its touching
-static contacts (weights w_i, arms r_i, normals n_i): the centroid
-c = sum w_i r_i, the mean normal z, the in-plane second moment
-S = sum w_i p_i p_i^T of p_i = P (r_i - c) (P = I - z z^T), its eigenvalues
-l1 >= l2 and major axis e (the line), and the roll axis a = z x e. Its
-projector has a closed form, a a^T = (P - (2 S - T P) / D) / 2 with
-T = l1 + l2 = tr S and D = l1 - l2 = sqrt(2 tr(S^2) - T^2), so values and
-gradients need no eigen-solver. Each contact's normal velocity from the
-spin about a, u_i = ((a a^T omega) x r_i) . n_i, is stopped in one
-substep by a normal force added to it,
-
-    g_i = -f w_i m_n,i (u_i - sum_j w_j u_j) / h,    f_n,i <- max(f_n,i + g_i, 0)
-
-(m_n,i the contact's effective mass along its normal, as the friction's
-stick limit), gated to elongated sets, f = relu(1 - LINE_ASPECT l2 / l1)
-(LINE_ASPECT = 4): a face, a ring or a single contact is left alone (f = 0),
-and so is any spin about the line itself (rolling over an edge, tipping).
-It pushes and unloads, never pulls. The friction's Coulomb limit and
-predicted slip read the spring forces f_n,i (the stick changes only the
-wrench). Measured: box-thrown's row 2.35 -> 0.98 cm at 1.0 s, box-tumble-2's
-start 4.98 -> 1.39, the other rows unchanged; ungated it held a box's pitch after landing on an edge (the box
-off the table 2.19 -> 8.50 cm), and a stick on every difference of the
-contacts' normal velocities held any turn over an edge
-(docs/physics-fidelity.md; ``line_roll_stick``;
-``tests/sim/test_physics.py::test_a_box_landing_on_an_edge_while_sliding_along_it_does_not_roll_over_the_edge_line``).
+Roll stick of a line contact (static contacts). On an edge (touching
+contacts along a line) the normal forces also stop, within a substep, the
+roll that lifts one end of the line and presses the other, as a rigid
+edge's end forces do (``dejaview.sim.line_contact``).
 
 Body pairs against a box. Where one body of a pair is a box (a primitive
 ``box`` object: ``BodySpec.box_half``, ``World.pair_surface``) and the other
@@ -162,6 +134,7 @@ from __future__ import annotations
 
 import torch
 
+from dejaview.sim.line_contact import line_roll_stick
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
@@ -313,51 +286,6 @@ def predicted_pair_slip_change(fn: torch.Tensor, normal: torch.Tensor, arm_a: to
     dv = (acc.unsqueeze(-2) + torch.linalg.cross(alpha_b.unsqueeze(-2).expand_as(arm_b), arm_b, dim=-1)
           - torch.linalg.cross(alpha_a.unsqueeze(-2).expand_as(arm_a), arm_a, dim=-1))
     return dv - (dv * normal).sum(-1, keepdim=True) * normal
-
-
-LINE_ASPECT = 4.0
-"""A static contact set counts as a line (an edge) while its in-plane second moments' ratio
-l1 / l2 exceeds this; the roll stick's gate is ``relu(1 - LINE_ASPECT l2 / l1)``."""
-
-
-def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, normal: torch.Tensor,
-                    angular_velocity: torch.Tensor, mass: torch.Tensor, inv_inertia_w: torch.Tensor,
-                    h: float) -> torch.Tensor:
-    """Normal forces (B, N, M) of each body's static contact set with the roll of a line contact
-    held (the module docstring, "Roll stick of a line contact").
-
-    Args:
-        fn: (B, N, M) normal forces of the set's M contacts; weight: (B, N, M) their depth weights.
-        arm, normal: (B, N, M, 3) lever arms and normals; angular_velocity: (B, N, 3).
-        mass: (N,); inv_inertia_w: (B, N, 3, 3); h: substep (s).
-    Returns:
-        (B, N, M) ``max(fn + g, 0)``: fn where the set is not elongated (or has fewer than two
-        touching contacts).
-    """
-    w = weight.unsqueeze(-1)
-    centre = (w * arm).sum(-2, keepdim=True)  # (B, N, 1, 3)
-    mean_n = (w * normal).sum(-2, keepdim=True)
-    z = mean_n / torch.sqrt((mean_n * mean_n).sum(-1, keepdim=True) + 1e-30)  # (B, N, 1, 3)
-    d = arm - centre
-    p = d - (d * z).sum(-1, keepdim=True) * z  # in the set's mean plane
-    second = (w.unsqueeze(-1) * p.unsqueeze(-1) * p.unsqueeze(-2)).sum(-3)  # (B, N, 3, 3)
-    trace = second.diagonal(dim1=-2, dim2=-1).sum(-1)  # l1 + l2, (B, N)
-    spread = torch.sqrt(torch.relu(2.0 * (second * second).sum((-2, -1)) - trace * trace) + 1e-30)  # l1 - l2
-    # relu(1 - a l2 / l1) with l2 / l1 = (T - D) / (T + D)
-    gate = torch.relu((trace + spread - LINE_ASPECT * (trace - spread)) / (trace + spread + 1e-30))
-    on = gate > 0
-    safe = torch.where(on, spread, torch.ones_like(spread)).unsqueeze(-1).unsqueeze(-1)
-    zz = z.squeeze(-2)
-    plane = torch.eye(3, dtype=fn.dtype, device=fn.device) - zz.unsqueeze(-1) * zz.unsqueeze(-2)
-    # a a^T of the roll axis a = z x e (e the major axis): (P - (2 S - T P) / D) / 2
-    roll = 0.5 * (1.0 + trace.unsqueeze(-1).unsqueeze(-1) / safe) * plane - second / safe
-    spin = small_matmul(roll, angular_velocity.unsqueeze(-1)).squeeze(-1)  # (B, N, 3)
-    q = torch.linalg.cross(arm, normal, dim=-1)
-    u = (spin.unsqueeze(-2) * q).sum(-1)  # (B, N, M): (spin x r_i) . n_i
-    rel = u - (weight * u).sum(-1, keepdim=True)
-    inv_mn = (1.0 / mass)[None, :, None] + (q * small_matmul(q, inv_inertia_w.transpose(-1, -2))).sum(-1)
-    g = -(gate.unsqueeze(-1) * weight * rel) / (inv_mn * h)
-    return torch.relu(fn + g)
 
 
 def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,

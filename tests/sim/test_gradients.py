@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from dejaview.sim import StaticShape, World, rollout
-from dejaview.sim import contacts, sdf
+from dejaview.sim import contacts, line_contact, sdf
 from dejaview.sim.gradients import forward_value_and_grad, reverse_value_and_grad
 from dejaview.sim.rotation import geodesic_angle, quat_multiply, rotvec_to_quat
 from tests.sim.conftest import box_body, make_world
@@ -186,22 +186,22 @@ def _line_set(roll_spin: float, along_spin: float, clean: bool = False):
 
 
 def test_line_roll_stick_holds_the_roll_of_an_edge_and_nothing_else():
-    """``contacts.line_roll_stick``: on an edge spinning about x (the roll that lifts one end) the
+    """``line_contact.line_roll_stick``: on an edge spinning about x (the roll that lifts one end) the
     sinking end is pressed and the lifting end unloaded, by the forces that stop that roll in one
     substep; a spin about the edge (rolling over it) changes nothing, nor does any spin on a set
     that is not a line (four contacts at a square's corners); gradients exact (gradcheck)."""
     h = 1e-3
     fn, weight, arm, normal, spin, mass, inv_w = _line_set(2.0, 0.0)
-    out = contacts.line_roll_stick(fn, weight, arm, normal, spin, mass, inv_w, h)
+    out = line_contact.line_roll_stick(fn, weight, arm, normal, spin, mass, inv_w, h)
     # spin +x: the end at y = +0.1 moves up (+z), the end at y = -0.1 down
     assert out[0, 0, 0] > fn[0, 0, 0] + 1.0 and out[0, 0, 2] < fn[0, 0, 2] - 1.0
     assert torch.equal(out[0, 0, 2], torch.zeros((), dtype=torch.float64))  # unloaded, not pulled
-    rolled = contacts.line_roll_stick(*_line_set(0.0, 5.0, clean=True)[:5], mass, inv_w, h)
+    rolled = line_contact.line_roll_stick(*_line_set(0.0, 5.0, clean=True)[:5], mass, inv_w, h)
     assert torch.allclose(rolled, fn, rtol=0, atol=1e-9)
     square = torch.tensor([[[[0.1, 0.1, -0.1], [-0.1, 0.1, -0.1], [-0.1, -0.1, -0.1], [0.1, -0.1, -0.1]]]],
                           dtype=torch.float64)
     flat = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(1, 1, 4, 3)
-    assert torch.equal(contacts.line_roll_stick(fn, weight, square, flat, spin, mass, inv_w, h), fn)
+    assert torch.equal(line_contact.line_roll_stick(fn, weight, square, flat, spin, mass, inv_w, h), fn)
     # one sphere touching a floor and a wall (a ball in a corner): two contacts, so a "line", but
     # a sphere's spin moves no contact point along its normal: nothing changes
     corner = torch.tensor([[[[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]]],
@@ -209,12 +209,12 @@ def test_line_roll_stick_holds_the_roll_of_an_edge_and_nothing_else():
     ball = -0.05 * corner
     two = torch.tensor([[[0.6, 0.4, 0.0, 0.0]]], dtype=torch.float64)
     wild = torch.tensor([[3.0, -2.0, 5.0]], dtype=torch.float64)
-    assert torch.allclose(contacts.line_roll_stick(fn, two, ball, corner, wild, mass, inv_w, h), fn,
+    assert torch.allclose(line_contact.line_roll_stick(fn, two, ball, corner, wild, mass, inv_w, h), fn,
                           rtol=0, atol=1e-9)
     fn, weight, arm, normal, spin, mass, inv_w = _line_set(0.3, 1.0)
     args = tuple(t.clone().requires_grad_(True) for t in (fn, weight, arm, normal, spin))
     assert torch.autograd.gradcheck(
-        lambda *a: contacts.line_roll_stick(*a, mass, inv_w, h), args)
+        lambda *a: line_contact.line_roll_stick(*a, mass, inv_w, h), args)
 
 
 def test_gradcheck_static_contact_wrench():

@@ -147,7 +147,7 @@ def test_adjoint_through_an_inference_problem_equals_the_jacobian_path(monkeypat
 
 def test_adjoint_equals_forward_mode_and_torch_where_the_roll_stick_holds_an_edge(monkeypatch):
     """A box landing on its edge while sliding along it and rolling about it and across it: the
-    roll stick of a line contact (``dejaview.sim.contacts.line_roll_stick``) acts for most of the
+    roll stick of a line contact (``dejaview.sim.line_contact.line_roll_stick``) acts for most of the
     impact, and its hand-written reverse mode (``adjoint.h``'s ``RollStick``) must give the
     gradients of the forward-mode duals and of torch's autograd through the torch engine."""
     from dejaview.sim import contacts

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dejaview.sim import contacts
+from dejaview.sim import contacts, line_contact
 from dejaview.sim.world import STATIC_KINDS
 
 
@@ -92,7 +92,7 @@ INTS = ("substeps", "max_static_contacts", "max_pair_contacts")
 CONSTANTS = {
     "SLIP_EPS": (contacts.SLIP_EPS, "m/s: friction direction regulariser (dejaview.sim.contacts)"),
     "SMOOTH_MIN_POWER": (contacts.SMOOTH_MIN_POWER, "power of the friction's smooth minimum"),
-    "LINE_ASPECT": (contacts.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
+    "LINE_ASPECT": (line_contact.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
     "CLEAR_MARGIN": (1e-9, "m: a sphere or pair whose clearance bound stays above this cannot touch "
                            "and is skipped (native culling only)"),
