@@ -21,7 +21,8 @@ normal force added to it,
 
 (m_n,i the contact's effective mass along its normal, as the friction's stick
 limit), gated to elongated sets, f = relu(1 - LINE_ASPECT l2 / l1)
-(LINE_ASPECT = 4): a face, a ring or a single contact is left alone (f = 0),
+(LINE_ASPECT = 4; 0 for a set within a micron of a point, ``LINE_MIN_SPREAD``):
+a face, a ring or a single contact is left alone (f = 0),
 and so is any spin about the line itself (rolling over an edge, tipping). It
 pushes and unloads, never pulls. The friction's Coulomb limit and predicted
 slip read the spring forces f_n,i (the stick changes only the wrench).
@@ -46,6 +47,10 @@ from dejaview.sim.rotation import small_matmul
 LINE_ASPECT = 4.0
 """A static contact set counts as a line (an edge) while its in-plane second moments' ratio
 l1 / l2 exceeds this; the roll stick's gate is ``relu(1 - LINE_ASPECT l2 / l1)``."""
+
+LINE_MIN_SPREAD = 1e-12
+"""m^2: a contact set whose in-plane second moment l1 + l2 is at most this (its points within
+about a micron of their centroid: one touching contact) is a point, not a line; its gate is 0."""
 
 
 def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, normal: torch.Tensor,
@@ -73,6 +78,7 @@ def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, n
     spread = torch.sqrt(torch.relu(2.0 * (second * second).sum((-2, -1)) - trace * trace) + 1e-30)  # l1 - l2
     # relu(1 - a l2 / l1) with l2 / l1 = (T - D) / (T + D)
     gate = torch.relu((trace + spread - LINE_ASPECT * (trace - spread)) / (trace + spread + 1e-30))
+    gate = torch.where(trace > LINE_MIN_SPREAD, gate, torch.zeros_like(gate))
     on = gate > 0
     safe = torch.where(on, spread, torch.ones_like(spread)).unsqueeze(-1).unsqueeze(-1)
     zz = z.squeeze(-2)

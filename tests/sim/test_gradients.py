@@ -211,6 +211,14 @@ def test_line_roll_stick_holds_the_roll_of_an_edge_and_nothing_else():
     wild = torch.tensor([[3.0, -2.0, 5.0]], dtype=torch.float64)
     assert torch.allclose(line_contact.line_roll_stick(fn, two, ball, corner, wild, mass, inv_w, h), fn,
                           rtol=0, atol=1e-9)
+    # one touching contact: a point (gate 0), the forces and their derivatives those of fn alone
+    one = torch.tensor([[[1.0, 0.0, 0.0, 0.0]]], dtype=torch.float64)
+    fn1 = fn.clone().requires_grad_(True)
+    arm1 = arm.clone().requires_grad_(True)
+    out1 = line_contact.line_roll_stick(fn1, one, arm1, normal, wild, mass, inv_w, h)
+    assert torch.equal(out1, fn)
+    g_fn, g_arm = torch.autograd.grad(out1.sum(), (fn1, arm1), allow_unused=True)
+    assert torch.equal(g_fn, torch.ones_like(fn)) and (g_arm is None or not g_arm.any())
     fn, weight, arm, normal, spin, mass, inv_w = _line_set(0.3, 1.0)
     args = tuple(t.clone().requires_grad_(True) for t in (fn, weight, arm, normal, spin))
     assert torch.autograd.gradcheck(

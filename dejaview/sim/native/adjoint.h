@@ -261,7 +261,7 @@ struct RollStick {
     num = tr + spread - S(schema::LINE_ASPECT) * (tr - spread);
     den = tr + spread + S(1e-30);
     gate = relu(num / den);
-    on = gate > 0;
+    on = tr > S(schema::LINE_MIN_SPREAD) && gate > 0;
     if (!on || m == 0) return;
     half_p = S(0.5) * (S(1) + tr / spread);
     for (int i = 0; i < 3; ++i)

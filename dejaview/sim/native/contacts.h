@@ -388,7 +388,7 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
   for (int i = 0; i < 9; ++i) sq = sq + sec[i] * sec[i];
   const T spread = sqrt(relu(S(2) * sq - tr * tr) + S(1e-30));
   const T gate = relu((tr + spread - S(schema::LINE_ASPECT) * (tr - spread)) / (tr + spread + S(1e-30)));
-  if (!(val(gate) > 0)) return false;
+  if (!(val(tr) > S(schema::LINE_MIN_SPREAD)) || !(val(gate) > 0)) return false;
   // a a^T of the roll axis a = z x e: (P - (2 S - T P) / D) / 2, P = I - z z^T
   T roll[9];
   const T half_p = S(0.5) * (S(1) + tr / spread);

@@ -94,6 +94,8 @@ CONSTANTS = {
     "SMOOTH_MIN_POWER": (contacts.SMOOTH_MIN_POWER, "power of the friction's smooth minimum"),
     "LINE_ASPECT": (line_contact.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
+    "LINE_MIN_SPREAD": (line_contact.LINE_MIN_SPREAD, "m^2: a static contact set whose in-plane second "
+                                                      "moment is at most this is a point, not a line"),
     "CLEAR_MARGIN": (1e-9, "m: a sphere or pair whose clearance bound stays above this cannot touch "
                            "and is skipped (native culling only)"),
 }
