@@ -7,8 +7,8 @@ there. The friction on the predicted slip (2026-11-25, ``dejaview.sim.contacts``
 the physics of impacts on purpose, and the record (``scripts/native_fingerprint.py`` on the
 bundled scenes: 150 steps, states every 10th, the reverse-mode gradient and a forward-mode
 derivative of a loss of them) was of that engine; the roll stick of a line contact
-(2026-11-26, ``dejaview.sim.contacts``) changed the physics of bodies on an edge or a line on
-purpose (of the bundled scenes the two mugs and the box among boxes; the others bit for bit),
+(2026-11-26, ``dejaview.sim.line_contact``) changed the physics of bodies on an edge or a line
+on purpose (of the bundled scenes the two mugs and the box among boxes; the others within 6e-17),
 and the record is now of that engine: ``tests/fixtures/native/fingerprint-roll-stick.npz``. A
 change to the C++ that should not change a number must keep this test passing; one that should
 must say why and re-record.

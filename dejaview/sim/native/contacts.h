@@ -369,13 +369,11 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
   const T zlen = sqrt(dot3(mean_n, mean_n) + S(1e-30));
   T z[3];
   for (int i = 0; i < 3; ++i) z[i] = mean_n[i] / zlen;
-  std::vector<T>& dbuf = scratch<T>(11);  // (3 m) arms from the centre
-  dbuf.resize(3 * m);
   T sec[9];
   for (int i = 0; i < 9; ++i) sec[i] = T(0);
   for (int j = 0; j < m; ++j) {
     const T wj = dep[j] / denom;
-    T* d = &dbuf[3 * j];
+    T d[3];  // the arm from the centre
     for (int i = 0; i < 3; ++i) d[i] = ar[3 * j + i] - centre[i];
     const T sj = dot3(d, z);
     T p[3];
@@ -397,18 +395,20 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
       roll[3 * i + k] = half_p * (S(i == k ? 1 : 0) - z[i] * z[k]) - sec[3 * i + k] / spread;
   T spin[3];
   matvec(roll, om, spin);
+  std::vector<T>& qbuf = scratch<T>(11);  // (3 m) r x n of each contact
   std::vector<T>& ubuf = scratch<T>(12);  // (m) normal velocities from the roll
+  qbuf.resize(3 * m);
   ubuf.resize(m);
   T mean_u = T(0);
   for (int j = 0; j < m; ++j) {  // u = (spin x r) . n = spin . (r x n)
-    T q[3];
+    T* q = &qbuf[3 * j];
     cross3(ar + 3 * j, nr + 3 * j, q);
     ubuf[j] = dot3(spin, q);
     mean_u = mean_u + (dep[j] / denom) * ubuf[j];
   }
   for (int j = 0; j < m; ++j) {
-    T q[3], iq[3];
-    cross3(ar + 3 * j, nr + 3 * j, q);
+    const T* q = &qbuf[3 * j];
+    T iq[3];
     matvec(iw, q, iq);
     const T inv_mn = inv_m + dot3(q, iq);
     const T g = -(gate * (dep[j] / denom) * (ubuf[j] - mean_u)) / (inv_mn * h);
