@@ -188,8 +188,9 @@ def test_a_box_landing_on_an_edge_while_sliding_along_it_does_not_roll_over_the_
     forces hold that roll within the impact (MuJoCo: the box-thrown row of docs/physics-fidelity.md,
     roll within 0.4 deg after its edge landing); DejaView's normal forces, springs on depth, resisted
     it only as the ends sank and lifted, and the box left rolling at 0.65-0.77 rad/s about x. The
-    roll stick of a line contact (``dejaview.sim.contacts``) holds it: measured 0.09-0.15 rad/s.
-    The pitch (about y) and the rebound are the rigid impact's as in the test above."""
+    roll stick of a line contact (``dejaview.sim.line_contact``) holds it: measured 0.09-0.15
+    rad/s. The pitch (about y) and the rebound are the rigid impact's as in the test above. The
+    native cases are skipped where the native extension does not build (no compiler)."""
     _needs(engine)
     body, mass, inertia, mu, e, centers, radii, rot, low, q = _tilted_box(tilt)
     speed = np.sqrt(2 * G * 0.1)
