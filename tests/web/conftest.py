@@ -65,8 +65,11 @@ def web_server(web_root):
     server.stop()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
+    """Chromium under playwright's sync API, per module: the sync API runs an asyncio loop in this
+    thread while it is open, so a session-wide browser broke every later ``asyncio.run`` of the
+    same process (the server tests, when a web module ran before them: ``pytest -n``, or any order)."""
     if WHY_NO_BROWSER:
         pytest.skip(f"browser tests: {WHY_NO_BROWSER}")
     from playwright.sync_api import sync_playwright
