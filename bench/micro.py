@@ -15,6 +15,9 @@ interpenetration query (python-fcl) per candidate pose.
   torch's intra-op pool at 1 thread and at one per core, on idle cores and with every core
   kept busy by another process (a Python spin loop per core): why ``DEJAVIEW_THREADS``
   defaults to 1 (``dejaview.cli.options.configure_torch``).
+- ``divergence``: one native rollout (a tumbling box, 2000 steps) with and without the
+  divergence check in the C++ loop (``dejaview.sim.divergence.native_limits``), best of 5
+  each, interleaved: what the check costs (a few comparisons per body and step).
 """
 
 from __future__ import annotations
@@ -135,8 +138,41 @@ def threads(steps: int = THREAD_STEPS, repeats: int = 5, batch: int = 1) -> list
     return rows
 
 
+def divergence_check(steps: int = 2000, repeats: int = 5) -> list[dict]:
+    """Best-of-``repeats`` seconds of one native rollout of a tumbling box without and with the
+    divergence check, runs interleaved; [] where the native extension does not build."""
+    import torch
+
+    from dejaview.scene import Scene
+    from dejaview.sim import divergence, native
+    from dejaview.sim.build import initial_state
+    from dejaview.sim.world import World
+
+    if not native.available():  # no compiler here: nothing to measure
+        return []
+    ext = native.extension()
+    scene = Scene.from_string('''<scene version="1" name="divergence-check" gravity="0 0 -9.81">
+  <simulation dt="0.002" duration="1"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
+  <object id="box" shape="box" size="0.2 0.15 0.1" mass="1"><pose position="0 0 0.3" orientation="1 0 0 0"/>
+    <velocity linear="1 0 -0.5" angular="3 2 1"/></object></scene>''')
+    world = World.from_scene(scene)
+    init = torch.cat(initial_state(world, scene).tensors(), -1)
+    tensors, floats, ints = native.pack_world(world)
+    best = {"without": float("inf"), "with": float("inf")}
+    for round_ in range(repeats + 1):  # round 0 warms up and is not counted
+        for case, extra in (("without", []), ("with", divergence.native_limits())):
+            t0 = time.perf_counter()
+            ext.rollout(init, steps, 50, False, tensors, floats + extra, ints, 1)
+            seconds = time.perf_counter() - t0
+            if round_ > 0:
+                best[case] = min(best[case], seconds)
+    return [{"section": "divergence", "case": f"native rollout, {steps} steps, {case} the check",
+             "seconds": seconds} for case, seconds in best.items()]
+
+
 def run(print_fn=print, poses: int = 100) -> list[dict]:
-    """Both sections; prints a table of each."""
+    """Every section; prints a table of each."""
     import torch
 
     torch.set_num_threads(1)
@@ -158,8 +194,13 @@ def run(print_fn=print, poses: int = 100) -> list[dict]:
     for r in trows:
         one = next(t for t in trows if t["busy"] == r["busy"] and t["threads"] == 1)["seconds"]
         say(f"{r['case']:<44} {r['seconds'] * 1e3:>8.2f}ms {r['seconds'] / one:>11.2f}x")
+    drows = divergence_check()
+    if drows:
+        say(f"\n{'divergence check (C++ loop), best of 5':<44} {'per rollout':>11} {'vs without':>11}")
+        for r in drows:
+            say(f"{r['case']:<44} {r['seconds'] * 1e3:>9.2f}ms {r['seconds'] / drows[0]['seconds']:>10.3f}x")
     torch.set_num_threads(1)
-    return rows + crows + trows
+    return rows + crows + trows + drows
 
 
 if __name__ == "__main__":

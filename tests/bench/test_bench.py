@@ -173,7 +173,10 @@ def test_cli_micro_writes_both_sections(tmp_path):
     result = CliRunner().invoke(command, ["micro", "--poses", "3", "--csv", str(path)])
     assert result.exit_code == 0, result.output
     rows = list(csv.DictReader(path.open()))
-    assert {r["section"] for r in rows} == {"forward-ops", "collision", "threads"}
+    from dejaview.sim import native
+
+    sections = {"forward-ops", "collision", "threads"} | ({"divergence"} if native.available() else set())
+    assert {r["section"] for r in rows} == sections
     threads = [r for r in rows if r["section"] == "threads"]
     assert {(r["threads"], r["busy"]) for r in threads} >= {("1", "False"), ("1", "True")}
     collision = [r for r in rows if r["section"] == "collision"]

@@ -4,7 +4,6 @@ NaN in a file; batched evaluation keeps marking a bad candidate non-finite inste
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -89,28 +88,20 @@ def test_no_file_gets_a_nan(tmp_path):
     assert not (tmp_path / "t.csv").exists()
 
 
-def test_the_native_check_costs_next_to_nothing():
-    """The same rollout with and without the check in the C++ loop (best of 5): under 5 % apart
-    (measured about 1 %; the check is a few comparisons per body and step)."""
+def test_the_native_check_changes_nothing_on_a_sane_rollout():
+    """The same rollout with and without the check in the C++ loop: the same states bit for bit,
+    and no step marked diverged. (What the check costs is measured, not asserted: ``dejaview
+    bench micro``, section ``divergence``.)"""
     world = make_world([box_body(per_axis=(5, 4, 3))], [native_floor()], dt=0.002)
     state = world.state([[0.0, 0.0, 0.3]], linear_velocity=[[1.0, 0.0, -0.5]],
                         angular_velocity=[[3.0, 2.0, 1.0]])
     init = torch.cat(state.tensors(), -1)
     tensors, floats, ints = native.pack_world(world)
     ext = native.extension()
-
-    def best(extra):
-        times = []
-        for _ in range(5):
-            t = time.perf_counter()
-            _, _, status = ext.rollout(init, 2000, 50, False, tensors, floats + extra, ints, 1)
-            times.append(time.perf_counter() - t)
-        assert (status == -1).all()
-        return min(times)
-
-    best([]), best(divergence.native_limits())  # warm up
-    plain, checked = best([]), best(divergence.native_limits())
-    assert checked < 1.05 * plain + 2e-3, (plain, checked)
+    plain = ext.rollout(init, 2000, 50, False, tensors, floats, ints, 1)
+    checked = ext.rollout(init, 2000, 50, False, tensors, floats + divergence.native_limits(), ints, 1)
+    assert (plain[2] == -1).all() and (checked[2] == -1).all()
+    assert torch.equal(plain[0], checked[0]) and plain[0].isfinite().all()
 
 
 def native_floor():
