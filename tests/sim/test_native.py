@@ -375,9 +375,10 @@ def test_packed_worlds_are_not_kept_alive():
 
 
 def test_a_native_rollout_lets_other_python_threads_run():
-    """The C++ call releases the GIL: a Python thread keeps counting at a good share of its
-    own pace meanwhile (one rollout thread, so a core is left for it); holding the GIL, the
-    call would stop it for its whole length."""
+    """The C++ call releases the GIL: a Python thread keeps counting at a share of its own pace
+    meanwhile (one rollout thread, so a core is left for it; the bar is low, a tenth, because the
+    tests run two processes on CI's two cores); holding the GIL, the call would stop it for its
+    whole length (a share near 0)."""
     import threading
     import time
 
@@ -403,7 +404,7 @@ def test_a_native_rollout_lets_other_python_threads_run():
         finally:
             done.set()
             t.join()
-    assert during > 0.25 * alone, (during, alone)
+    assert during > 0.1 * alone, (during, alone)
 
 
 def test_without_a_build_auto_falls_back_to_torch_with_one_warning(monkeypatch):
