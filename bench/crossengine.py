@@ -367,23 +367,46 @@ def _cases() -> tuple[Case, ...]:
 CASES = _cases()
 
 
-def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0):
-    """The case's scene; with ``target`` (origin, orientation) the ``<inference>`` section (the
-    search's ``seed``)."""
-    inference = ""
-    if target is not None:
-        lo, hi = case.area
-        is_ball = 'shape="sphere"' in case.objects.split("</object>")[0]
-        mu = ("" if uncertainty is None else
-              f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
-        inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="{int(seed)}">
+PRIOR = {"box": 'speed="2" spin="5"', "ball": 'speed="2"'}
+"""``<prior>`` attributes of the cases' solves, by the source's shape: what is believed about a
+start before looking at its end. The objects here are pushed, dropped or thrown by hand: each
+velocity component within a few m/s (standard deviation 2 m/s; the truths' largest is 3 m/s), a
+box's spin within a few turns a second (5 rad/s; the truths' 0-4). A ball's spin is left flat: a
+ball rolling at 2 m/s spins at 40 rad/s. Not the orientation (``tilt``): it would be centred on the
+guess's."""
+
+
+def start_guess(case: Case) -> dict:
+    """The source's start as the solve is given it (``initial_state`` terms): the start area's centre,
+    at rest, upright where the orientation is free (the truth's where it is given). Nothing of the
+    truth's position or velocity: the scene's own start seeds the search."""
+    lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
+    truth = make_scene(scene_text(case.objects, case.duration)).object("source")
+    return {"position": ((lo + hi) / 2).tolist(),
+            "orientation": [1.0, 0.0, 0.0, 0.0] if case.orientation else list(truth.pose.orientation),
+            "linear_velocity": [0.0, 0.0, 0.0], "angular_velocity": [0.0, 0.0, 0.0]}
+
+
+def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0, prior: bool = True):
+    """The case's scene. With ``target`` (origin, orientation): the problem DejaView solves, the
+    ``<inference>`` section (the search's ``seed``, ``PRIOR`` unless ``prior`` is False) and the
+    source at ``start_guess`` instead of the truth; without it, the truth."""
+    if target is None:
+        return make_scene(scene_text(case.objects, case.duration, restitution=case.restitution))
+    lo, hi = case.area
+    is_ball = 'shape="sphere"' in case.objects.split("</object>")[0]
+    mu = ("" if uncertainty is None else
+          f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
+    belief = f"<prior {PRIOR['ball' if is_ball else 'box']}/>" if prior else ""
+    inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="{int(seed)}">
     <target position="{_v(target[0])}" orientation="{_v(target[1])}"/>
     <optimize position="true" orientation="{str(case.orientation).lower()}" linear-velocity="true" angular-velocity="true"/>
     <start-area min="{_v(lo)}" max="{_v(hi)}"/>
+    {belief}
     {mu}
   </inference>"""
-    return make_scene(scene_text(case.objects, case.duration, restitution=case.restitution,
-                                 inference=inference))
+    return with_start(make_scene(scene_text(case.objects, case.duration, restitution=case.restitution,
+                                            inference=inference)), start_guess(case))
 
 
 def with_start(scene, initial: dict):
@@ -404,15 +427,15 @@ def angle_deg(q1, q2) -> float:
     return math.degrees(2 * math.acos(min(1.0, d)))
 
 
-def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 0) -> dict:
-    """Observe the case in MuJoCo, solve (the search's ``seed``), re-simulate the answer in MuJoCo
-    (and Warp)."""
+def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 0, prior: bool = True) -> dict:
+    """Observe the case in MuJoCo, solve (the search's ``seed``; ``PRIOR`` unless ``prior`` is False),
+    re-simulate the answer in MuJoCo (and Warp)."""
     import dejaview
 
     truth = case_scene(case)
     end = mujoco_run(truth, (case.duration,))[case.duration]
     target = (end[0][0], end[1][0])
-    scene = case_scene(case, target, uncertainty, seed)
+    scene = case_scene(case, target, uncertainty, seed, prior)
     t0 = time.perf_counter()
     result = dejaview.solve(scene)
     seconds = time.perf_counter() - t0
@@ -424,6 +447,7 @@ def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 
     search = result.settings.get("search", {})
     row = {"section": "inference", "case": case.name, "seed": int(seed),
            "model_uncertainty": "off" if uncertainty is None else f"{uncertainty[0]:g} {uncertainty[1]:g}",
+           "prior": "flat" if not prior else PRIOR['ball' if 'shape="sphere"' in case.objects.split('</object>')[0] else 'box'],
            "seconds": seconds, "rollouts": search.get("rollouts"), "jacobians": search.get("jacobians"),
            "own_end_error_m": own, "mujoco_end_error_m": mj_err,
            "mujoco_angle_error_deg": angle_deg(back[1][0], target[1]),
@@ -453,7 +477,7 @@ def _truth_start(scene) -> np.ndarray:
 
 
 def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
-        with_fidelity: bool = True, baseline: bool = True, seeds=(0,)) -> list[dict]:
+        with_fidelity: bool = True, baseline: bool = True, seeds=(0,), prior: bool = True) -> list[dict]:
     """Fidelity table and the inference cases with and without model uncertainty (module docstring).
 
     Args:
@@ -466,6 +490,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
             (the same observation): several cases land within a few mm of the 3 cm bar, and
             which side they land on changes with the search's path, so one seed's count is a
             noisy estimate of the rate.
+        prior: the solves' ``<prior>`` is ``PRIOR`` (False: flat within the backend's bounds).
     Returns:
         rows (dicts) of both parts.
     """
@@ -492,7 +517,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     for case in chosen:
         for u in settings:
             for seed in seeds:
-                rows.append(solve_case(case, u, warp, print_fn, seed))
+                rows.append(solve_case(case, u, warp, print_fn, seed, prior))
     summary(rows, print_fn)
     return rows
 
@@ -538,6 +563,7 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", type=Path, default=None)
     parser.add_argument("--no-baseline", action="store_true")
     parser.add_argument("--seeds", default="0", help="comma-separated search seeds, one solve each per case")
+    parser.add_argument("--flat-prior", action="store_true", help="solve without the cases' PRIOR")
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     args = parser.parse_args(argv)
     if args.timestep_study:
@@ -545,7 +571,7 @@ def main(argv=None) -> int:
     else:
         rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
                    with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,
-                   seeds=tuple(int(v) for v in args.seeds.split(",") if v))
+                   seeds=tuple(int(v) for v in args.seeds.split(",") if v), prior=not args.flat_prior)
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

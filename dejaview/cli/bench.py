@@ -361,16 +361,19 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--no-warp", is_flag=True, help="Do not re-simulate the answers in Warp.")
 @click.option("--no-fidelity", is_flag=True, help="Skip the fidelity table.")
 @click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
+@click.option("--flat-prior", is_flag=True,
+              help="Solve the cases under a flat prior instead of their <prior> (bench/crossengine.py PRIOR).")
 @click.option("--timestep-study", is_flag=True,
               help="Only MuJoCo's time-step convergence on the fidelity rows and the cases' true starts "
                    "(how its step was chosen).")
 @csv_option
-def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, timestep_study,
-                csv_path):
+def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
+                timestep_study, csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
-    distance after 0.5/1.0/1.5 s), then every case solved with `solve`'s defaults without and
+    distance after 0.5/1.0/1.5 s), then every case solved from its end pose alone (the start
+    area's centre at rest as the guess, the cases' <prior>) with `solve`'s defaults, without and
     with <model-uncertainty>, each answer re-simulated in MuJoCo (and Warp where it is
     installed); success: within 3 cm of MuJoCo's observation. Needs the mujoco package.
     """
@@ -391,7 +394,8 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
             rows = module.fidelity(click.echo)
         else:
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
-                              with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds)
+                              with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds,
+                              prior=not flat_prior)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--seeds" if "seeds" in str(exc) else "--cases") from None
     except ImportError as exc:

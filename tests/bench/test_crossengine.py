@@ -152,6 +152,33 @@ def test_mujoco_is_converged_at_the_benchs_step(crossengine):
     assert all(r[at] < 0.02 for r in rows), rows
 
 
+def test_the_solve_is_given_the_end_and_not_the_truth(crossengine):
+    """The scene a case is solved from holds the observed end, the start area and the cases' prior;
+    its source starts at the area's centre at rest (upright where the orientation is free), not at
+    the truth: the scene's start seeds the search."""
+    import numpy as np
+
+    for case in crossengine.CASES:
+        truth = crossengine.case_scene(case).object("source")
+        for prior in (True, False):
+            scene = crossengine.case_scene(case, ((0, 0, 0.75), (1, 0, 0, 0)), (0.2, 0.2), seed=0, prior=prior)
+            source = scene.object("source")
+            lo, hi = (np.asarray(v) for v in case.area)
+            np.testing.assert_allclose(source.pose.position, (lo + hi) / 2)
+            assert source.velocity.linear == (0, 0, 0) and source.velocity.angular == (0, 0, 0), case.name
+            assert source.pose.orientation == ((1, 0, 0, 0) if case.orientation else truth.pose.orientation)
+            assert any(truth.velocity.linear), case.name  # so the checks above can fail
+            ball = truth.shape == "sphere"
+            got = scene.inference.prior
+            if not prior:
+                assert got is None or (got.speed, got.spin, got.tilt) == (None, None, None), case.name
+            else:
+                assert got.speed == 2.0 and (got.spin is None) == ball and got.tilt is None, (case.name, got)
+            # the other objects (a resting box) keep their start
+            assert [o.pose for o in scene.objects if o.id != "source"] == \
+                [o.pose for o in crossengine.case_scene(case).objects if o.id != "source"]
+
+
 def test_unknown_cases_are_a_one_line_error():
     result = CliRunner().invoke(cli, ["bench", "crossengine", "--cases", "nope", "--no-fidelity"])
     assert result.exit_code != 0 and "unknown case(s) nope" in result.output
@@ -170,11 +197,22 @@ def test_each_seed_solves_each_case_once_and_the_summary_pools_them(crossengine)
     rows = crossengine.run(print_fn=lines.append, cases=("ball-on-table",), warp=False, with_fidelity=False,
                            baseline=False, seeds=(0, 1))
     assert [(r["case"], r["seed"]) for r in rows] == [("ball-on-table", 0), ("ball-on-table", 1)]
+    assert {r["prior"] for r in rows} == {crossengine.PRIOR["ball"]}
     ok = sum(r["success"] for r in rows)
     assert any(f"MuJoCo {ok}/2 within 3 cm" in line for line in lines), lines
     assert any("over 2 seeds, cases solved by every seed:" in line for line in lines), lines
     (case,) = [c for c in crossengine.CASES if c.name == "ball-on-table"]
     assert crossengine.case_scene(case, ((0, 0, 0.75), (1, 0, 0, 0)), None, seed=1).inference.seed == 1
+
+
+def test_cli_flat_prior_solves_without_the_cases_prior(tmp_path):
+    out = tmp_path / "rows.csv"
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--cases", "ball-on-table", "--no-fidelity",
+                                      "--no-baseline", "--no-warp", "--flat-prior", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "MuJoCo 1/1 within 3 cm" in result.output or "MuJoCo 0/1 within 3 cm" in result.output
+    header, row = out.read_text().splitlines()[:2]
+    assert dict(zip(header.split(","), row.split(",")))["prior"] == "flat"
 
 
 @pytest.mark.slow
