@@ -15,8 +15,9 @@ Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
    slide, tumble and a box-box hit.
 2. **Inference across engines** (``CASES``, >= 16): MuJoCo simulates a known
    start (balls and boxes, table and floor, sliding, bouncing, tumbling);
-   DejaView gets only the end pose (``<target>``, ``evaluate="final"``) and
-   solves with ``dejaview.solve``'s defaults (``optimizer="auto"``), once as
+   DejaView gets only the end pose (``<target>``, ``evaluate="final"``), the start
+   area, the source at the area's centre at rest (``start_guess``) and the cases'
+   ``PRIOR``, and solves with ``dejaview.solve``'s defaults (``optimizer="auto"``), once as
    the scene is and once with ``<model-uncertainty friction restitution>``
    (``UNCERTAINTY``); MuJoCo, and Warp where it runs, re-simulate each
    answer. Success: the re-simulated end (object origin) within

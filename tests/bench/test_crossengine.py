@@ -221,7 +221,8 @@ def test_answers_with_model_uncertainty_end_within_3_cm_in_mujoco(crossengine, c
     """Two cases whose answers without model uncertainty measured 8.1 and 5.3 cm off in MuJoCo
     (needle pasts; box-slide-spin-floor 0.7 cm with the symmetric box packing); with it 0.38 and
     0.12 cm. With MuJoCo at 50 us (2026-11-25): 5.6 and 0.5 cm without, 2.7 and 2.3 cm with it,
-    close to the bar (docs/physics-fidelity.md)."""
+    close to the bar (docs/physics-fidelity.md). Solved from the start area's centre under the
+    cases' prior (2026-11-27): 0.52 and 0.10 cm with it (1.02 and 0.22 without)."""
     (c,) = [c for c in crossengine.CASES if c.name == case]
     row = crossengine.solve_case(c, crossengine.UNCERTAINTY, warp=False, print_fn=lambda *_: None)
     assert row["success"], row
