@@ -321,6 +321,11 @@ class Case:
     duration: float = 1.2
     restitution: float = 0.3
 
+    @property
+    def ball(self) -> bool:
+        """Whether the source (the first object) is a ball."""
+        return 'shape="sphere"' in self.objects.split("</object>")[0]
+
 
 def _on_table(z):
     return TABLE_TOP + z
@@ -377,14 +382,14 @@ ball rolling at 2 m/s spins at 40 rad/s. Not the orientation (``tilt``): it woul
 guess's."""
 
 
-def start_guess(case: Case) -> dict:
+def start_guess(case: Case, given_orientation) -> dict:
     """The source's start as the solve is given it (``initial_state`` terms): the start area's centre,
-    at rest, upright where the orientation is free (the truth's where it is given). Nothing of the
-    truth's position or velocity: the scene's own start seeds the search."""
+    at rest, upright where the orientation is free (``given_orientation``, (4,) w x y z, the truth's,
+    where it is not). Nothing of the truth's position or velocity: the scene's own start seeds the
+    search."""
     lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
-    truth = make_scene(scene_text(case.objects, case.duration)).object("source")
     return {"position": ((lo + hi) / 2).tolist(),
-            "orientation": [1.0, 0.0, 0.0, 0.0] if case.orientation else list(truth.pose.orientation),
+            "orientation": [1.0, 0.0, 0.0, 0.0] if case.orientation else list(given_orientation),
             "linear_velocity": [0.0, 0.0, 0.0], "angular_velocity": [0.0, 0.0, 0.0]}
 
 
@@ -395,19 +400,18 @@ def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0, prior: 
     if target is None:
         return make_scene(scene_text(case.objects, case.duration, restitution=case.restitution))
     lo, hi = case.area
-    is_ball = 'shape="sphere"' in case.objects.split("</object>")[0]
     mu = ("" if uncertainty is None else
           f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
-    belief = f"<prior {PRIOR['ball' if is_ball else 'box']}/>" if prior else ""
-    inference = f"""<inference source="source" loss="{'position' if is_ball else 'pose'}" evaluate="final" seed="{int(seed)}">
+    belief = f"<prior {PRIOR['ball' if case.ball else 'box']}/>" if prior else ""
+    inference = f"""<inference source="source" loss="{'position' if case.ball else 'pose'}" evaluate="final" seed="{int(seed)}">
     <target position="{_v(target[0])}" orientation="{_v(target[1])}"/>
     <optimize position="true" orientation="{str(case.orientation).lower()}" linear-velocity="true" angular-velocity="true"/>
     <start-area min="{_v(lo)}" max="{_v(hi)}"/>
     {belief}
     {mu}
   </inference>"""
-    return with_start(make_scene(scene_text(case.objects, case.duration, restitution=case.restitution,
-                                            inference=inference)), start_guess(case))
+    scene = make_scene(scene_text(case.objects, case.duration, restitution=case.restitution, inference=inference))
+    return with_start(scene, start_guess(case, scene.object("source").pose.orientation))
 
 
 def with_start(scene, initial: dict):
@@ -448,7 +452,7 @@ def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 
     search = result.settings.get("search", {})
     row = {"section": "inference", "case": case.name, "seed": int(seed),
            "model_uncertainty": "off" if uncertainty is None else f"{uncertainty[0]:g} {uncertainty[1]:g}",
-           "prior": "flat" if not prior else PRIOR['ball' if 'shape="sphere"' in case.objects.split('</object>')[0] else 'box'],
+           "prior": PRIOR["ball" if case.ball else "box"] if prior else "flat",
            "seconds": seconds, "rollouts": search.get("rollouts"), "jacobians": search.get("jacobians"),
            "own_end_error_m": own, "mujoco_end_error_m": mj_err,
            "mujoco_angle_error_deg": angle_deg(back[1][0], target[1]),
