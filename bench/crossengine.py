@@ -23,12 +23,16 @@ Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
    answer. Success: the re-simulated end (object origin) within
    ``SUCCESS_TOL`` (3 cm) of MuJoCo's observation. Seconds per solve and the
    ratio with / without model uncertainty are printed too (not asserted).
+   The floor cases' start areas are centred on the truth's x, y (a table
+   case's is the table top); ``--area-offset DX DY`` (``offset_area``) moves
+   them so that the guess is not the truth's position either.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -327,13 +331,17 @@ class Case:
         return 'shape="sphere"' in self.objects.split("</object>")[0]
 
 
+TABLE_AREA = ((-0.35, -0.25), (0.35, 0.25))
+"""(min, max) x, y of the table cases' start area: the table top, 5 cm in from its edges."""
+
+
 def _on_table(z):
     return TABLE_TOP + z
 
 
 def _cases() -> tuple[Case, ...]:
     zb, zx = _on_table(BALL_R), _on_table(BOX[2] / 2)
-    tab = lambda z: ((-0.35, -0.25, z), (0.35, 0.25, z))  # noqa: E731
+    tab = lambda z: ((*TABLE_AREA[0], z), (*TABLE_AREA[1], z))  # noqa: E731
     floor = lambda x, y, z0, z1: ((x - 0.3, y - 0.3, z0), (x + 0.3, y + 0.3, z1))  # noqa: E731
     tilt = about((1, 2, 0), 30)
     return (
@@ -391,6 +399,33 @@ def start_guess(case: Case, given_orientation) -> dict:
     return {"position": ((lo + hi) / 2).tolist(),
             "orientation": [1.0, 0.0, 0.0, 0.0] if case.orientation else list(given_orientation),
             "linear_velocity": [0.0, 0.0, 0.0], "angular_velocity": [0.0, 0.0, 0.0]}
+
+
+_POSITION = re.compile(r'position="([^"]*)"')
+"""The first position in a case's objects XML: the source's true start."""
+
+
+def offset_area(case: Case, offset=(0.0, 0.0)) -> Case:
+    """``case`` with its start area moved by ``offset`` ((dx, dy), m) where the area is centred on the
+    truth's x, y (the floor cases), so that the start guess (the area's centre) is not the truth's
+    position either. A table case's area is the table top (``TABLE_AREA``) and stays (box-off-table's
+    truth starts at its centre).
+
+    Raises:
+        ValueError: the moved area no longer holds the truth's start.
+    """
+    dx, dy = (float(v) for v in offset)
+    lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
+    truth = np.asarray([float(v) for v in _POSITION.search(case.objects).group(1).split()])
+    if (dx == 0 and dy == 0) or np.allclose((lo[:2], hi[:2]), TABLE_AREA) \
+            or not np.allclose((lo[:2] + hi[:2]) / 2, truth[:2]):
+        return case
+    d = np.array([dx, dy, 0.0])
+    lo, hi = lo + d, hi + d
+    if np.any(truth < lo - 1e-12) or np.any(truth > hi + 1e-12):
+        raise ValueError(f"area offset {dx:g} {dy:g} m moves case {case.name}'s start area off its true start "
+                         f"({_v(truth[:2])}): at most half the area's width ({_v((hi - lo)[:2] / 2)} m)")
+    return replace(case, area=(tuple(lo.tolist()), tuple(hi.tolist())))
 
 
 def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0, prior: bool = True):
@@ -482,7 +517,8 @@ def _truth_start(scene) -> np.ndarray:
 
 
 def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
-        with_fidelity: bool = True, baseline: bool = True, seeds=(0,), prior: bool = True) -> list[dict]:
+        with_fidelity: bool = True, baseline: bool = True, seeds=(0,), prior: bool = True,
+        area_offset=(0.0, 0.0)) -> list[dict]:
     """Fidelity table and the inference cases with and without model uncertainty (module docstring).
 
     Args:
@@ -496,6 +532,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
             which side they land on changes with the search's path, so one seed's count is a
             noisy estimate of the rate.
         prior: the solves' ``<prior>`` is ``PRIOR`` (False: flat within the backend's bounds).
+        area_offset: (dx, dy) m, the floor cases' start areas moved off the truth (``offset_area``).
     Returns:
         rows (dicts) of both parts.
     """
@@ -504,7 +541,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     seeds = tuple(seeds)
     if not seeds or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in seeds):
         raise ValueError(f"seeds must be whole numbers >= 0, got {seeds!r}")
-    chosen = [c for c in CASES if not cases or c.name in cases]
+    chosen = [offset_area(c, area_offset) for c in CASES if not cases or c.name in cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
         raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; cases: "
@@ -516,13 +553,16 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
         rows += fidelity(print_fn)
     settings = ([None] if baseline else []) + [tuple(uncertainty)]
     print_fn(f"## inference: MuJoCo observes, DejaView solves, MuJoCo{' and Warp' if warp else ''} "
-             f"re-simulate (success: within {100 * SUCCESS_TOL:g} cm)")
+             f"re-simulate (success: within {100 * SUCCESS_TOL:g} cm)"
+             + (f"; the floor cases' start areas moved by {area_offset[0]:g} {area_offset[1]:g} m off the truth"
+                if any(area_offset) else ""))
     print_fn(f"{'case':<22} {'seed':>4} {'model-u':<8} {'seconds':>7} {'own mm':>8} {'mujoco mm':>8} ok  "
              + ("warp mm" if warp else ""))
     for case in chosen:
         for u in settings:
             for seed in seeds:
-                rows.append(solve_case(case, u, warp, print_fn, seed, prior))
+                rows.append({**solve_case(case, u, warp, print_fn, seed, prior),
+                             "area_offset": f"{area_offset[0]:g} {area_offset[1]:g}"})
     summary(rows, print_fn)
     return rows
 
@@ -569,6 +609,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-baseline", action="store_true")
     parser.add_argument("--seeds", default="0", help="comma-separated search seeds, one solve each per case")
     parser.add_argument("--flat-prior", action="store_true", help="solve without the cases' PRIOR")
+    parser.add_argument("--area-offset", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"),
+                        help="move the floor cases' start areas off the truth by DX DY m (offset_area)")
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     args = parser.parse_args(argv)
     if args.timestep_study:
@@ -576,7 +618,8 @@ def main(argv=None) -> int:
     else:
         rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
                    with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,
-                   seeds=tuple(int(v) for v in args.seeds.split(",") if v), prior=not args.flat_prior)
+                   seeds=tuple(int(v) for v in args.seeds.split(",") if v), prior=not args.flat_prior,
+                   area_offset=tuple(args.area_offset))
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

@@ -363,12 +363,15 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--fidelity-only", is_flag=True, help="Only the fidelity table.")
 @click.option("--flat-prior", is_flag=True,
               help="Solve the cases under a flat prior instead of their <prior> (bench/crossengine.py PRIOR).")
+@click.option("--area-offset", nargs=2, type=float, default=(0.0, 0.0), show_default=True, metavar="DX DY",
+              help="Move the floor cases' start areas (centred on the truth's x, y) by DX DY m, so that "
+                   "the guess at the area's centre is not the truth's position.")
 @click.option("--timestep-study", is_flag=True,
               help="Only MuJoCo's time-step convergence on the fidelity rows and the cases' true starts "
                    "(how its step was chosen).")
 @csv_option
 def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
-                timestep_study, csv_path):
+                area_offset, timestep_study, csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
@@ -395,9 +398,11 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
         else:
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
                               with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds,
-                              prior=not flat_prior)
+                              prior=not flat_prior, area_offset=area_offset)
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="--seeds" if "seeds" in str(exc) else "--cases") from None
+        hint = ("--seeds" if "seeds" in str(exc) else "--area-offset" if "area offset" in str(exc)
+                else "--cases")
+        raise click.BadParameter(str(exc), param_hint=hint) from None
     except ImportError as exc:
         raise click.ClickException(f"the crossengine bench needs MuJoCo: {exc}") from None
     _finish(rows, csv_path, False, [])

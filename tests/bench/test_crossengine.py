@@ -179,6 +179,50 @@ def test_the_solve_is_given_the_end_and_not_the_truth(crossengine):
                 [o.pose for o in crossengine.case_scene(case).objects if o.id != "source"]
 
 
+def test_an_area_offset_moves_the_floor_cases_areas_off_the_truth(crossengine, monkeypatch):
+    """``offset_area``: a floor case's area (centred on the truth's x, y) moves by the offset and
+    still holds the truth, so the guess at its centre is not the truth's position; a table case's
+    area (the table top, also where the truth starts at its centre) stays; an offset that would leave the truth outside is an error; ``run``
+    solves the moved cases and writes the offset into the rows."""
+    import numpy as np
+
+    moved = 0
+    for case in crossengine.CASES:
+        shifted = crossengine.offset_area(case, (0.15, -0.1))
+        truth = np.asarray(crossengine.case_scene(case).object("source").pose.position)
+        lo, hi = (np.asarray(v) for v in case.area)
+        new_lo, new_hi = (np.asarray(v) for v in shifted.area)
+        assert np.all(new_lo <= truth + 1e-9) and np.all(truth <= new_hi + 1e-9), case.name
+        if not np.allclose((lo[:2], hi[:2]), crossengine.TABLE_AREA):
+            moved += 1
+            np.testing.assert_allclose(new_lo - lo, (0.15, -0.1, 0))
+            np.testing.assert_allclose(new_hi - hi, (0.15, -0.1, 0))
+            guess = crossengine.case_scene(shifted, ((0, 0, 0.75), (1, 0, 0, 0))).object("source").pose.position
+            assert np.linalg.norm(np.asarray(guess)[:2] - truth[:2]) > 0.17, case.name
+        else:
+            assert shifted == case, case.name
+        assert crossengine.offset_area(case) == case
+    assert moved == sum("table" not in c.name for c in crossengine.CASES)  # every floor case
+    (floor,) = [c for c in crossengine.CASES if c.name == "ball-slide-floor"]
+    with pytest.raises(ValueError, match="area offset 0.35 0 m moves case ball-slide-floor's start area off"):
+        crossengine.offset_area(floor, (0.35, 0.0))
+    seen = []
+    monkeypatch.setattr(crossengine, "solve_case", lambda case, *a, **k: seen.append(case) or {
+        "section": "inference", "case": case.name, "seed": 0, "model_uncertainty": "off", "seconds": 1.0,
+        "success": True})
+    rows = crossengine.run(print_fn=lambda *_: None, cases=("ball-slide-floor",), warp=False, with_fidelity=False,
+                           baseline=False, area_offset=(0.1, 0.05))
+    assert seen[0].area == crossengine.offset_area(floor, (0.1, 0.05)).area != floor.area
+    assert rows[0]["area_offset"] == "0.1 0.05"
+
+
+def test_an_area_offset_off_the_truth_is_a_one_line_error():
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--cases", "ball-slide-floor", "--no-fidelity",
+                                      "--area-offset", "0", "0.4"])
+    assert result.exit_code != 0 and "--area-offset" in result.output, result.output
+    assert "moves case ball-slide-floor's start area off its true start" in result.output, result.output
+
+
 def test_unknown_cases_are_a_one_line_error():
     result = CliRunner().invoke(cli, ["bench", "crossengine", "--cases", "nope", "--no-fidelity"])
     assert result.exit_code != 0 and "unknown case(s) nope" in result.output
