@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -401,10 +400,6 @@ def start_guess(case: Case, given_orientation) -> dict:
             "linear_velocity": [0.0, 0.0, 0.0], "angular_velocity": [0.0, 0.0, 0.0]}
 
 
-_POSITION = re.compile(r'position="([^"]*)"')
-"""The first position in a case's objects XML: the source's true start."""
-
-
 def offset_area(case: Case, offset=(0.0, 0.0)) -> Case:
     """``case`` with its start area moved by ``offset`` ((dx, dy), m) where the area is centred on the
     truth's x, y (the floor cases), so that the start guess (the area's centre) is not the truth's
@@ -416,7 +411,7 @@ def offset_area(case: Case, offset=(0.0, 0.0)) -> Case:
     """
     dx, dy = (float(v) for v in offset)
     lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
-    truth = np.asarray([float(v) for v in _POSITION.search(case.objects).group(1).split()])
+    truth = _truth_start(case_scene(case))
     if (dx == 0 and dy == 0) or np.allclose((lo[:2], hi[:2]), TABLE_AREA) \
             or not np.allclose((lo[:2] + hi[:2]) / 2, truth[:2]):
         return case

@@ -182,8 +182,9 @@ def test_the_solve_is_given_the_end_and_not_the_truth(crossengine):
 def test_an_area_offset_moves_the_floor_cases_areas_off_the_truth(crossengine, monkeypatch):
     """``offset_area``: a floor case's area (centred on the truth's x, y) moves by the offset and
     still holds the truth, so the guess at its centre is not the truth's position; a table case's
-    area (the table top, also where the truth starts at its centre) stays; an offset that would leave the truth outside is an error; ``run``
-    solves the moved cases and writes the offset into the rows."""
+    area (the table top, also where the truth starts at its centre) stays; an offset that would
+    leave the truth outside is an error; ``run`` solves the moved cases and writes the offset into
+    the rows."""
     import numpy as np
 
     moved = 0
