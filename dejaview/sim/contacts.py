@@ -108,6 +108,10 @@ up to 0.15 m/s where a flat face sends it straight back, and MuJoCo's box
 sent a ball rolling into it 1 cm off centre 12 cm elsewhere by 1.5 s
 (docs/physics-fidelity.md; ``tests/sim/test_physics.py``).
 
+Static box edges. Where a box body meets a static box, the static's edges meet
+the body's exact faces, and the body's spheres off the static's faces are left
+out (``dejaview.sim.box_edges``).
+
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass.
 
@@ -134,6 +138,7 @@ from __future__ import annotations
 
 import torch
 
+from dejaview.sim.box_edges import on_static_edge, static_edge_contacts
 from dejaview.sim.line_contact import line_roll_stick
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
@@ -292,6 +297,10 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
                           inv_inertia_w: torch.Tensor):
     """Force and torque on every body from contacts with all static shapes.
 
+    A box body against a static box: the static's edges meet the body's exact faces
+    (``dejaview.sim.box_edges``); the body's spheres whose closest point on the static is on an
+    edge or a corner are left out.
+
     Args:
         world: the World.
         state: current State, (B, N, ...).
@@ -308,21 +317,37 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     arms_c = spheres - state.position.unsqueeze(-2)  # (B, N, S, 3)
     b, nb, s = spheres.shape[:3]
     cap = world.contact.max_static_contacts
-    depths, normals, arms = [], [], []
-    for shape in world.statics:
+    is_box = (world.box_half > 0).any(-1)  # (N,)
+    edges = bool(is_box.any())
+    rot = quat_to_matrix(state.orientation) if edges else None
+    groups = []  # per group: depth (B, N, C), normal (B, N, C, 3), arm (B, N, C, 3), its static
+    for k, shape in enumerate(world.statics):
+        box_edges = edges and shape.kind == "box"
         pts, r, m, arm_c = spheres, radii, mask, arms_c
+        keep = None
+        if box_edges:  # a box body's spheres off the static's faces give way to its edge points
+            keep = ~(on_static_edge(shape, spheres.detach()) & is_box[None, :, None])
         if s > cap:  # a static shape: per body its ``cap`` deepest spheres only
             d0, _ = shape.distance(spheres.detach())
-            idx = deepest(torch.relu(radii - d0) * mask, cap)  # (B, N, C)
+            d0 = torch.relu(radii - d0) * mask
+            idx = deepest(d0 if keep is None else d0 * keep, cap)  # (B, N, C)
             pts, arm_c = take(spheres, idx), take(arms_c, idx)
             r, m = radii.expand(b, nb, s).gather(2, idx), mask.expand(b, nb, s).gather(2, idx)
+            keep = None if keep is None else keep.gather(2, idx)
         d, n = shape.distance(pts)  # (B, N, C), (B, N, C, 3)
-        depths.append(torch.relu(r - d) * m)
-        arms.append(arm_c - n * r.unsqueeze(-1))
-        normals.append(n)
-    depth = torch.stack(depths, 2)  # (B, N, K, C)
-    normal = torch.stack(normals, 2)  # (B, N, K, C, 3)
-    arm = torch.stack(arms, 2)
+        depth = torch.relu(r - d) * m
+        if keep is not None:
+            depth = torch.where(keep, depth, torch.zeros_like(depth))
+        groups.append((depth, n, arm_c - n * r.unsqueeze(-1), k))
+        if box_edges:
+            groups.append((*static_edge_contacts(world, state, shape, rot, is_box, cap), k))
+    width = max(g[0].shape[-1] for g in groups)
+    pad = lambda t: torch.nn.functional.pad(t, (0, 0, 0, width - t.shape[-2])) if t.dim() == 4 \
+        else torch.nn.functional.pad(t, (0, width - t.shape[-1]))  # noqa: E731
+    depth = torch.stack([pad(g[0]) for g in groups], 2)  # (B, N, K, C): K groups
+    normal = torch.stack([pad(g[1]) for g in groups], 2)  # (B, N, K, C, 3)
+    arm = torch.stack([pad(g[2]) for g in groups], 2)
+    which = [g[3] for g in groups]
     v = state.linear_velocity[:, :, None, None, :]
     w = state.angular_velocity[:, :, None, None, :]
     vel = _point_velocity(v, w, arm)
@@ -332,7 +357,8 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     m = world.mass  # (N,)
     omega = world.contact.frequency
     stiff = (m * omega ** 2)[None, :, None]  # (1, N, 1)
-    unload = world.unload_static[None, :, :, None].expand(b, nb, k, s).reshape(b, nb, k * s)
+    unload_k, mu_k = world.unload_static[:, which], world.mu_static[:, which]  # (N, K)
+    unload = unload_k[None, :, :, None].expand(b, nb, k, s).reshape(b, nb, k * s)
     flat_depth = depth.reshape(b, nb, k * s)
     weight = depth_weights(flat_depth)
     fn = normal_force(flat_depth, weight, vn.reshape(b, nb, k * s), stiff, unload,
@@ -341,7 +367,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     inv_mass = (1.0 / m)[:, None, None] + _inverse_mass(arm, _slip_direction(vt), inv_inertia_w,
                                                        world.inv_inertia_min)
     stick = weight.reshape(b, nb, k, s) / (inv_mass * h)
-    ft = friction_force(vt, world.mu_static[None, :, :, None] * fn, stick)
+    ft = friction_force(vt, mu_k[None, :, :, None] * fn, stick)
     fn = line_roll_stick(fn.reshape(b, nb, k * s), weight, arm.reshape(b, nb, k * s, 3),
                          normal.reshape(b, nb, k * s, 3), state.angular_velocity, m, inv_inertia_w,
                          h).reshape(b, nb, k, s)

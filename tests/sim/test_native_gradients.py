@@ -210,3 +210,59 @@ def test_unknown_gradient_path_is_a_one_line_error(monkeypatch):
     monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "bogus")
     with pytest.raises(SimulationError, match="DEJAVIEW_NATIVE_GRADIENT must be one of"):
         native.gradient_path()
+
+
+def _box_off_a_ledge(box: bool = True):
+    """A box body (``box_half``: its faces exact against a static box's edges) sliding and turning
+    off a ledge's edge, half over it, onto a floor."""
+    body = box_body("box", size=(0.2, 0.15, 0.1), per_axis=(4, 3, 2),
+                    box_half=(0.1, 0.075, 0.05) if box else None)
+    world = make_world([body], [StaticShape.make("floor", "plane"),
+                                StaticShape.make("ledge", "box", position=(0.0, 0.05, 0.15), half=(0.3, 0.3, 0.15),
+                                                 orientation=(math.cos(0.1), 0.0, 0.0, math.sin(0.1)))])
+    tilt = [math.cos(0.02), 0.0, math.sin(0.02), 0.0]
+    state = world.state([[0.26, 0.1, 0.3495]], orientation=[tilt], linear_velocity=[[1.0, 0.3, 0.0]],
+                        angular_velocity=[[0.2, -0.5, 0.3]])
+    return world, state
+
+
+def test_adjoint_equals_forward_mode_torch_and_differences_where_a_static_box_edge_meets_a_box_face(monkeypatch):
+    """A box tipping over a ledge's edge (rotated 11 deg about z), its face on the edge: the
+    ledge's edge points against the box's exact faces (``box_edges.static_edge_points``) carry it,
+    and their hand-written reverse mode (``adjoint.h``, ``edge_contact``) must give the gradients of
+    the forward-mode duals, of torch's autograd through the torch engine and of differences."""
+    world, state = _box_off_a_ledge()
+    steps = 60
+
+    def loss(traj):
+        s = traj.states
+        return ((s.position[-1] ** 2).sum() + (s.orientation[-1, ..., 1:] ** 2).sum()
+                + 0.1 * (s.angular_velocity[-1] ** 2).sum())
+
+    adj = _reverse(world, state, steps, 1, "adjoint", monkeypatch, loss)
+    _same(adj, _reverse(world, state, steps, 1, "phi", monkeypatch, loss))
+    x0 = torch.cat(state.tensors(), -1).detach()
+    x = x0.clone().requires_grad_(True)
+    traj = rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=steps, engine="torch")
+    _same(adj, torch.autograd.grad(loss(traj), x)[0], rtol=1e-7)
+    monkeypatch.setenv("DEJAVIEW_NATIVE_GRADIENT", "adjoint")
+
+    def f(x):
+        return loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=steps,
+                            engine="native"))
+
+    gen = torch.Generator().manual_seed(5)
+    for _ in range(3):
+        v = torch.zeros_like(x0)
+        v[0, 0, 7:13] = torch.randn(6, generator=gen, dtype=torch.float64)
+        eps = 1e-8
+        with torch.no_grad():
+            fd = (f(x0 + eps * v) - f(x0 - eps * v)) / (2 * eps)
+        exact = float((adj * v).sum())
+        assert abs(exact - float(fd)) <= 1e-5 * max(abs(exact), 1e-3), (exact, float(fd))
+    # the edge points acted: the same packing without its exact box tips otherwise
+    plain, _ = _box_off_a_ledge(box=False)
+    with torch.no_grad():
+        a = rollout(world, state, steps=steps, engine="native").states
+        b = rollout(plain, state, steps=steps, engine="native").states
+    assert float((a.orientation[-1] - b.orientation[-1]).abs().max()) > 1e-3

@@ -394,6 +394,8 @@ struct StaticAdjoint {
   struct Contact {
     ContactLaw<S> law;
     int shape, sphere;
+    int face;  // a static box's edge point (sphere < 0): the body's face it is nearest, and that side
+    S sg;
     S r, c[3], p[3], d, gd[3], jn[9], arm[3];
     S pb[3], depthb;  // the way back
     S fnb, vtb[3], nb[3], armb[3], weightb;  // the way back, between its two passes
@@ -431,6 +433,14 @@ struct StaticAdjoint {
       Contact& ct = contacts[j];
       ct.shape = picks[j].shape;
       ct.sphere = picks[j].sphere;
+      if (ct.sphere < 0) {  // a static box's edge point against the box body's face (edge_contact)
+        S P[3], l[3];
+        edge_point(w.shapes[ct.shape], -1 - ct.sphere, P);
+        edge_contact<S, S>(P, x, rot, w.box_half + 3 * a, ct.law.depth, ct.law.n, ct.arm, &ct.face, l);
+        ct.sg = l[ct.face] < 0 ? S(-1) : S(1);
+        total += ct.law.depth;
+        continue;
+      }
       const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + ct.sphere) * 3;
       for (int i = 0; i < 3; ++i) ct.c[i] = c[i];
       ct.r = w.radii[a * w.s_max + ct.sphere];
@@ -614,6 +624,14 @@ struct StaticAdjoint {
       const S tt = total + tiny;
       depthb += weightb / tt;
       totalb -= weightb * law.depth / (tt * tt);
+      ct.depthb = depthb;
+      if (ct.sphere < 0) {  // arm = P - x, n = -sg R e_face
+        for (int i = 0; i < 3; ++i) {
+          xb[i] -= armb[i];
+          rb[3 * i + ct.face] -= ct.sg * nb[i];
+        }
+        continue;
+      }
       // arm = (p - x) - n r
       for (int i = 0; i < 3; ++i) {
         ct.pb[i] = armb[i];
@@ -621,10 +639,17 @@ struct StaticAdjoint {
         nb[i] -= ct.r * armb[i];
       }
       for (int k = 0; k < 3; ++k) ct.pb[k] += nb[0] * ct.jn[k] + nb[1] * ct.jn[3 + k] + nb[2] * ct.jn[6 + k];
-      ct.depthb = depthb;
     }
     for (Contact& ct : contacts) {
       const S depthb = ct.depthb + totalb;
+      if (ct.sphere < 0) {  // depth = half_f - |l_f|, l = R^T (P - x), P - x = arm
+        const S lb = -ct.sg * depthb;
+        for (int i = 0; i < 3; ++i) {
+          rb[3 * i + ct.face] += lb * ct.arm[i];
+          xb[i] -= lb * rot[3 * i + ct.face];
+        }
+        continue;
+      }
       if (ct.r - ct.d > 0)  // depth = relu(r - d)
         for (int i = 0; i < 3; ++i) ct.pb[i] -= depthb * ct.gd[i];
       // p = x + R c

@@ -69,15 +69,23 @@ struct Scratch {
 
 // The static picks of every substep of a traced rollout (reverse mode reads them instead of
 // selecting again: the same picks, in the same order, as select_static is exact and deterministic).
-// counts (steps * substeps, N): picks per substep and body; picks: shape << 16 | sphere, substep
-// after substep, body after body. Kept only while the scene's indices fit 16 bits each.
+// counts (steps * substeps, N): picks per substep and body; picks: shape << 16 | sphere (the low
+// 16 bits signed: a static box's edge point is sphere -1 - its index), substep after substep, body
+// after body. Kept only while the scene's indices fit those bits.
 struct PickLog {
   std::vector<int32_t> counts;
   std::vector<uint32_t> picks;
 };
 
 template <typename S>
-bool pick_log_fits(const World<S>& w) { return w.k <= 0xFFFF && w.s_max <= 0xFFFF; }
+bool pick_log_fits(const World<S>& w) {
+  int64_t edges = 0;  // a static box's edge points are picks with sphere = -1 - (their index)
+  for (const Shape<S>& sh : w.shapes)
+    if (sh.kind == schema::KIND_BOX)
+      edges = std::max<int64_t>(edges, 4 * (int64_t(edge_count(sh.half[0])) + edge_count(sh.half[1]) +
+                                            edge_count(sh.half[2])));
+  return w.k <= 0xFFFF && w.s_max <= 0x7FFF && edges <= 0x8000;
+}
 
 // which spheres touch at state (contact selection on values, the clearance bounds of sc updated).
 // need (N, or null for all): bodies whose contacts are wanted; the others get no static picks,
@@ -116,7 +124,8 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     if (sc.logged != nullptr) {
       sc.picks[a].clear();
       for (int j = 0; j < sc.logged[a]; ++j)
-        sc.picks[a].push_back({static_cast<int>(first[j] >> 16), static_cast<int>(first[j] & 0xFFFF), 0.0});
+        sc.picks[a].push_back({static_cast<int>(first[j] >> 16),
+                               static_cast<int>(static_cast<int16_t>(first[j] & 0xFFFF)), 0.0});
       continue;
     }
     select_static(w, a, state + 13 * a, rot, sc.picks[a], &sc.key[static_cast<int64_t>(a) * w.k * w.s_max],
@@ -390,7 +399,8 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
           for (int a = 0; a < n; ++a) {
             log->counts.push_back(static_cast<int32_t>(sc.picks[a].size()));
             for (const Pick& pk : sc.picks[a])
-              log->picks.push_back(static_cast<uint32_t>(pk.shape) << 16 | static_cast<uint32_t>(pk.sphere));
+              log->picks.push_back(static_cast<uint32_t>(pk.shape) << 16 |
+                                  (static_cast<uint32_t>(pk.sphere) & 0xFFFFu));
           }
         continue;
       }

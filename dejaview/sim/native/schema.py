@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dejaview.sim import contacts, line_contact
+from dejaview.sim import box_edges, contacts, line_contact
 from dejaview.sim.world import STATIC_KINDS
 
 
@@ -96,6 +96,8 @@ CONSTANTS = {
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
     "LINE_MIN_SPREAD": (line_contact.LINE_MIN_SPREAD, "m^2: a static contact set whose in-plane second "
                                                       "moment is at most this is a point, not a line"),
+    "EDGE_SPACING": (box_edges.EDGE_SPACING, "m: spacing of the points along a static box's edges that "
+                                            "meet a box body's exact faces (static_edge_points)"),
     "CLEAR_MARGIN": (1e-9, "m: a sphere or pair whose clearance bound stays above this cannot touch "
                            "and is skipped (native culling only)"),
 }

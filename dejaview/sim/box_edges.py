@@ -1,0 +1,91 @@
+r"""A static box's edges against a box body's exact faces.
+
+Where a box body (``BodySpec.box_half``) meets a static box (a table), the
+static's edges meet the body's exact faces: points along
+each of the static's 12 edges, ``EDGE_SPACING`` (5 mm) apart
+(``static_edge_points``), each inside the body's box a contact with depth
+delta = min_a (half_a - |l_a|) (l = R^T (P - x), the point in the body's
+frame; a the nearest face), normal minus that face's normal and contact point
+P; the contact law of ``dejaview.sim.contacts`` is unchanged (they join the
+body's static contact set, the ``max_static_contacts`` deepest per static). The body's spheres whose closest
+point on the static is on an edge or a corner are left out (``on_static_edge``).
+Why: a packed face is a union of spheres up to 5 cm in radius, 2 cm apart, and
+a sphere meeting a sharp edge is pushed along the line from the edge to its
+centre, up to 11 deg off the face's normal, so a box sliding off a table
+rolled over the edge on those curved sides and tipped early: across its width
+2.5 deg ahead of a rigid flat box at 0.25 s and 54.7 deg at 0.5 s against the
+rigid 49.7 (``bench/edge_tip.py``; MuJoCo 51.4), now 50.4
+(docs/physics-fidelity.md, "Static box edges"). A ball or a mesh packing
+keeps its spheres (their surface is the body's).
+
+The contacts join the body's static contact set in
+``dejaview.sim.contacts.static_contact_wrench``; the native engine makes the same points and
+contacts (``native/contacts.h``: ``edge_point``, ``select_edges``, ``edge_contact``) and their
+reverse mode (``native/adjoint.h``).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from dejaview.sim.rotation import small_matmul
+
+EDGE_SPACING = 0.005
+"""m: spacing of the points along a static box's edges that meet a box body's exact faces
+(``static_edge_points``); a face lying across an edge touches it at a point every 5 mm."""
+
+
+def static_edge_points(shape) -> torch.Tensor:
+    """Points (E, 3) along the 12 edges of a static box (world frame), ``EDGE_SPACING`` apart
+    (both ends included): per axis 0, 1, 2, the four edges along it at the other two axes' (-, -),
+    (-, +), (+, -), (+, +) half extents, each from -half to +half. The native engine makes the same
+    points (``contacts.h``, ``edge_point``)."""
+    half = [float(v) for v in shape.half]
+    pts = []
+    for axis in range(3):
+        o1, o2 = [a for a in range(3) if a != axis]
+        n = edge_point_count(half[axis])
+        t = torch.arange(n, dtype=torch.float64) * (2.0 * half[axis] / (n - 1)) - half[axis]
+        for s1 in (-1.0, 1.0):
+            for s2 in (-1.0, 1.0):
+                p = torch.zeros(n, 3, dtype=torch.float64)
+                p[:, axis] = t
+                p[:, o1] = s1 * half[o1]
+                p[:, o2] = s2 * half[o2]
+                pts.append(p)
+    local = torch.cat(pts).to(shape.rotation.dtype)
+    return local @ shape.rotation.T + shape.translation
+
+
+def edge_point_count(half: float) -> int:
+    """Points along one static box edge of half length ``half`` (m): at least its two ends."""
+    return max(2, int(round(2.0 * half / EDGE_SPACING)) + 1)
+
+
+def on_static_edge(shape, points: torch.Tensor) -> torch.Tensor:
+    """(...) whether a static box's closest point to each world point (..., 3) is on one of its
+    edges or corners (the point outside the box along two or three of its axes)."""
+    local = small_matmul(points - shape.translation, shape.rotation)
+    return ((local.abs() - shape.half) > 0).sum(-1) >= 2
+
+
+def static_edge_contacts(world, state, shape, rot: torch.Tensor, is_box: torch.Tensor, cap: int):
+    """A static box's edge points inside the box bodies: depth (B, N, C), normal (B, N, C, 3)
+    (pointing out of the static into the body: minus the body's face normal) and arm (B, N, C, 3)
+    of the ``cap`` deepest per body (zero depth for a body that is not a box)."""
+    pts = static_edge_points(shape).to(state.position.dtype)  # (E, 3)
+    b, nb = state.position.shape[:2]
+    rel = pts[None, None] - state.position.unsqueeze(-2)  # (B, N, E, 3)
+    local = small_matmul(rel, rot)  # R^T (P - x)
+    room = world.box_half[None, :, None, :] - local.abs()
+    inner, axis = room.min(-1)  # (B, N, E): the depth inside the body's box, through face ``axis``
+    inside = (inner > 0) & is_box[None, :, None]
+    depth = torch.where(inside, inner, torch.zeros_like(inner))
+    # the cap deepest (a selection, no gradient), in the points' order as the native engine's picks
+    idx = torch.topk(depth.detach(), min(cap, depth.shape[-1]), dim=-1, sorted=False).indices.sort(-1).values
+    depth, axis = depth.gather(-1, idx), axis.gather(-1, idx)
+    local, rel = (t.gather(2, idx.unsqueeze(-1).expand(*idx.shape, 3)) for t in (local, rel))
+    sign = torch.where(local.gather(-1, axis.unsqueeze(-1)) < 0, -1.0, 1.0).to(local.dtype)
+    face = torch.nn.functional.one_hot(axis, 3).to(local.dtype) * sign  # the body's face, body axes
+    normal = -small_matmul(face, rot.transpose(-1, -2))  # world: -R face
+    return depth, normal, rel
