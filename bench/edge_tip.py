@@ -32,7 +32,8 @@ SLIP = 1e-3
 TIMES = (0.2, 0.25, 0.3, 0.35, 0.5)
 
 
-def tip(friction: float = 0.5, speed: float = 3.0, dt: float = 2e-6, times=TIMES) -> dict:
+def tip(friction: float = 0.5, speed: float = 3.0, dt: float = 2e-6, times=TIMES, length: float = LENGTH,
+        edge: float = TABLE_EDGE) -> dict:
     """Slide the box off the edge from rest on the table top, centre at x = 0.
 
     Args:
@@ -40,11 +41,13 @@ def tip(friction: float = 0.5, speed: float = 3.0, dt: float = 2e-6, times=TIMES
         speed: m/s along +x at t = 0.
         dt: seconds per step.
         times: seconds to record.
+        length: the box's extent along the slide (m; 0.15 for the box sliding across its width).
+        edge: where the table ends (m from the box's start; 0.3 off the table's side).
     Returns:
         {t: (x, z, pitch in degrees, pitch rate in degrees per second)}; pitch is the rotation
         about +y (nose down positive), as ``2 atan2(q_y, q_w)`` of the 3D engines.
     """
-    inertia = MASS * (LENGTH ** 2 + HEIGHT ** 2) / 12
+    inertia = MASS * (length ** 2 + HEIGHT ** 2) / 12
     x, z, pitch = 0.0, TABLE_TOP + HEIGHT / 2, 0.0
     vx, vz, w = speed, 0.0, 0.0
     marks = {round(t / dt): t for t in times}
@@ -68,14 +71,14 @@ def tip(friction: float = 0.5, speed: float = 3.0, dt: float = 2e-6, times=TIMES
             fx, fz = fx + gx, fz + gz
             torque += rz * gx - rx * gz
 
-        for bx in (-LENGTH / 2, LENGTH / 2):  # bottom corners on the table top
+        for bx in (-length / 2, length / 2):  # bottom corners on the table top
             px, pz = x + c * bx - s * HEIGHT / 2, z - s * bx - c * HEIGHT / 2
-            if px <= TABLE_EDGE and pz < TABLE_TOP:
+            if px <= edge and pz < TABLE_TOP:
                 push(px, pz, 0.0, 1.0, TABLE_TOP - pz)
-        ex, ez = TABLE_EDGE - x, TABLE_TOP - z  # the edge in the box's frame
+        ex, ez = edge - x, TABLE_TOP - z  # the edge in the box's frame
         bx, bz = c * ex - s * ez, s * ex + c * ez
-        if abs(bx) < LENGTH / 2 and -HEIGHT / 2 < bz < 0:  # under the bottom face, inside the box
-            push(TABLE_EDGE, TABLE_TOP, s, c, bz + HEIGHT / 2)
+        if abs(bx) < length / 2 and -HEIGHT / 2 < bz < 0:  # under the bottom face, inside the box
+            push(edge, TABLE_TOP, s, c, bz + HEIGHT / 2)
         vx, vz, w = vx + dt * fx / MASS, vz + dt * fz / MASS, w + dt * torque / inertia
         x, z, pitch = x + dt * vx, z + dt * vz, pitch + dt * w
     return out
