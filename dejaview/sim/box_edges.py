@@ -73,7 +73,7 @@ def static_edge_contacts(world, state, shape, rot: torch.Tensor, is_box: torch.T
     """A static box's edge points inside the box bodies: depth (B, N, C), normal (B, N, C, 3)
     (pointing out of the static into the body: minus the body's face normal) and arm (B, N, C, 3)
     of the ``cap`` deepest per body (zero depth for a body that is not a box)."""
-    pts = static_edge_points(shape).to(state.position.dtype)  # (E, 3)
+    pts = shape.edge_points.to(state.position.dtype)  # (E, 3), made with the shape (static_edge_points)
     b, nb = state.position.shape[:2]
     rel = pts[None, None] - state.position.unsqueeze(-2)  # (B, N, E, 3)
     local = small_matmul(rel, rot)  # R^T (P - x)

@@ -317,8 +317,8 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     arms_c = spheres - state.position.unsqueeze(-2)  # (B, N, S, 3)
     b, nb, s = spheres.shape[:3]
     cap = world.contact.max_static_contacts
-    is_box = (world.box_half > 0).any(-1)  # (N,)
-    edges = bool(is_box.any())
+    edges = any(world.box_bodies)
+    is_box = torch.tensor(world.box_bodies, dtype=torch.bool, device=spheres.device)  # (N,)
     rot = quat_to_matrix(state.orientation) if edges else None
     groups = []  # per group: depth (B, N, C), normal (B, N, C, 3), arm (B, N, C, 3), its static
     for k, shape in enumerate(world.statics):

@@ -18,6 +18,7 @@ import torch
 from dejaview.errors import SimulationError
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
+from dejaview.sim.box_edges import static_edge_points
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
@@ -65,6 +66,8 @@ class StaticShape:
         grid_origin: (3,) grid node (0, 0, 0) in the shape frame.
         grid_spacing: grid node spacing.
         friction, restitution: material of this shape.
+        edge_points: a box's (E, 3) points along its edges in the world (``box_edges``), made
+            with it; None for the other kinds.
     """
 
     name: str
@@ -79,6 +82,11 @@ class StaticShape:
     grid: torch.Tensor = field(default_factory=lambda: torch.zeros(1, 1, 1, dtype=torch.float64))
     grid_origin: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
     grid_spacing: float = 1.0
+    edge_points: torch.Tensor | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.kind == "box" and self.edge_points is None:  # made once, outside any compiled code
+            object.__setattr__(self, "edge_points", static_edge_points(self))
 
     @staticmethod
     def make(name: str, kind: str, position=(0, 0, 0), orientation=(1, 0, 0, 0), friction=0.5,
@@ -254,6 +262,8 @@ class World:
             the others.
         pair_surface: (P,) per body pair, which body's exact box surface the other's spheres meet:
             0 (a's), 1 (b's), or -1 (sphere against sphere: neither or both are boxes).
+        box_bodies: (N,) whether each body is a box (plain booleans: the static box edges'
+            ``dejaview.sim.box_edges`` branch on them, also under ``torch.compile``).
         gravity: (3,) m/s^2.
         dt: step (s); substeps: integration substeps per step; steps: default rollout length.
         contact: contact model numbers.
@@ -278,6 +288,7 @@ class World:
     mass_pair: torch.Tensor
     box_half: torch.Tensor
     pair_surface: tuple
+    box_bodies: tuple
     gravity: torch.Tensor
     dt: float
     substeps: int
@@ -393,7 +404,8 @@ class World:
             mu_static=f(mu_static), unload_static=f(unload_static),
             pairs=torch.as_tensor(np.asarray(pairs, dtype=np.int64).reshape(-1, 2)),
             mu_pair=f(mu_pair), unload_pair=f(unload_pair), mass_pair=f(mass_pair),
-            box_half=f(box_half), pair_surface=pair_surface, gravity=f(gravity), dt=float(dt), substeps=int(substeps),
+            box_half=f(box_half), pair_surface=pair_surface, box_bodies=tuple(is_box), gravity=f(gravity),
+            dt=float(dt), substeps=int(substeps),
             steps=int(steps),
             contact=ContactSettings(frequency=omega,
                                     unload_velocity=float(unload_velocity),

@@ -84,6 +84,22 @@ def test_compiled_gradient_rollout_matches_eager_through_body_pair_contacts():
     assert torch.allclose(comp_grad, eager_grad, rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.slow
+def test_compiled_rollout_matches_eager_where_a_static_box_edge_meets_a_box_face():
+    """A box body sliding off a ledge (``dejaview.sim.box_edges``): the ledge's edge points are made
+    with the shape, outside the compiled code (made inside it, their count's ``round`` of a traced
+    half extent stopped dynamo), and the compiled states are eager's."""
+    from tests.sim.test_native_gradients import _box_off_a_ledge
+
+    world, state = _box_off_a_ledge()
+    with torch.no_grad():
+        eager = rollout(world, state, steps=20).states
+        comp = rollout(world, state, steps=20, compile=True, compile_chunk=5).states
+    assert float((eager.orientation[-1] - state.orientation).abs().max()) > 1e-3  # it tipped
+    assert torch.allclose(comp.position, eager.position, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(comp.orientation, eager.orientation, rtol=1e-10, atol=1e-12)
+
+
 def test_small_matmul_under_compile_is_the_matrix_product():
     """``small_matmul`` switches to a broadcast sum under torch.compile: same products, batched
     and with a 2-D right operand, and the same gradients (a tiny graph: seconds to compile)."""
