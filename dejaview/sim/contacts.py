@@ -293,8 +293,15 @@ def predicted_pair_slip_change(fn: torch.Tensor, normal: torch.Tensor, arm_a: to
     return dv - (dv * normal).sum(-1, keepdim=True) * normal
 
 
+def _pad_contacts(t: torch.Tensor, width: int) -> torch.Tensor:
+    """A group's contacts (B, N, C, ...) padded with zeros (contacts of no depth) to ``width``."""
+    if t.shape[2] == width:
+        return t
+    return torch.cat([t, t.new_zeros(*t.shape[:2], width - t.shape[2], *t.shape[3:])], 2)
+
+
 def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
-                          inv_inertia_w: torch.Tensor):
+                          inv_inertia_w: torch.Tensor, rot: torch.Tensor | None = None):
     """Force and torque on every body from contacts with all static shapes.
 
     A box body against a static box: the static's edges meet the body's exact faces
@@ -307,6 +314,8 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
         spheres: (B, N, S, 3) world sphere centres.
         h: integration substep (s), for the friction stick limit.
         inv_inertia_w: (B, N, 3, 3) world-frame inverse inertia of every body.
+        rot: (B, N, 3, 3) world-from-body rotations, where the caller has them (the static box
+            edges need them; else made from the state's orientations).
     Returns:
         force (B, N, 3), torque (B, N, 3) about each centre of mass.
     """
@@ -318,8 +327,9 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     b, nb, s = spheres.shape[:3]
     cap = world.contact.max_static_contacts
     edges = any(world.box_bodies)
-    is_box = torch.tensor(world.box_bodies, dtype=torch.bool, device=spheres.device)  # (N,)
-    rot = quat_to_matrix(state.orientation) if edges else None
+    if edges:
+        is_box = torch.tensor(world.box_bodies, dtype=torch.bool, device=spheres.device)  # (N,)
+        rot = quat_to_matrix(state.orientation) if rot is None else rot
     groups = []  # per group: depth (B, N, C), normal (B, N, C, 3), arm (B, N, C, 3), its static
     for k, shape in enumerate(world.statics):
         box_edges = edges and shape.kind == "box"
@@ -341,12 +351,10 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
         groups.append((depth, n, arm_c - n * r.unsqueeze(-1), k))
         if box_edges:
             groups.append((*static_edge_contacts(world, state, shape, rot, is_box, cap), k))
-    width = max(g[0].shape[-1] for g in groups)
-    pad = lambda t: torch.nn.functional.pad(t, (0, 0, 0, width - t.shape[-2])) if t.dim() == 4 \
-        else torch.nn.functional.pad(t, (0, width - t.shape[-1]))  # noqa: E731
-    depth = torch.stack([pad(g[0]) for g in groups], 2)  # (B, N, K, C): K groups
-    normal = torch.stack([pad(g[1]) for g in groups], 2)  # (B, N, K, C, 3)
-    arm = torch.stack([pad(g[2]) for g in groups], 2)
+    width = max(g[0].shape[2] for g in groups)
+    depth = torch.stack([_pad_contacts(g[0], width) for g in groups], 2)  # (B, N, K, C): K groups
+    normal = torch.stack([_pad_contacts(g[1], width) for g in groups], 2)  # (B, N, K, C, 3)
+    arm = torch.stack([_pad_contacts(g[2], width) for g in groups], 2)
     which = [g[3] for g in groups]
     v = state.linear_velocity[:, :, None, None, :]
     w = state.angular_velocity[:, :, None, None, :]

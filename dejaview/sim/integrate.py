@@ -70,7 +70,7 @@ def wrench(world: World, state: State, h: float, broadphase: bool | None = None)
     rot_t = rot.transpose(-1, -2)
     spheres = state.position.unsqueeze(-2) + small_matmul(world.centers, rot_t)
     inv_w = small_matmul(small_matmul(rot, world.inv_inertia), rot_t)
-    force, torque = contacts.static_contact_wrench(world, state, spheres, h, inv_w)
+    force, torque = contacts.static_contact_wrench(world, state, spheres, h, inv_w, rot)
     if world.pairs.shape[0] > 0:
         if broadphase is None:
             broadphase = not _transforms_active()
