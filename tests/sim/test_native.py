@@ -202,6 +202,26 @@ def test_native_meets_a_box_body_as_the_torch_simulator_does(box_first, other):
     _gradients_agree(world, state.index(0), 100)
 
 
+def _pick_log_replays(world, state, steps: int, record_every: int) -> torch.Tensor:
+    """The native rollout's pick log (its counts and picks consistent), the adjoint reading it equal,
+    bit for bit, to the adjoint selecting again, and a log that does not match refused; the picks."""
+    ext = native.extension()
+    init = torch.cat(state.tensors(), -1).contiguous()
+    packed = native.pack_world(world)
+    states, trace, _, counts, picks, starts = ext.rollout(init, steps, record_every, 2, *packed, 1)
+    assert counts.shape == (init.shape[0], steps * world.substeps, init.shape[1])
+    assert int(counts.sum()) == picks.numel() > 0 and starts.numel() == init.shape[0] + 1
+    grad = torch.randn(states.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    logged = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, counts, picks, starts)
+    empty = torch.empty(0, dtype=torch.int32)
+    again = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, empty, empty,
+                        torch.empty(0, dtype=torch.int64))
+    assert torch.equal(logged, again)
+    with pytest.raises(RuntimeError, match="pick log does not match"):
+        ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 1, counts, picks[:-1], starts)
+    return picks
+
+
 @pytest.mark.parametrize("record_every", [1, 7])
 def test_the_adjoint_reads_the_rollouts_contact_picks_as_if_it_selected_them_again(record_every):
     """Reverse mode reads the static contacts each substep picked from the rollout's pick log; the
@@ -209,22 +229,8 @@ def test_the_adjoint_reads_the_rollouts_contact_picks_as_if_it_selected_them_aga
     through static contacts and body pairs, for every candidate of a batch."""
     from tests.sim.test_contact_capacity import _boxes, _throw
 
-    ext = native.extension()
     for world, state, steps in ((*_tumbling_box("grid", batch=3), 90), (_boxes(20, 40), None, 60)):
-        state = _throw(world) if state is None else state
-        init = torch.cat(state.tensors(), -1).contiguous()
-        packed = native.pack_world(world)
-        states, trace, _, counts, picks, starts = ext.rollout(init, steps, record_every, 2, *packed, 1)
-        assert counts.shape == (init.shape[0], steps * world.substeps, init.shape[1])
-        assert int(counts.sum()) == picks.numel() > 0 and starts.numel() == init.shape[0] + 1
-        grad = torch.randn(states.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-        logged = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, counts, picks, starts)
-        empty = torch.empty(0, dtype=torch.int32)
-        again = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, empty, empty,
-                            torch.empty(0, dtype=torch.int64))
-        assert torch.equal(logged, again)
-        with pytest.raises(RuntimeError, match="pick log does not match"):
-            ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 1, counts, picks[:-1], starts)
+        _pick_log_replays(world, _throw(world) if state is None else state, steps, record_every)
 
 
 def test_native_meets_a_static_box_edge_as_the_torch_simulator_does():
@@ -252,17 +258,8 @@ def test_native_meets_a_static_box_edge_as_the_torch_simulator_does():
     assert float((out.final.position - state.position)[0].abs().max()) > 0.05  # slid off over the edge
     assert float(ref.final.linear_velocity[1, 0, 2]) > -1.0  # the corner is on the edge (free fall: -1.88 m/s)
     _gradients_agree(world, state.index(1), 55)
-    ext = native.extension()
-    init = torch.cat(state.tensors(), -1).contiguous()
-    packed = native.pack_world(world)
-    states, trace, _, counts, picks, starts = ext.rollout(init, 80, 1, 2, *packed, 1)
-    assert int(counts.sum()) == picks.numel() > 0
+    picks = _pick_log_replays(world, state, 80, 1)
     assert bool(((picks & 0xFFFF) >= 0x8000).any())  # edge points were picked
-    grad = torch.randn(states.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    logged = ext.adjoint(init, states, trace, grad, 80, 1, *packed, 2, counts, picks, starts)
-    empty = torch.empty(0, dtype=torch.int32)
-    again = ext.adjoint(init, states, trace, grad, 80, 1, *packed, 2, empty, empty, torch.empty(0, dtype=torch.int64))
-    assert torch.equal(logged, again)
 
 
 def test_a_spinning_box_corner_meets_a_ball_as_the_torch_simulator_does():
