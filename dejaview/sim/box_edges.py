@@ -1,27 +1,29 @@
 r"""A static box's edges against a box body's exact faces.
 
-Where a box body (``BodySpec.box_half``) meets a static box (a table), the
-static's edges meet the body's exact faces: points along
-each of the static's 12 edges, ``EDGE_SPACING`` (5 mm) apart
-(``static_edge_points``), each inside the body's box a contact with depth
-delta = min_a (half_a - |l_a|) (l = R^T (P - x), the point in the body's
-frame; a the nearest face), normal minus that face's normal and contact point
-P; the contact law of ``dejaview.sim.contacts`` is unchanged (they join the
-body's static contact set, the ``max_static_contacts`` deepest per static). The body's spheres whose closest
-point on the static is on an edge or a corner are left out (``on_static_edge``).
+Where a box body (``BodySpec.box_half``) meets a static box (a table), points
+along each of the static's 12 edges, ``EDGE_SPACING`` (5 mm) apart
+(``static_edge_points``, made with the shape), meet the body's exact faces:
+each point P inside the body's box is a contact of depth
+delta = min_a (half_a - |l_a|) (l = R^T (P - x), the point in the body's frame;
+a the nearest face), normal minus that face's normal, contact point P. They
+join the body's static contact set in
+``dejaview.sim.contacts.static_contact_wrench`` (the ``max_static_contacts``
+deepest per static; the contact law is unchanged), and the body's spheres
+whose closest point on the static is on an edge or a corner are left out
+(``on_static_edge``). A ball or a mesh packing keeps its spheres (their
+surface is the body's).
+
 Why: a packed face is a union of spheres up to 5 cm in radius, 2 cm apart, and
 a sphere meeting a sharp edge is pushed along the line from the edge to its
 centre, up to 11 deg off the face's normal, so a box sliding off a table
 rolled over the edge on those curved sides and tipped early: across its width
 2.5 deg ahead of a rigid flat box at 0.25 s and 54.7 deg at 0.5 s against the
 rigid 49.7 (``bench/edge_tip.py``; MuJoCo 51.4), now 50.4
-(docs/physics-fidelity.md, "Static box edges"). A ball or a mesh packing
-keeps its spheres (their surface is the body's).
+(docs/physics-fidelity.md, "Static box edges against a box's faces").
 
-The contacts join the body's static contact set in
-``dejaview.sim.contacts.static_contact_wrench``; the native engine makes the same points and
-contacts (``native/contacts.h``: ``edge_point``, ``select_edges``, ``edge_contact``) and their
-reverse mode (``native/adjoint.h``).
+The native engine makes the same points and contacts (``native/contacts.h``:
+``edge_point``, ``select_edges``, ``edge_contact``) and their reverse mode
+(``native/adjoint.h``).
 """
 
 from __future__ import annotations

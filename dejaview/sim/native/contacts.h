@@ -499,7 +499,6 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
   }
 }
 
-
 // The roll stick of a line contact (line_contact.line_roll_stick): from the normal forces fn (m) of a
 // body's static contact set, with weights w = dep / denom, arms ar and normals nr (3 m, rows of 3),
 // the changes dfn (m) that make them max(fn + g, 0); false (dfn untouched) where the set is not
