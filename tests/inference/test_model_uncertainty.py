@@ -12,7 +12,8 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem
-from dejaview.inference.model_uncertainty import HELDOUT_SEED, HELDOUT_VARIANTS, ModelVariants, design, rank_on_heldout, vary_world
+from dejaview.inference.model_uncertainty import (HELDOUT_SEED, HELDOUT_VARIANTS, ModelVariants, design,
+                                                  rank_on_heldout, vary_world)
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.scene import ModelUncertainty, Prior
 from dejaview.sim.world import _discrete_restitution
@@ -82,8 +83,8 @@ def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more(
 
 
 def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fitted_to():
-    """``rank_on_heldout``: each mode's negative log posterior under ``HELDOUT_VARIANTS`` variants drawn apart from the
-    design (the same standard deviations, another stream), lowest first, whatever the order and
+    """``rank_on_heldout``: each mode's negative log posterior under ``HELDOUT_VARIANTS`` variants drawn
+    apart from the design (the same standard deviations, another stream), lowest first, whatever the order and
     costs the refinement gave them: a start fitted to the design's four physics by chance (here a
     worse start handed the lower cost) does not win on that."""
     from dejaview.inference.search import Mode
