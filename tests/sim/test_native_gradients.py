@@ -23,6 +23,11 @@ from tests.sim.conftest import box_body, make_world
 from tests.sim.test_native_schema import worlds
 
 RTOL = 1e-9
+ROUNDOFF_FACTOR = 100.0
+"""The random worlds' paths may differ by this many times what a 1e-15 m/s change of the start moves
+the forward-mode gradient (its round-off, amplified by the contacts)."""
+CHAOTIC_RTOL = 1e-5
+"""...but never by more than this fraction of the gradient's largest component."""
 
 
 def _pile(substeps=2, boxes=4):
@@ -184,13 +189,24 @@ def test_adjoint_equals_forward_mode_and_torch_where_the_roll_stick_holds_an_edg
 @given(worlds())
 def test_random_worlds_adjoint_equals_the_dual_jacobian_path(monkeypatch, case):
     """Two implementations of one derivative: hand-written reverse mode against forward-mode duals,
-    to round-off (``RTOL``). Not 1e-10: a CI run drew two bodies thrown onto a static over 74 steps
-    of 3 substeps whose gradients differ by 2.6e-10 of their largest, as at the commit before
-    (576fddc), while a start changed by 1e-15 m/s moves the forward-mode one by 1.2e-10."""
+    to round-off. Round-off here is the world's own: where contacts amplify it, a start changed by
+    1e-15 m/s moves the forward-mode gradient itself. CI drew two bodies thrown onto a static (74
+    steps of 3 substeps: the paths 2.6e-10 of the gradient's largest component apart, that change
+    1.2e-10) and three balls falling onto a slope (87 steps: 1.6e-9 apart, that change 4.2e-8). So
+    the paths must agree to ``RTOL`` or to ``ROUNDOFF_FACTOR`` times what that change moves the
+    forward-mode gradient, whichever is larger, and never worse than ``CHAOTIC_RTOL``: a wrong term
+    in the adjoint is of the gradient's own size."""
     world, state, steps = case
-    adj = _reverse(world, state, min(steps, 100), 3, "adjoint", monkeypatch)
-    phi = _reverse(world, state, min(steps, 100), 3, "phi", monkeypatch)
-    _same(adj, phi)
+    steps = min(steps, 100)
+    adj = _reverse(world, state, steps, 3, "adjoint", monkeypatch)
+    phi = _reverse(world, state, steps, 3, "phi", monkeypatch)
+    scale = float(phi.abs().max())
+    assert scale > 0
+    nudged = [_reverse(world, state.replace(linear_velocity=state.linear_velocity + d), steps, 3, "phi",
+                       monkeypatch) for d in (1e-15, -1e-15)]
+    roundoff = max(float((g - phi).abs().max()) for g in nudged)
+    tol = min(max(RTOL * scale, ROUNDOFF_FACTOR * roundoff), CHAOTIC_RTOL * scale)
+    assert float((adj - phi).abs().max()) <= tol, (float((adj - phi).abs().max()) / scale, roundoff / scale)
 
 
 def test_a_block_prefers_a_path_and_the_environment_still_wins(monkeypatch):
