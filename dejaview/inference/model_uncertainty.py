@@ -69,8 +69,8 @@ HELDOUT_VARIANTS = 64
 uncertainty, and its noise is what decides between modes whose costs are close: with 8 variants a
 tumbling box's true start cost 1.3, 2.9, 4.3 or 4.9 by the draw, and the first mode of the
 cross-engine benchmark's box-tumble changed with the held-out seed (docs/physics-fidelity.md,
-"64 held-out variants"). 64 rollouts of a few modes cost about a
-second, against a minute for the search."""
+"64 held-out variants"). 64 rollouts of a few modes cost about a second, against a minute for the
+search."""
 HELDOUT_SEED = 7919
 """Added to the solve's seed for the held-out variants' draws (another stream than ``design``'s)."""
 MIN_FACTOR = 0.05
