@@ -73,6 +73,13 @@ cross-engine benchmark's box-tumble changed with the held-out seed (docs/physics
 search."""
 HELDOUT_SEED = 7919
 """Added to the solve's seed for the held-out variants' draws (another stream than ``design``'s)."""
+UNEXPLAINED_P = 1e-3
+"""Goodness of fit of the answer under model uncertainty (``explains_end``): a refined mode whose
+held-out variants' mean end is off the observation by more than the ``1 - UNEXPLAINED_P`` quantile
+of its chi-square (22.5 for a pose's 6 residuals) does not explain the end once the physics varies
+(a needle fitted on the scene's own physics), and ``refine_under_variants`` then refines the
+search's other modes that fit best under the variants (docs/physics-fidelity.md, "When no refined
+mode explains the end")."""
 MIN_FACTOR = 0.05
 """A variant's friction or stiffness is at least this fraction of the scene's value (a 100 %
 standard deviation would otherwise give zero or negative values)."""
@@ -180,9 +187,11 @@ def rank_on_heldout(post, modes: list, seed: int = 0) -> tuple[list, int]:
         modes: refined ``Mode``s (x (P,), cost on ``post``).
         seed: the solve's seed (the held-out draws: ``ModelVariants.heldout``).
     Returns:
-        (the modes with ``heldout`` set, lowest first (a mode whose held-out cost is not finite
-        last), the candidates evaluated (``Posterior.rollouts``' count: each under every
-        held-out variant)). One mode or none is returned as it is, with 0.
+        (the modes with ``heldout`` (their cost) and ``heldout_mean_chi2`` (the observation chi-square
+        of the held-out variants' mean residual: their mean end's misfit) set, lowest cost first (a
+        mode whose held-out cost is not finite last), the candidates evaluated
+        (``Posterior.rollouts``' count: each under every held-out variant)). One mode or none is
+        returned as it is, with 0.
     """
     from dejaview.inference.posterior import Posterior
 
@@ -190,10 +199,32 @@ def rank_on_heldout(post, modes: list, seed: int = 0) -> tuple[list, int]:
         return list(modes), 0
     held = Posterior(post.problem, post.settings, feasible=post.feasible_fn,
                      model=post.model.heldout(post.problem.world, seed))
-    cost = held.cost(torch.stack([m.x for m in modes]).to(torch.float64))[0]
-    ranked = [replace(m, heldout=float(c)) for m, c in zip(modes, cost.tolist())]
+    x = torch.stack([m.x for m in modes]).to(torch.float64)
+    with torch.no_grad():
+        trajs = held.trajectories(x)
+        mean = torch.stack([held.observation_residuals(t)[0] for t in trajs]).mean(0)  # (B, n)
+    held.rollouts += x.shape[0]
+    cost = held.cost(x, trajs=trajs)[0]
+    chi2 = torch.where(torch.isfinite(cost), (mean * mean).sum(-1), torch.full_like(cost, math.inf))
+    ranked = [replace(m, heldout=float(c), heldout_mean_chi2=float(q)) for m, c, q in zip(modes, cost.tolist(),
+                                                                                   chi2.tolist())]
     ranked.sort(key=lambda m: m.heldout if math.isfinite(m.heldout) else math.inf)
     return ranked, held.rollouts
+
+
+def explains_end(post, mode) -> bool:
+    """Whether ``mode``'s end fits the observation under the physics' uncertainty: the end its
+    held-out variants reach on average (``rank_on_heldout``'s ``heldout_mean_chi2``) within the
+    observation's noise, its chi-square at most the ``1 - UNEXPLAINED_P`` quantile of a chi-square
+    with ``post.num_observed`` degrees of freedom. The variants' spread about that mean is left
+    out: the physics' uncertainty spreads every past's end, the truth's too, and a needle's mean
+    end is off where its variants fall the other way. A mode never ranked counts as explaining
+    (there was nothing to rank it against)."""
+    from scipy.stats import chi2
+
+    if mode.heldout_mean_chi2 is None:
+        return True
+    return mode.heldout_mean_chi2 <= float(chi2.ppf(1.0 - UNEXPLAINED_P, max(1, post.num_observed)))
 
 
 def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callback=None,
@@ -208,7 +239,10 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
     ``post`` (exact Jacobians through every variant) and ranked by the averaged likelihood under
     held-out variants (``rank_on_heldout``): a needle past, whose end moves when the friction
     does, loses to one whose end holds, also where it happened to fit the variants it was
-    refined on.
+    refined on. Where the first of them does not explain the end under the held-out variants
+    (``explains_end``: every past fitted on the scene's own physics was a needle), the search's
+    other modes, up to ``CANDIDATES`` of those with the lowest cost on ``post`` (unrefined, no
+    Jacobians), are refined too and all are ranked again.
 
     Args:
         post: ``Posterior`` with ``model`` set.
@@ -229,6 +263,17 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
     heldout_rollouts = 0
     if not s.stopped:  # a cancelled solve returns at once, its modes as the refinement ranked them
         s.modes, heldout_rollouts = rank_on_heldout(post, s.modes, seed)
+    others = [m.x for m in found.modes if all(float((m.x - y).norm()) > 0 for y in starts)]
+    if not s.stopped and others and s.modes and not explains_end(post, s.modes[0]):
+        cost = post.cost(torch.stack(others).to(torch.float64))[0]
+        order = [i for i in torch.argsort(cost, stable=True).tolist() if math.isfinite(float(cost[i]))]
+        if order:
+            s.iterations = len(s.history) + iterations  # the second refinement's own iterations
+            s.add_modes(s.refine(torch.stack([others[i] for i in order[:CANDIDATES]]).to(torch.float64),
+                                 iterations))
+            if not s.stopped:
+                s.modes, spent = rank_on_heldout(post, s.modes, seed)
+                heldout_rollouts += spent
     best = s.modes[0] if s.modes else s.best
     return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
                         candidate_x=torch.stack([m.x for m in s.modes or [best]]),

@@ -91,13 +91,15 @@ def population(num_params: int) -> int:
 class Mode:
     """A refined candidate: parameters (P,), negative log posterior, observation chi-square, loss;
     under model uncertainty also its negative log posterior under the held-out physics variants
-    that rank the modes (``model_uncertainty.rank_on_heldout``), else None."""
+    that rank the modes (``model_uncertainty.rank_on_heldout``) and the observation chi-square of
+    their mean end, else None."""
 
     x: torch.Tensor
     cost: float
     chi2: float
     loss: float
     heldout: float | None = None
+    heldout_mean_chi2: float | None = None
 
 
 @dataclass

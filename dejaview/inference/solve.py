@@ -385,7 +385,8 @@ def _search(scene, problem, settings: SolveSettings, callback, should_stop):
         "neg_log_posterior": opt.cost, "observation_chi2": opt.chi2, "rollouts": opt.rollouts,
         "jacobians": opt.jacobians, "budget": settings.budget or DEFAULT_BUDGET,
         "modes": [{"neg_log_posterior": m.cost, "observation_chi2": m.chi2, "loss": m.loss,
-                   **({} if m.heldout is None else {"heldout_neg_log_posterior": m.heldout}),
+                   **({} if m.heldout is None else {"heldout_neg_log_posterior": m.heldout,
+                                                    "heldout_mean_end_chi2": m.heldout_mean_chi2}),
                    "initial_state": {k: v[0].tolist() for k, v in
                                      problem.layout.decode(m.x.unsqueeze(0).to(problem.dtype)).items()}}
                   for m in opt.modes]}}

@@ -101,10 +101,53 @@ def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fit
     assert not any(torch.allclose(h, d) for h in held.levels for d in model.levels)
     expected = Posterior(problem, settings, model=held).cost(torch.stack([x[0], worse]))[0]
     assert [m.heldout for m in ranked] == pytest.approx(expected.tolist(), rel=1e-12)
+    held_post = Posterior(problem, settings, model=held)  # the mean end's misfit: the variants' mean residual
+    mean = torch.stack([held_post.observation_residuals(t)[0]
+                        for t in held_post.trajectories(torch.stack([x[0], worse]))]).mean(0)
+    assert [m.heldout_mean_chi2 for m in ranked] == pytest.approx((mean * mean).sum(-1).tolist(), rel=1e-12)
+    assert ranked[0].heldout_mean_chi2 < 2 * ranked[0].heldout  # the spread about the mean left out
     assert rollouts == 2  # candidates, as Posterior.rollouts counts them (each under every held-out physics)
     assert ranked[0].heldout < ranked[1].heldout
     one, spent = rank_on_heldout(post, modes[:1], seed=3)
     assert one == modes[:1] and one[0].heldout is None and spent == 0
+
+
+def test_where_no_refined_mode_explains_the_end_the_searchs_other_modes_are_refined_too():
+    """``refine_under_variants``: the search's answer and its next three modes are refined first; where
+    the best of them does not explain the end under the held-out variants (``explains_end``: its
+    held-out chi-square over the 0.999 quantile), the search's other modes cheapest under the variants
+    are refined and ranked beside them, and the truth among them is the answer. Where the first ones
+    explain it, the others are never refined."""
+    from dejaview.inference.model_uncertainty import explains_end, refine_under_variants
+    from dejaview.inference.search import Mode, SearchResult
+
+    problem, settings, x = _shelf_observing_its_truth()
+    # 2 %: the truth's end moves by about the observation's noise (sigma 5 mm), so it explains the end
+    post = Posterior(problem, settings, model=ModelVariants.from_world(problem.world, 0.02, 0.02))
+    gen = torch.Generator().manual_seed(5)
+    far = [x[0] + 0.6 * torch.randn(x.shape[1], generator=gen, dtype=x.dtype) for _ in range(4)]
+    truth = Mode(x[0], 0.0, 0.0, 0.0)
+
+    def found(xs):
+        return SearchResult(x=xs[0], loss=0.0, history=[], best_index=0,
+                            modes=[Mode(v, float(i), float(i), 0.0) for i, v in enumerate(xs)])
+
+    def refine(xs):  # no Levenberg-Marquardt step (one Jacobian each): every mode stays where it was found
+        before = post.jacobians
+        res = refine_under_variants(post, found(xs), iterations=0, seed=0)
+        return res, post.jacobians - before
+
+    alone, _ = refine(far)
+    assert not explains_end(post, alone.modes[0]) and len(alone.modes) == 4
+    res, jacobians = refine(far + [truth.x])
+    assert torch.allclose(res.x, x[0], atol=1e-3) and explains_end(post, res.modes[0])
+    assert res.modes[0].heldout_mean_chi2 < 1.0 and len(res.modes) == 5 and jacobians == 5
+    assert [m.heldout for m in res.modes] == sorted(m.heldout for m in res.modes)
+    first, jacobians = refine([truth.x] + far)  # the answer explains the end: the fifth is not refined
+    assert explains_end(post, first.modes[0]) and len(first.modes) == 4 and jacobians == 4
+    with_chi2 = replace(truth, heldout=1.0, heldout_mean_chi2=22.4)
+    assert explains_end(post, with_chi2) and not explains_end(post, replace(with_chi2, heldout_mean_chi2=22.5))
+    assert explains_end(post, truth)  # never ranked: nothing to hold it against
 
 
 def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
@@ -193,6 +236,7 @@ def test_the_cli_reads_the_element_and_the_flag_and_records_it(tmp_path):
     modes = data["search"]["modes"]  # ranked on the held-out variants (3 modes here): the answer is the first
     held = [m["heldout_neg_log_posterior"] for m in modes]
     assert len(modes) >= 2 and held == sorted(held)
+    assert all(0 <= m["heldout_mean_end_chi2"] <= 2 * m["heldout_neg_log_posterior"] for m in modes)
     assert modes[0]["initial_state"]["position"] == pytest.approx(data["initial_state"]["position"])
     result = CliRunner().invoke(cli, ["solve", str(path), "-o", str(out), "--quiet",
                                       "--model-uncertainty", "0.05", "0"])
