@@ -206,8 +206,8 @@ def rank_on_heldout(post, modes: list, seed: int = 0) -> tuple[list, int]:
     held.rollouts += x.shape[0]
     cost = held.cost(x, trajs=trajs)[0]
     chi2 = torch.where(torch.isfinite(cost), (mean * mean).sum(-1), torch.full_like(cost, math.inf))
-    ranked = [replace(m, heldout=float(c), heldout_mean_chi2=float(q)) for m, c, q in zip(modes, cost.tolist(),
-                                                                                   chi2.tolist())]
+    ranked = [replace(m, heldout=float(c), heldout_mean_chi2=float(q))
+              for m, c, q in zip(modes, cost.tolist(), chi2.tolist())]
     ranked.sort(key=lambda m: m.heldout if math.isfinite(m.heldout) else math.inf)
     return ranked, held.rollouts
 

@@ -114,8 +114,8 @@ def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fit
 
 def test_where_no_refined_mode_explains_the_end_the_searchs_other_modes_are_refined_too():
     """``refine_under_variants``: the search's answer and its next three modes are refined first; where
-    the best of them does not explain the end under the held-out variants (``explains_end``: its
-    held-out chi-square over the 0.999 quantile), the search's other modes cheapest under the variants
+    the best of them does not explain the end under the held-out variants (``explains_end``: the
+    chi-square of their mean end over the 0.999 quantile), the search's other modes cheapest under the variants
     are refined and ranked beside them, and the truth among them is the answer. Where the first ones
     explain it, the others are never refined."""
     from dejaview.inference.model_uncertainty import explains_end, refine_under_variants
