@@ -4,7 +4,7 @@
     dejaview bench crossengine --cases ball-bounce,box-tumble --no-warp
     python bench/crossengine.py --csv crossengine.csv
 
-Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
+Three parts, printed as tables (docs/physics-fidelity.md has the measured ones):
 
 1. **Physics fidelity** (``fidelity``): the same start simulated by DejaView
    (native engine, the scene's defaults) and by MuJoCo (the scene exported
@@ -26,6 +26,9 @@ Two parts, printed as tables (docs/physics-fidelity.md has the measured ones):
    The floor cases' start areas are centred on the truth's x, y (a table
    case's is the table top); ``--area-offset DX DY`` (``offset_area``) moves
    them so that the guess is not the truth's position either.
+3. **Random throws** (``throws``, ``--throws N``): the engines' gap on N boxes
+   thrown at random, with controls that tell a model gap from chaos and from
+   the steps: how typical the fidelity table's chosen rows are.
 """
 
 from __future__ import annotations
@@ -186,6 +189,7 @@ FIDELITY = (
                                                   about((0, 1, 0), 25)), 0.3),
     ("box lands on an edge (dropped tilted 35 deg)", box("box", (1.0, 0, 0.3), orientation=about((0, 1, 0), 35)),
      0.3),
+    ("box dropped nearly flat (tilted 5 deg)", box("box", (1.0, 0, 0.26), orientation=about((0, 1, 0), 5)), 0.3),
     ("box thrown onto the floor (box-thrown)", box("box", (0.8, -0.4, 0.5), (1.5, 0.2, 0.5), (0, 2.0, 0)), 0.3),
     ("box bounces over corners (box-tumble-2)", box("box", (1.0, 0.6, 0.4), (0.3, -0.6, 0.5), (2.0, 1.0, 3.0),
                                                    about((1, 2, 0), 30)), 0.3),
@@ -300,6 +304,74 @@ def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFEREN
                      **{f"dv_gap_{k}_substeps_m": g for k, g in zip(substeps, dv)}})
         print_fn(f"{name:<44} " + " ".join(f"{100 * g:>10.2f}" for g in gaps)
                  + " " + " ".join(f"{100 * g:>9.2f}" for g in dv))
+    return rows
+
+
+# ------------------------------------------------------------------ random throws
+THROW_AREA = ((1.2, -0.5, 0.2), (2.0, 0.5, 0.5))
+"""(min, max) start position of ``throws``' boxes: above the floor, clear of the table."""
+THROW_SPEED = 0.8
+"""m/s: standard deviation of each linear velocity component of a throw."""
+THROW_SPIN = 3.0
+"""rad/s: standard deviation of each angular velocity component of a throw."""
+THROW_TIMES = (0.5, 1.0)
+THROW_NUDGE = 0.001
+"""m: the start offset (along x) of the throws' chaos control."""
+
+
+def random_throw(rng) -> dict:
+    """One box thrown onto the floor, as ``box``'s keyword arguments: orientation uniform, start
+    uniform in ``THROW_AREA``, velocities normal (``THROW_SPEED``, ``THROW_SPIN``); numpy ``rng``."""
+    q = rng.normal(size=4)
+    lo, hi = (np.asarray(v) for v in THROW_AREA)
+    return {"position": rng.uniform(lo, hi), "linear": rng.normal(size=3) * THROW_SPEED,
+            "angular": rng.normal(size=3) * THROW_SPIN, "orientation": q / np.linalg.norm(q)}
+
+
+def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) -> list[dict]:
+    """How far the engines part on boxes in general, not on the fidelity table's chosen rows.
+
+    ``count`` random throws (``random_throw``, seeded), each simulated by DejaView and MuJoCo as
+    in ``fidelity``: the distance between the two centres (and the angle between the
+    orientations) at ``times``, and at the last time three controls that tell a model gap from
+    chaos and steps: MuJoCo at half its step (is it converged?), each engine from the start moved
+    by ``THROW_NUDGE`` (how far a millimetre carries), and DejaView at four times its substeps
+    (same stiffness; ``with_substeps``).
+
+    Returns:
+        rows (``section`` "throws"): ``gap_<t>s_m``, ``angle_<t>s_deg``, ``mujoco_half_step_m``,
+        ``mujoco_nudged_m``, ``dejaview_nudged_m``, ``dejaview_4x_substeps_m``; then printed: the
+        median and the share within ``SUCCESS_TOL`` of each.
+    """
+    from dejaview.sim import World
+
+    rng = np.random.default_rng(int(seed))
+    t_end = max(times)
+    rows = []
+    for i in range(int(count)):
+        start = random_throw(rng)
+        scene = make_scene(scene_text(box("box", **start), t_end))
+        moved = make_scene(scene_text(box("box", **{**start, "position": start["position"]
+                                                    + np.array([THROW_NUDGE, 0.0, 0.0])}), t_end))
+        a, b = dejaview_run(scene, times), mujoco_run(scene, times)
+        end = b[t_end][0][0]
+        world = World.from_scene(scene)
+        row = {"section": "throws", "throw": i,
+               **{f"gap_{t:g}s_m": float(np.linalg.norm(a[t][0][0] - b[t][0][0])) for t in times},
+               **{f"angle_{t:g}s_deg": angle_deg(a[t][1][0], b[t][1][0]) for t in times},
+               "mujoco_half_step_m": float(np.linalg.norm(
+                   mujoco_run(scene, (t_end,), timestep=MUJOCO_TIMESTEP / 2)[t_end][0][0] - end)),
+               "mujoco_nudged_m": float(np.linalg.norm(mujoco_run(moved, (t_end,))[t_end][0][0] - end)),
+               "dejaview_nudged_m": float(np.linalg.norm(dejaview_run(moved, (t_end,))[t_end][0][0]
+                                                         - a[t_end][0][0])),
+               "dejaview_4x_substeps_m": float(np.linalg.norm(
+                   _dejaview_end(with_substeps(world, 4 * world.substeps), scene, t_end)[0] - a[t_end][0][0]))}
+        rows.append(row)
+    keys = [k for k in rows[0] if k.endswith("_m")] if rows else []
+    print_fn(f"{count} random box throws (seed {seed}): median cm, share within {100 * SUCCESS_TOL:g} cm")
+    for k in keys:
+        v = np.array([r[k] for r in rows])
+        print_fn(f"  {k:<26} {100 * np.median(v):7.2f} cm  {np.mean(v <= SUCCESS_TOL):5.0%}")
     return rows
 
 
@@ -607,9 +679,13 @@ def main(argv=None) -> int:
     parser.add_argument("--area-offset", type=float, nargs=2, default=(0.0, 0.0), metavar=("DX", "DY"),
                         help="move the floor cases' start areas off the truth by DX DY m (offset_area)")
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
+    parser.add_argument("--throws", type=int, default=0, metavar="N",
+                        help="only the engines' gap on N random box throws (throws; seeded by --seeds' first)")
     args = parser.parse_args(argv)
     if args.timestep_study:
         rows = timestep_study()
+    elif args.throws:
+        rows = throws(count=args.throws, seed=int(args.seeds.split(",")[0]))
     else:
         rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
                    with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,

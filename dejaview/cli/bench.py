@@ -369,9 +369,12 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--timestep-study", is_flag=True,
               help="Only MuJoCo's time-step convergence on the fidelity rows and the cases' true starts "
                    "(how its step was chosen).")
+@click.option("--throws", default=0, type=click.IntRange(min=0), metavar="N",
+              help="Only the engines' gap on N random box throws, with its controls (seeded by the first "
+                   "of --seeds).")
 @csv_option
 def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
-                area_offset, timestep_study, csv_path):
+                area_offset, timestep_study, throws, csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
@@ -393,6 +396,8 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
     try:
         if timestep_study:
             rows = module.timestep_study(click.echo)
+        elif throws:
+            rows = module.throws(click.echo, count=throws, seed=seeds[0] if seeds else 0)
         elif fidelity_only:
             rows = module.fidelity(click.echo)
         else:
