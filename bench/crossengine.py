@@ -338,6 +338,8 @@ def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) ->
     by ``THROW_NUDGE`` (how far a millimetre carries), and DejaView at four times its substeps
     (same stiffness; ``with_substeps``).
 
+    Raises:
+        ValueError: a seed that is not a whole number >= 0.
     Returns:
         rows (``section`` "throws"): ``gap_<t>s_m``, ``angle_<t>s_deg``, ``mujoco_half_step_m``,
         ``mujoco_nudged_m``, ``dejaview_nudged_m``, ``dejaview_4x_substeps_m``; then printed: the
@@ -345,6 +347,8 @@ def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) ->
     """
     from dejaview.sim import World
 
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"seeds must be whole numbers >= 0, got {seed!r}")
     rng = np.random.default_rng(int(seed))
     t_end = max(times)
     rows = []

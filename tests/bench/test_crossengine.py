@@ -284,8 +284,9 @@ def test_unknown_cases_are_a_one_line_error():
 
 def test_bad_seeds_are_a_one_line_error():
     for bad, says in (("x", "not a comma-separated list"), ("-1", "whole numbers >= 0")):
-        result = CliRunner().invoke(cli, ["bench", "crossengine", "--seeds", bad, "--no-fidelity"])
-        assert result.exit_code != 0 and says in result.output, result.output
+        for mode in (["--no-fidelity"], ["--throws", "1"]):
+            result = CliRunner().invoke(cli, ["bench", "crossengine", "--seeds", bad, *mode])
+            assert result.exit_code != 0 and says in result.output and "--seeds" in result.output, result.output
 
 
 def test_each_seed_solves_each_case_once_and_the_summary_pools_them(crossengine):
