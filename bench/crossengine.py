@@ -307,6 +307,18 @@ def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFEREN
     return rows
 
 
+def check_seeds(seeds) -> tuple:
+    """``seeds`` as a non-empty tuple of whole numbers >= 0 (the solves' and the throws' seeds).
+
+    Raises:
+        ValueError: one line naming the seeds.
+    """
+    seeds = tuple(seeds)
+    if not seeds or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in seeds):
+        raise ValueError(f"seeds must be whole numbers >= 0, got {seeds!r}")
+    return seeds
+
+
 # ------------------------------------------------------------------ random throws
 THROW_AREA = ((1.2, -0.5, 0.2), (2.0, 0.5, 0.5))
 """(min, max) start position of ``throws``' boxes: above the floor, clear of the table."""
@@ -347,9 +359,8 @@ def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) ->
     """
     from dejaview.sim import World
 
-    if int(seed) != seed or seed < 0:
-        raise ValueError(f"seeds must be whole numbers >= 0, got {seed!r}")
-    rng = np.random.default_rng(int(seed))
+    check_seeds((seed,))
+    rng = np.random.default_rng(seed)
     t_end = max(times)
     rows = []
     for i in range(int(count)):
@@ -609,9 +620,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     """
     from dejaview.cli.bench import load_average
 
-    seeds = tuple(seeds)
-    if not seeds or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in seeds):
-        raise ValueError(f"seeds must be whole numbers >= 0, got {seeds!r}")
+    seeds = check_seeds(seeds)
     chosen = [offset_area(c, area_offset) for c in CASES if not cases or c.name in cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
