@@ -240,18 +240,6 @@ SUBSTEP_STUDY = (2, 4, 8)
 SUBSTEP_REFERENCE = 16
 
 
-def with_substeps(world, substeps: int):
-    """``world`` integrated in ``substeps`` substeps at the same contact frequency (stiffness),
-    each pair's unloading factor re-mapped so that it rebounds with the same restitution."""
-    from dejaview.sim.world import remap_unloading
-
-    om = world.contact.frequency
-    h0, h = world.dt / world.substeps, world.dt / substeps
-    return replace(world, substeps=int(substeps),
-                   unload_static=remap_unloading(world.unload_static, om * h0, om * h),
-                   unload_pair=remap_unloading(world.unload_pair, om * h0, om * h))
-
-
 def _dejaview_end(world, scene, t: float) -> np.ndarray:
     import torch
 
@@ -296,8 +284,8 @@ def timestep_study(print_fn=print, steps=TIMESTEP_STUDY, reference=STUDY_REFEREN
         dv = []
         if substeps:
             world = World.from_scene(scene)
-            dv_ref = _dejaview_end(with_substeps(world, SUBSTEP_REFERENCE), scene, t)
-            dv = [float(np.linalg.norm(_dejaview_end(with_substeps(world, k), scene, t) - dv_ref, axis=-1).max())
+            dv_ref = _dejaview_end(world.with_substeps(SUBSTEP_REFERENCE), scene, t)
+            dv = [float(np.linalg.norm(_dejaview_end(world.with_substeps(k), scene, t) - dv_ref, axis=-1).max())
                   for k in substeps]
         rows.append({"section": "timestep", "motion": name,
                      **{f"gap_{1e3 * dt:g}ms_m": g for dt, g in zip(steps, gaps)},
@@ -348,7 +336,7 @@ def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) ->
     orientations) at ``times``, and at the last time three controls that tell a model gap from
     chaos and steps: MuJoCo at half its step (is it converged?), each engine from the start moved
     by ``THROW_NUDGE`` (how far a millimetre carries), and DejaView at four times its substeps
-    (same stiffness; ``with_substeps``).
+    (same stiffness; ``World.with_substeps``).
 
     Raises:
         ValueError: a seed that is not a whole number >= 0.
@@ -380,7 +368,7 @@ def throws(print_fn=print, count: int = 40, seed: int = 0, times=THROW_TIMES) ->
                "dejaview_nudged_m": float(np.linalg.norm(dejaview_run(moved, (t_end,))[t_end][0][0]
                                                          - a[t_end][0][0])),
                "dejaview_4x_substeps_m": float(np.linalg.norm(
-                   _dejaview_end(with_substeps(world, 4 * world.substeps), scene, t_end)[0] - a[t_end][0][0]))}
+                   _dejaview_end(world.with_substeps(4 * world.substeps), scene, t_end)[0] - a[t_end][0][0]))}
         rows.append(row)
     keys = [k for k in rows[0] if k.endswith("_m")] if rows else []
     print_fn(f"{count} random box throws (seed {seed}): median cm, share within {100 * SUCCESS_TOL:g} cm")

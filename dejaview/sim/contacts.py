@@ -88,7 +88,7 @@ relative slip and the pair's normal force and torques on both bodies
 Roll stick of a line contact (static contacts). On an edge (touching
 contacts along a line) the normal forces also stop, within a substep, the
 roll that lifts one end of the line and presses the other, as a rigid
-edge's end forces do (``dejaview.sim.line_contact``).
+edge's end forces do, within the contact's time scale (``dejaview.sim.line_contact``).
 
 Body pairs against a box. Where one body of a pair is a box (a primitive
 ``box`` object: ``BodySpec.box_half``, ``World.pair_surface``) and the other
@@ -139,7 +139,7 @@ from __future__ import annotations
 import torch
 
 from dejaview.sim.box_edges import on_static_edge, static_edge_contacts
-from dejaview.sim.line_contact import line_roll_stick
+from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
@@ -378,7 +378,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     ft = friction_force(vt, mu_k[None, :, :, None] * fn, stick)
     fn = line_roll_stick(fn.reshape(b, nb, k * s), weight, arm.reshape(b, nb, k * s, 3),
                          normal.reshape(b, nb, k * s, 3), state.angular_velocity, m, inv_inertia_w,
-                         h).reshape(b, nb, k, s)
+                         roll_stop_time(h, omega)).reshape(b, nb, k, s)
     force = fn.unsqueeze(-1) * normal + ft  # (B, N, K, C, 3)
     torque = torch.linalg.cross(arm, force, dim=-1)
     return force.sum((2, 3)), torque.sum((2, 3))

@@ -14,13 +14,15 @@ l1 >= l2 and major axis e (the line), and the roll axis a = z x e. Its
 projector has a closed form, a a^T = (P - (2 S - T P) / D) / 2 with
 T = l1 + l2 = tr S and D = l1 - l2 = sqrt(2 tr(S^2) - T^2), so values and
 gradients need no eigen-solver. Each contact's normal velocity from the spin
-about a, u_i = ((a a^T omega) x r_i) . n_i, is stopped in one substep by a
+about a, u_i = ((a a^T omega) x r_i) . n_i, is stopped within a time tau by a
 normal force added to it,
 
-    g_i = -f w_i m_n,i (u_i - sum_j w_j u_j) / h,    f_n,i <- max(f_n,i + g_i, 0)
+    g_i = -f w_i m_n,i (u_i - sum_j w_j u_j) / tau,    f_n,i <- max(f_n,i + g_i, 0)
 
 (m_n,i the contact's effective mass along its normal, as the friction's stick
-limit), gated to elongated sets, f = relu(1 - LINE_ASPECT l2 / l1)
+limit; tau = max(h, ROLL_STOP_OMEGA_T / omega_0), ``roll_stop_time``: one
+substep h at the default step, the contact's time scale at finer ones),
+gated to elongated sets, f = relu(1 - LINE_ASPECT l2 / l1)
 (LINE_ASPECT = 4; 0 for a set within a micron of a point, ``LINE_MIN_SPREAD``):
 a face, a ring or a single contact is left alone (f = 0),
 and so is any spin about the line itself (rolling over an edge, tipping). It
@@ -32,6 +34,19 @@ landing on an edge (the box off the table 2.19 -> 8.50 cm), and a stick on
 every difference of the contacts' normal velocities held any turn over an
 edge (docs/physics-fidelity.md, "Sliding along an edge";
 ``tests/sim/test_physics.py::test_a_box_landing_on_an_edge_while_sliding_along_it_does_not_roll_over_the_edge_line``).
+
+Why tau and not h: a force that stops the roll in every substep (tau = h)
+grows as 1 / h, each substep's push an impulse of a fixed size; where the
+roll is not gone by the next substep (an end that cannot pull, the max;
+friction starting it again), the pushes add up with the number of
+substeps. box-tumble-2's start moved 41.9 / 31.2 / 15.0 cm at 2 / 8 / 16
+substeps against itself at 32 (and 1.39 -> 41.8 cm from MuJoCo); making
+only the gate's share a rate, 1 - (1 - f)^(h / tau), left 29.3 / 19.0 /
+14.2 cm. With tau fixed by omega_0 the stick is a damper of one rate at
+every step: 0.25 / 0.17 / 0.07 cm, and 1.07-1.39 cm from MuJoCo at every
+step (docs/physics-fidelity.md, "The roll stick and the step";
+``tests/sim/test_physics.py``). At the default step tau = h: nothing
+changed there.
 
 Static contacts only (``dejaview.sim.contacts.static_contact_wrench`` calls it after the
 friction); the native engine has the same formula (``native/contacts.h``, ``line_roll_stick``) and
@@ -48,21 +63,31 @@ LINE_ASPECT = 4.0
 """A static contact set counts as a line (an edge) while its in-plane second moments' ratio
 l1 / l2 exceeds this; the roll stick's gate is ``relu(1 - LINE_ASPECT l2 / l1)``."""
 
+ROLL_STOP_OMEGA_T = 0.25
+"""omega_0 tau: the roll stick stops a line's roll in tau = ROLL_STOP_OMEGA_T / omega_0 (the default
+substep, ``dejaview.sim.world.DEFAULT_OMEGA_H``), or in one substep where that is longer."""
+
 LINE_MIN_SPREAD = 1e-12
 """m^2: a contact set whose in-plane second moment l1 + l2 is at most this (its points within
 about a micron of their centroid: one touching contact) is a point, not a line; its gate is 0."""
 
 
+def roll_stop_time(h: float, omega: float) -> float:
+    """tau (s): the time in which the roll stick stops a line's roll, ``max(h, ROLL_STOP_OMEGA_T / omega)``
+    for substep ``h`` (s) and contact frequency ``omega`` (rad/s)."""
+    return max(float(h), ROLL_STOP_OMEGA_T / float(omega))
+
+
 def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, normal: torch.Tensor,
                     angular_velocity: torch.Tensor, mass: torch.Tensor, inv_inertia_w: torch.Tensor,
-                    h: float) -> torch.Tensor:
+                    tau: float) -> torch.Tensor:
     """Normal forces (B, N, M) of each body's static contact set with the roll of a line contact
     held (the module docstring).
 
     Args:
         fn: (B, N, M) normal forces of the set's M contacts; weight: (B, N, M) their depth weights.
         arm, normal: (B, N, M, 3) lever arms and normals; angular_velocity: (B, N, 3).
-        mass: (N,); inv_inertia_w: (B, N, 3, 3); h: substep (s).
+        mass: (N,); inv_inertia_w: (B, N, 3, 3); tau: ``roll_stop_time`` (s).
     Returns:
         (B, N, M) ``max(fn + g, 0)``: fn where the set is not elongated (or has fewer than two
         touching contacts).
@@ -90,5 +115,5 @@ def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, n
     u = (spin.unsqueeze(-2) * q).sum(-1)  # (B, N, M): (spin x r_i) . n_i
     rel = u - (weight * u).sum(-1, keepdim=True)
     inv_mn = (1.0 / mass)[None, :, None] + (q * small_matmul(q, inv_inertia_w.transpose(-1, -2))).sum(-1)
-    g = -(gate.unsqueeze(-1) * weight * rel) / (inv_mn * h)
+    g = -(gate.unsqueeze(-1) * weight * rel) / (inv_mn * tau)
     return torch.relu(fn + g)

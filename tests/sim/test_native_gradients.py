@@ -150,16 +150,20 @@ def test_adjoint_through_an_inference_problem_equals_the_jacobian_path(monkeypat
     _same(grad_f, grad_a)
 
 
-def test_adjoint_equals_forward_mode_and_torch_where_the_roll_stick_holds_an_edge(monkeypatch):
+@pytest.mark.parametrize("substeps", [2, 8])
+def test_adjoint_equals_forward_mode_and_torch_where_the_roll_stick_holds_an_edge(monkeypatch, substeps):
     """A box landing on its edge while sliding along it and rolling about it and across it: the
     roll stick of a line contact (``dejaview.sim.line_contact.line_roll_stick``) acts for most of the
     impact, and its hand-written reverse mode (``adjoint.h``'s ``RollStick``) must give the
-    gradients of the forward-mode duals and of torch's autograd through the torch engine."""
+    gradients of the forward-mode duals and of torch's autograd through the torch engine. At the
+    default 2 substeps and at 8 at the same stiffness (``World.with_substeps``), where the roll is
+    stopped within four substeps (``line_contact.roll_stop_time``), not one."""
     from dejaview.sim import contacts
     from tests.sim.test_physics import _tilted_box, _weightless
 
     body, _, _, mu, e, _, _, _, low, q = _tilted_box(35.0)
     world = _weightless([body], [StaticShape.make("floor", "plane", friction=mu, restitution=e)], mu, e)
+    world = world.with_substeps(substeps)
     state = world.state([[0.0, 0.0, 0.01 - low.min()]], orientation=q, linear_velocity=[[0.0, 0.2, -1.4]],
                         angular_velocity=[[0.3, 0.0, 0.1]])
 

@@ -218,7 +218,7 @@ struct ContactLaw {
 // ------------------------------------------------------------------ the roll stick of a line contact
 // contacts.h's line_roll_stick on values, with what the way back needs, and its vjp. Inputs per
 // contact j: weight w_j, arm r_j, normal n_j, normal force fn_j; per set: the spin om, the world
-// inverse inertia iw; out: dfn_j = max(fn_j + g_j, 0) - fn_j.
+// inverse inertia iw, the stop time tau (roll_stop_time); out: dfn_j = max(fn_j + g_j, 0) - fn_j.
 template <typename S>
 struct RollStick {
   struct Item {
@@ -227,15 +227,15 @@ struct RollStick {
   std::vector<Item> items;
   bool on = false;
   S centre[3], mean_n[3], zlen, z[3], sec[9], tr, sq, arg, spread, num, den, gate, half_p, roll[9], spin[3],
-      mean_u, om[3], iw[9], inv_m, h;
+      mean_u, om[3], iw[9], inv_m, tau;
 
   // items[j].w, r, n, fn set by the caller; on: whether the set is a line (dfn are zero if not)
-  void forward(const S* om_in, const S* iw_in, S inv_m_in, S h_in) {
+  void forward(const S* om_in, const S* iw_in, S inv_m_in, S tau_in) {
     const int m = static_cast<int>(items.size());
     for (int i = 0; i < 3; ++i) om[i] = om_in[i];
     for (int i = 0; i < 9; ++i) iw[i] = iw_in[i];
     inv_m = inv_m_in;
-    h = h_in;
+    tau = tau_in;
     for (Item& it : items) it.dfn = 0;
     for (int i = 0; i < 3; ++i) centre[i] = mean_n[i] = 0;
     for (const Item& it : items)
@@ -277,7 +277,7 @@ struct RollStick {
     for (Item& it : items) {
       matvec(iw, it.q, it.iq);
       it.inv_mn = inv_m + dot3(it.q, it.iq);
-      it.g = -(gate * it.w * (it.u - mean_u)) / (it.inv_mn * h);
+      it.g = -(gate * it.w * (it.u - mean_u)) / (it.inv_mn * tau);
       it.fo = it.fn + it.g;
       it.dfn = relu(it.fo) - it.fn;
     }
@@ -290,11 +290,11 @@ struct RollStick {
     S gateb = 0, mean_ub = 0, spinb[3] = {0, 0, 0};
     std::vector<S>& yb = scratch<S>(11);
     yb.resize(m);
-    for (int j = 0; j < m; ++j) {  // dfn = relu(fn + g) - fn, g = -gate w (u - mean_u) / (inv_mn h)
+    for (int j = 0; j < m; ++j) {  // dfn = relu(fn + g) - fn, g = -gate w (u - mean_u) / (inv_mn tau)
       Item& it = items[j];
       const S gb = it.fo > 0 ? dfnb[j] : S(0);
       fnb[j] += gb - dfnb[j];
-      const S y = it.u - mean_u, c = it.inv_mn * h;
+      const S y = it.u - mean_u, c = it.inv_mn * tau;
       gateb -= gb * it.w * y / c;
       wb[j] -= gb * gate * y / c;
       yb[j] = -gb * gate * it.w / c;
@@ -522,7 +522,7 @@ struct StaticAdjoint {
         it.n[i] = ct.law.n[i];
       }
     }
-    roll.forward(om, inv_w, inv_m, w.h);
+    roll.forward(om, inv_w, inv_m, roll_stop_time(w));
     if (roll.on)
       for (int j = 0; j < m; ++j) {
         const Contact& ct = contacts[j];

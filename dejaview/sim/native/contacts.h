@@ -40,6 +40,13 @@ struct World {
   int substeps, cap_static, cap_pair;
 };
 
+// the time in which the roll stick stops a line's roll (line_contact.roll_stop_time): one substep at
+// the default step, the contact's time scale ROLL_STOP_OMEGA_T / omega at finer ones
+template <typename S>
+S roll_stop_time(const World<S>& w) {
+  return std::max(w.h, S(schema::ROLL_STOP_OMEGA_T) / w.omega);
+}
+
 // signed distance and outward normal of a world point, as StaticShape.distance (values, or a
 // dual number of any width through distance() below); normal may be null: the distance alone
 // (the same value, without the normal's divisions: contact selection)
@@ -501,11 +508,11 @@ void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vect
 
 // The roll stick of a line contact (line_contact.line_roll_stick): from the normal forces fn (m) of a
 // body's static contact set, with weights w = dep / denom, arms ar and normals nr (3 m, rows of 3),
-// the changes dfn (m) that make them max(fn + g, 0); false (dfn untouched) where the set is not
-// elongated, so nothing changes
+// the changes dfn (m) that make them max(fn + g, 0), the roll stopped within tau (roll_stop_time);
+// false (dfn untouched) where the set is not elongated, so nothing changes
 template <typename T, typename S>
 bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* ar, const T* fn, const T* om,
-                     const T* iw, S inv_m, S h, T* dfn) {
+                     const T* iw, S inv_m, S tau, T* dfn) {
   T centre[3] = {T(0), T(0), T(0)}, mean_n[3] = {T(0), T(0), T(0)};
   for (int j = 0; j < m; ++j) {
     const T wj = dep[j] / denom;
@@ -559,7 +566,7 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
     T iq[3];
     matvec(iw, q, iq);
     const T inv_mn = inv_m + dot3(q, iq);
-    const T g = -(gate * (dep[j] / denom) * (ubuf[j] - mean_u)) / (inv_mn * h);
+    const T g = -(gate * (dep[j] / denom) * (ubuf[j] - mean_u)) / (inv_mn * tau);
     dfn[j] = relu(fn[j] + g) - fn[j];
   }
   return true;
@@ -714,7 +721,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   // the roll stick of a line contact: its changes of the normal forces (loading's slot holds fn)
   std::vector<T>& dfn = scratch<T>(13);
   dfn.resize(m);
-  if (line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, h, dfn.data()))
+  if (line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, roll_stop_time(w), dfn.data()))
     for (int j = 0; j < m; ++j) {
       T f[3], tq[3];
       for (int i = 0; i < 3; ++i) f[i] = dfn[j] * nr[3 * j + i];

@@ -94,6 +94,8 @@ CONSTANTS = {
     "SMOOTH_MIN_POWER": (contacts.SMOOTH_MIN_POWER, "power of the friction's smooth minimum"),
     "LINE_ASPECT": (line_contact.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
+    "ROLL_STOP_OMEGA_T": (line_contact.ROLL_STOP_OMEGA_T, "omega_0 times the time in which the roll stick "
+                                                          "stops a line's roll, at least one substep"),
     "LINE_MIN_SPREAD": (line_contact.LINE_MIN_SPREAD, "m^2: a static contact set whose in-plane second "
                                                       "moment is at most this is a point, not a line"),
     "EDGE_SPACING": (box_edges.EDGE_SPACING, "m: spacing of the points along a static box's edges that "
