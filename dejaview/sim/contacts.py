@@ -86,9 +86,10 @@ relative slip and the pair's normal force and torques on both bodies
 (``predicted_pair_slip_change``).
 
 Roll stick of a line contact (static contacts). On an edge (touching
-contacts along a line) the normal forces also stop, within a substep, the
-roll that lifts one end of the line and presses the other, as a rigid
-edge's end forces do, within the contact's time scale (``dejaview.sim.line_contact``).
+contacts along a line) the normal forces also stop the roll that lifts one
+end of the line and presses the other, as a rigid edge's end forces do,
+within one substep at the default step and within the contact's time scale
+at finer ones (``dejaview.sim.line_contact``).
 
 Body pairs against a box. Where one body of a pair is a box (a primitive
 ``box`` object: ``BodySpec.box_half``, ``World.pair_surface``) and the other
