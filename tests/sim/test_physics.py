@@ -217,15 +217,12 @@ def test_a_box_bouncing_over_corners_ends_where_it_ends_at_finer_substeps():
     more substeps held it harder and the end moved 41.9 and 31.2 cm. Native engine (the torch
     engine agrees with it: tests/sim/test_native_gradients.py)."""
     _needs("native")
-    import math
-
     from dejaview.scene import Scene
     from dejaview.sim.build import initial_state
     from dejaview.sim.world import World
+    from tests.losses.helpers import axis_angle_quat
 
-    half = math.radians(30) / 2
-    axis = np.array([1.0, 2.0, 0.0]) / math.sqrt(5.0)
-    q = " ".join(f"{v:.17g}" for v in (math.cos(half), *(math.sin(half) * axis)))
+    q = " ".join(f"{v:.17g}" for v in axis_angle_quat((1.0, 2.0, 0.0), np.radians(30.0)).tolist())
     scene = Scene.from_string(f"""<scene version="1" name="corners" gravity="0 0 -9.81">
   <simulation dt="0.002" duration="1.0" friction="0.5" restitution="0.3"/>
   <object id="floor" shape="plane" fixed="true"><pose position="0 0 0" orientation="1 0 0 0"/></object>
