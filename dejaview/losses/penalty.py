@@ -4,7 +4,9 @@
 sphere packings of ``a`` and ``b`` over all recorded states, clamped at zero
 once they touch: ``relu(min_t min_ij |c_i - c_j| - r_i - r_j)``. Against a
 fixed object (a static shape, not in the state) the gap of a sphere is the
-shape's signed distance at its centre minus its radius.
+shape's signed distance at its centre minus its radius; a box body meets a
+plane or a static box with its corner spheres, as in the contacts
+(``dejaview.sim.box_edges``).
 
 The minimum is hard: the gradient flows through the closest sphere pair at the
 closest record only (a subgradient), and pulls that pair together. To keep
@@ -29,6 +31,7 @@ import math
 import torch
 
 from dejaview.errors import InferenceError
+from dejaview.sim.box_edges import CORNER_KINDS, box_corners
 from dejaview.sim.integrate import Trajectory
 from dejaview.sim.rotation import quat_rotate
 
@@ -39,9 +42,8 @@ DEFAULT_CHUNK_ELEMENTS = 1 << 20
 """Sphere pairs the closest-pair search evaluates at once (~32 MiB of float64 temporaries)."""
 
 
-def _sphere_centres(world, body: int, position: torch.Tensor, orientation: torch.Tensor) -> torch.Tensor:
-    """World sphere centres of one body: position (..., 3), orientation (..., 4) -> (..., S, 3)."""
-    c = world.centers[body]
+def _points(c: torch.Tensor, position: torch.Tensor, orientation: torch.Tensor) -> torch.Tensor:
+    """Body points c (S, 3) in the world: position (..., 3), orientation (..., 4) -> (..., S, 3)."""
     c = c.reshape(*([1] * (orientation.dim() - 1)), *c.shape)  # cross broadcasts, with equal ranks
     return position.unsqueeze(-2) + quat_rotate(orientation.unsqueeze(-2), c)
 
@@ -186,18 +188,23 @@ def _body_body_gap(world, pos, quat, a: int, b: int, chunk_elements: int) -> tor
 
 
 def _body_static_gap(world, pos, quat, a: int, static, chunk_elements: int) -> torch.Tensor:
-    ra = world.radii[a]
+    # the spheres body a meets the static with: a box's corners against a plane or a static box
+    # (dejaview.sim.box_edges, as the contacts), else its packing
+    if world.box_bodies[a] and static.kind in CORNER_KINDS:
+        centres, ra = (t[a] for t in box_corners(world.box_half))
+        invalid = torch.zeros_like(ra, dtype=torch.bool)
+    else:
+        centres, ra, invalid = world.centers[a], world.radii[a], world.mask[a] <= 0
     far = torch.finfo(pos.dtype).max
-    invalid = world.mask[a] <= 0
     pos_d, quat_d = pos.detach(), quat.detach()
 
     def gaps(t0, t1):
-        ca = _sphere_centres(world, a, pos_d[t0:t1, :, a], quat_d[t0:t1, :, a])  # (t, B, Sa, 3)
+        ca = _points(centres, pos_d[t0:t1, :, a], quat_d[t0:t1, :, a])  # (t, B, Sa, 3)
         d, _ = static.distance(ca)
         return (d - ra).masked_fill(invalid, far)
 
     _, rec, i = _running_argmin(gaps, pos.shape[0], ra.shape[0], chunk_elements)
     pa, qa = _pick(pos[:, :, a], rec), _pick(quat[:, :, a], rec)
-    ca = pa + quat_rotate(qa, world.centers[a][i])
+    ca = pa + quat_rotate(qa, centres[i])
     d, _ = static.distance(ca)
     return d - ra[i]

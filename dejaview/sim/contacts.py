@@ -89,7 +89,8 @@ Roll stick of a line contact (static contacts). On an edge (touching
 contacts along a line) the normal forces also stop the roll that lifts one
 end of the line and presses the other, as a rigid edge's end forces do,
 within one substep at the default step and within the contact's time scale
-at finer ones (``dejaview.sim.line_contact``).
+at finer ones (``dejaview.sim.line_contact``); not for box bodies, whose
+corners do without it.
 
 Body pairs against a box. Where one body of a pair is a box (a primitive
 ``box`` object: ``BodySpec.box_half``, ``World.pair_surface``) and the other
@@ -102,16 +103,18 @@ crossed the surface (a penetration deeper than the sphere's radius: a small
 sphere in a hard impact) is paired with a large sphere behind the nearest
 face, so delta_i stays r_i minus the signed distance and the force pushes it
 back out through that face. The box's own spheres
-stay for its static contacts and for a pair of two boxes (sphere against
-sphere). Why: a box's packing is a union of spheres, bumpy on a ball's scale;
+stay for a pair of two boxes (sphere against sphere) and for its contacts with
+curved statics (spheres, cylinders, grids). Why: a box's packing is a union of spheres, bumpy on a ball's scale;
 a ball meeting a packed face 5-30 mm off a sphere's axis left it sideways at
 up to 0.15 m/s where a flat face sends it straight back, and MuJoCo's box
 sent a ball rolling into it 1 cm off centre 12 cm elsewhere by 1.5 s
 (docs/physics-fidelity.md; ``tests/sim/test_physics.py``).
 
-Static box edges. Where a box body meets a static box, the static's edges meet
-the body's exact faces, and the body's spheres off the static's faces are left
-out (``dejaview.sim.box_edges``).
+A box body's corners and static box edges. A box body meets planes and static
+boxes with its 8 exact corners (spheres of 1 mm whose surfaces pass through
+them) in place of its packing, and without the roll stick; where it meets a
+static box, the static's edges meet the body's exact faces, and the body's
+corners off the static's faces are left out (``dejaview.sim.box_edges``).
 
 Contact points are on the sphere surface along the normal; torques are taken
 about the centre of mass.
@@ -139,7 +142,7 @@ from __future__ import annotations
 
 import torch
 
-from dejaview.sim.box_edges import on_static_edge, static_edge_contacts
+from dejaview.sim.box_edges import CORNER_KINDS, box_corners, on_static_edge, static_edge_contacts
 from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
@@ -331,19 +334,28 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     if edges:
         is_box = torch.tensor(world.box_bodies, dtype=torch.bool, device=spheres.device)  # (N,)
         rot = quat_to_matrix(state.orientation) if rot is None else rot
+        # a box body meets planes and static boxes with its corners: the packing's spheres and then
+        # the 8 corner spheres (box_corners), each masked to the bodies it belongs to
+        corner_c, corner_r = box_corners(world.box_half)  # (N, 8, 3), (N, 8)
+        corner_arm = small_matmul(corner_c.expand(b, nb, 8, 3), rot.transpose(-1, -2))  # (B, N, 8, 3)
+        corner_set = (torch.cat([spheres, state.position.unsqueeze(-2) + corner_arm], 2),
+                      torch.cat([radii, corner_r], 1),
+                      torch.cat([mask * ~is_box[:, None], is_box[:, None].expand(nb, 8).to(mask.dtype)], 1),
+                      torch.cat([arms_c, corner_arm], 2))
     groups = []  # per group: depth (B, N, C), normal (B, N, C, 3), arm (B, N, C, 3), its static
     for k, shape in enumerate(world.statics):
         box_edges = edges and shape.kind == "box"
-        pts, r, m, arm_c = spheres, radii, mask, arms_c
+        pts, r, m, arm_c = corner_set if edges and shape.kind in CORNER_KINDS else (spheres, radii, mask, arms_c)
         keep = None
-        if box_edges:  # a box body's spheres off the static's faces give way to its edge points
-            keep = ~(on_static_edge(shape, spheres.detach()) & is_box[None, :, None])
-        if s > cap:  # a static shape: per body its ``cap`` deepest spheres only
-            d0, _ = shape.distance(spheres.detach())
-            d0 = torch.relu(radii - d0) * mask
+        if box_edges:  # a box body's corners off the static's faces give way to its edge points
+            keep = ~(on_static_edge(shape, pts.detach()) & is_box[None, :, None])
+        count = pts.shape[2]
+        if count > cap:  # a static shape: per body its ``cap`` deepest spheres only
+            d0, _ = shape.distance(pts.detach())
+            d0 = torch.relu(r - d0) * m
             idx = deepest(d0 if keep is None else d0 * keep, cap)  # (B, N, C)
-            pts, arm_c = take(spheres, idx), take(arms_c, idx)
-            r, m = radii.expand(b, nb, s).gather(2, idx), mask.expand(b, nb, s).gather(2, idx)
+            pts, arm_c = take(pts, idx), take(arm_c, idx)
+            r, m = r.expand(b, nb, count).gather(2, idx), m.expand(b, nb, count).gather(2, idx)
             keep = None if keep is None else keep.gather(2, idx)
         d, n = shape.distance(pts)  # (B, N, C), (B, N, C, 3)
         depth = torch.relu(r - d) * m
@@ -379,7 +391,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     ft = friction_force(vt, mu_k[None, :, :, None] * fn, stick)
     fn = line_roll_stick(fn.reshape(b, nb, k * s), weight, arm.reshape(b, nb, k * s, 3),
                          normal.reshape(b, nb, k * s, 3), state.angular_velocity, m, inv_inertia_w,
-                         roll_stop_time(h, omega)).reshape(b, nb, k, s)
+                         roll_stop_time(h, omega), ~is_box if edges else None).reshape(b, nb, k, s)
     force = fn.unsqueeze(-1) * normal + ft  # (B, N, K, C, 3)
     torque = torch.linalg.cross(arm, force, dim=-1)
     return force.sum((2, 3)), torque.sum((2, 3))

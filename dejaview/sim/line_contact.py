@@ -49,8 +49,10 @@ step (docs/physics-fidelity.md, "The roll stick and the step";
 changed there.
 
 Static contacts only (``dejaview.sim.contacts.static_contact_wrench`` calls it after the
-friction); the native engine has the same formula (``native/contacts.h``, ``line_roll_stick``) and
-its reverse mode (``native/adjoint.h``, ``RollStick``).
+friction), and not for box bodies: they meet planes and static boxes with their exact corners
+(``dejaview.sim.box_edges``), where the stick is not needed; the native engine has the same
+formula (``native/contacts.h``, ``line_roll_stick``) and its reverse mode (``native/adjoint.h``,
+``RollStick``).
 """
 
 from __future__ import annotations
@@ -80,7 +82,7 @@ def roll_stop_time(h: float, omega: float) -> float:
 
 def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, normal: torch.Tensor,
                     angular_velocity: torch.Tensor, mass: torch.Tensor, inv_inertia_w: torch.Tensor,
-                    tau: float) -> torch.Tensor:
+                    tau: float, lines: torch.Tensor | None = None) -> torch.Tensor:
     """Normal forces (B, N, M) of each body's static contact set with the roll of a line contact
     held (the module docstring).
 
@@ -88,6 +90,8 @@ def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, n
         fn: (B, N, M) normal forces of the set's M contacts; weight: (B, N, M) their depth weights.
         arm, normal: (B, N, M, 3) lever arms and normals; angular_velocity: (B, N, 3).
         mass: (N,); inv_inertia_w: (B, N, 3, 3); tau: ``roll_stop_time`` (s).
+        lines: (N,) bool, the bodies whose sets the stick holds (None: all); box bodies meet
+            statics with their exact corners and go without it (``dejaview.sim.box_edges``).
     Returns:
         (B, N, M) ``max(fn + g, 0)``: fn where the set is not elongated (or has fewer than two
         touching contacts).
@@ -104,6 +108,8 @@ def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, n
     # relu(1 - a l2 / l1) with l2 / l1 = (T - D) / (T + D)
     gate = torch.relu((trace + spread - LINE_ASPECT * (trace - spread)) / (trace + spread + 1e-30))
     gate = torch.where(trace > LINE_MIN_SPREAD, gate, torch.zeros_like(gate))
+    if lines is not None:
+        gate = torch.where(lines, gate, torch.zeros_like(gate))
     on = gate > 0
     safe = torch.where(on, spread, torch.ones_like(spread)).unsqueeze(-1).unsqueeze(-1)
     zz = z.squeeze(-2)

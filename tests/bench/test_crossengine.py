@@ -44,19 +44,25 @@ def test_ball_motions_end_within_2_cm_of_mujoco(crossengine, motion):
 
 
 @pytest.mark.parametrize("motion", ["slide (box", "slide and spin", "tumble (box", "box lands on an edge",
-                                    "box-box hit", "ball hits a resting box", "ball meets a box face"])
+                                    "box dropped nearly flat", "box thrown onto the floor", "box-box hit",
+                                    "ball hits a resting box", "ball meets a box face"])
 def test_box_motions_end_within_2_cm_of_mujoco(crossengine, motion):
     """The primitive box's mirror-symmetric packing (geometry/box_spheres.py) keeps these within
     1.1 cm (the mesh-lattice packing: 0.13, 1.33, 1.31, -, 0.74 cm); the box landing on an edge
     within 0.8 cm since the friction on the predicted slip (3.65 cm before); the ball hitting a
     resting box (ball-hits-box's start) within 0.5 cm, and 1 cm off the box's centre line within
     0.5 cm since a box body meets other bodies with its exact surface (7.3 cm before, against its
-    packing's spheres)."""
+    packing's spheres). Since a box body meets the floor with its exact corners
+    (``dejaview.sim.box_edges``): the box dropped 5 deg off flat within 0.03 cm (2.92 on its
+    packing, whose face's spheres landed one after another), box-thrown within 1.34 cm (0.98 on
+    the packing with the roll stick, 2.35 without); box-tumble-2's row (1.92 cm) is left out: where
+    that box tips over an edge is decided by mm/s, and a machine's rounding moves it."""
     rows = crossengine.fidelity(print_fn=lambda *_: None, names=[motion], times=(1.0,))
     assert rows and all(r["gap_1s_m"] <= crossengine.FIDELITY_TOL for r in rows), rows
-    if motion in ("slide (box", "tumble (box", "box lands on an edge", "box-box hit"):
-        # and they rest turned alike (0.0-0.7 deg apart; the spinning slide 15 deg apart in yaw,
-        # the ball rows carry the ball's rolling)
+    if motion in ("slide (box", "slide and spin", "tumble (box", "box lands on an edge", "box dropped nearly flat",
+                  "box-box hit"):
+        # and they rest turned alike (0.0-0.7 deg apart; the spinning slide 15 deg apart in yaw on
+        # the packing, 0.4 on the corners; the ball rows carry the ball's rolling)
         assert all(r["angle_1s_deg"] <= 3.0 for r in rows), rows
 
 

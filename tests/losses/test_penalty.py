@@ -159,3 +159,31 @@ def test_bad_pairs_are_errors():
         contact_penalty(world, traj, "ball", "ball")
     with pytest.raises(InferenceError, match="neither"):
         contact_penalty(world, traj, "ball", "ceiling")
+
+
+def test_a_box_body_meets_a_plane_with_its_corners():
+    """A box body (``box_half``) tilted above the floor: its gap is that of its corner spheres
+    (radius ``BOX_CORNER_RADIUS``, their surfaces through the corners), as its contacts see it
+    (``dejaview.sim.box_edges``), within 0.73 mm of its lowest corner's height; its packing's lowest
+    sphere sits more than 1 cm higher (spheres round a box's corners off). A packed box without
+    ``box_half`` keeps its spheres' gap."""
+    from dejaview.sim.box_edges import BOX_CORNER_RADIUS
+    from dejaview.sim.rotation import quat_to_matrix
+
+    half = np.array([0.1, 0.075, 0.05])
+    q = rotvec_to_quat(torch.tensor([0.3, -0.2, 0.1], **F64))
+    pos = torch.tensor([0.2, -0.1, 0.15], **F64)
+    rot = quat_to_matrix(q).numpy()
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    r = BOX_CORNER_RADIUS
+    corner_gap = float(pos[2]) + float(((signs * (half - r)) @ rot.T)[:, 2].min()) - r
+    lowest = float(pos[2]) + float(((signs * half) @ rot.T)[:, 2].min())
+    gaps = {}
+    for box in (True, False):
+        body = box_body("box", box_half=tuple(half) if box else None)
+        world = make_world([body], [StaticShape.make("floor", "plane")], **ZERO_G)
+        traj = trajectory_of(world, pos.reshape(1, 1, 1, 3), q.reshape(1, 1, 1, 4))
+        gaps[box] = contact_penalty(world, traj, "box", "floor").item()
+    assert abs(gaps[True] - corner_gap) < 1e-12
+    assert 0 <= gaps[True] - lowest < (3 ** 0.5 - 1) * r + 1e-12
+    assert gaps[False] > lowest + 0.01

@@ -208,15 +208,47 @@ def test_a_box_landing_on_an_edge_while_sliding_along_it_does_not_roll_over_the_
     assert abs(w[0, 1] - dw[1]) < 0.1 * abs(dw[1])
 
 
-def test_a_box_bouncing_over_corners_ends_where_it_ends_at_finer_substeps():
-    """box-tumble-2's start (bench/crossengine.py): a box thrown onto the floor, bouncing over
-    corners and edges for 0.6 s. At 1.0 s its centre at 2 and at 8 substeps per 2 ms step is
-    within 1 cm of where 32 substeps (the same contact stiffness, ``World.with_substeps``) put it:
-    measured 0.25 and 0.17 cm. While the roll stick of a line contact stopped the roll within one
-    substep rather than within the contact's time (``dejaview.sim.line_contact.roll_stop_time``),
-    more substeps held it harder and the end moved 41.9 and 31.2 cm. Native engine (the torch
-    engine agrees with it: tests/sim/test_native_gradients.py)."""
-    _needs("native")
+@pytest.mark.parametrize("engine", ["native", "torch"])
+@pytest.mark.parametrize("static", ["plane", "box"])
+def test_a_box_body_meets_the_floor_with_its_exact_corner(engine, static):
+    """A box body (``box_half``) tilted so that one corner is lowest, that corner 0.5 mm into a
+    frictionless floor (a plane, or a static box's top face), without gravity: its packing's spheres
+    are all clear of the floor (the spheres round the corner off by centimetres), and its corner
+    (``dejaview.sim.box_edges.box_corners``) takes the impact: one step later the box moves up and
+    turns as an upward push at that corner turns it, I_w dw = c x m dv."""
+    _needs(engine)
+    from dejaview.sim.box_edges import BOX_CORNER_RADIUS
+    from dejaview.sim.rotation import quat_to_matrix, rotvec_to_quat
+
+    half = np.array([0.1, 0.075, 0.05])
+    body = box_body("box", box_half=tuple(half), friction=0.0, restitution=0.3)
+    floor = (StaticShape.make("floor", "plane", friction=0.0) if static == "plane" else
+             StaticShape.make("floor", "box", position=(0.0, 0.0, -0.5), half=(1.0, 1.0, 0.5), friction=0.0))
+    world = _weightless([body], [floor], mu=0.0)
+    q = rotvec_to_quat(torch.tensor([0.4, -0.3, 0.2], dtype=torch.float64))
+    rot = quat_to_matrix(q).numpy()
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    r = BOX_CORNER_RADIUS
+    corner = signs * (half - r) @ rot.T  # corner spheres' centres from the body's centre
+    k = int(np.argmin(corner[:, 2]))
+    z = -(corner[k, 2] - r) - 5e-4
+    spheres = world.centers[0].numpy() @ rot.T
+    assert (z + spheres[:, 2] - world.radii[0].numpy()).min() > 0.005  # the packing is clear of the floor
+    state = world.state([[0.0, 0.0, z]], orientation=q.reshape(1, 4))
+    traj = rollout(world, state, steps=1, engine=engine)
+    dv = traj.final.linear_velocity[0, 0].numpy()
+    dw = traj.final.angular_velocity[0, 0].numpy()
+    assert dv[2] > 0.01 and np.abs(dv[:2]).max() < 1e-12 * dv[2] + 1e-15
+    inertia_w = rot @ world.inertia[0].numpy() @ rot.T
+    push = np.cross(corner[k] - [0.0, 0.0, r], world.mass[0].item() * dv)
+    assert np.linalg.norm(inertia_w @ dw - push) < 0.02 * np.linalg.norm(push), (inertia_w @ dw, push)
+
+
+def _corner_bounce(box_body: bool):
+    """box-tumble-2's start (bench/crossengine.py): a box of 0.2 x 0.15 x 0.1 m and 1 kg thrown onto
+    the floor, bouncing over corners and edges for 0.6 s: (world, state). ``box_body``: the scene's
+    primitive box (its corners meet the floor, ``dejaview.sim.box_edges``), else the same box as a
+    packing of spheres without ``box_half`` (as a mesh body: the roll stick of a line contact acts)."""
     from dejaview.scene import Scene
     from dejaview.sim.build import initial_state
     from dejaview.sim.world import World
@@ -230,18 +262,51 @@ def test_a_box_bouncing_over_corners_ends_where_it_ends_at_finer_substeps():
     <velocity linear="0.3 -0.6 0.5" angular="2.0 1.0 3.0"/></object>
 </scene>""")
     world = World.from_scene(scene)
-    assert world.substeps == 2
+    assert world.substeps == 2 and world.box_bodies == (True,)
+    if not box_body:
+        body = _tilted_box(0.0)[0]
+        world = World.build([body], list(world.statics), dt=0.002, substeps=2, steps=500)
+    return world, initial_state(world, scene)
 
-    def end(substeps):
-        w = world.with_substeps(substeps)
-        with torch.no_grad():
-            traj = rollout(w, initial_state(w, scene), steps=500, engine="native")
-        return traj.final.position[0, 0].numpy()
 
-    fine = end(32)
+def _ends_at_substeps(world, state, substeps) -> np.ndarray:
+    """The centre (3,) at 1.0 s with ``substeps`` per 2 ms step (the same contact stiffness)."""
+    w = world.with_substeps(substeps)
+    with torch.no_grad():
+        traj = rollout(w, state, steps=500, engine="native")
+    return traj.final.position[0, 0].numpy()
+
+
+def test_a_packed_box_bouncing_over_corners_ends_where_it_ends_at_finer_substeps():
+    """box-tumble-2's start with the box as a packing of spheres (the roll stick of a line contact
+    acts on its edges): at 1.0 s its centre at 2 and at 8 substeps per 2 ms step is within 1 cm of
+    where 32 substeps put it: measured 0.25 and 0.17 cm. While the roll stick stopped the roll
+    within one substep rather than within the contact's time
+    (``dejaview.sim.line_contact.roll_stop_time``), more substeps held it harder and the end moved
+    41.9 and 31.2 cm. Native engine (the torch engine agrees with it:
+    tests/sim/test_native_gradients.py)."""
+    _needs("native")
+    world, state = _corner_bounce(box_body=False)
+    fine = _ends_at_substeps(world, state, 32)
     assert np.linalg.norm(fine[:2] - [1.0, 0.6]) > 0.2  # it went somewhere: the test is not of a box at rest
     for substeps in (2, 8):
-        assert np.linalg.norm(end(substeps) - fine) < 0.01, substeps
+        assert np.linalg.norm(_ends_at_substeps(world, state, substeps) - fine) < 0.01, substeps
+
+
+def test_a_box_on_its_corners_bouncing_over_them_converges_with_the_substeps():
+    """The same start with the primitive box, whose corners meet the floor
+    (``dejaview.sim.box_edges``): its end at 2, 4, 8 and 16 substeps is 1.18, 2.40, 0.66 and
+    0.17 cm from 32 substeps'. A corner is a point carrying the whole body spring (its stiffness
+    m omega_0^2 acts about a lever of 12 cm, so the impact's own frequency is about 2.6 omega_0:
+    the default step resolves it less finely than a face's), and where the box tips over an edge
+    at 0.4-0.7 s it amplifies the first impact's difference; a 1 mm nudge of the start moves the
+    end 1 mm. So this checks convergence, within 2.5 cm at every step and 0.5 cm at 16."""
+    _needs("native")
+    world, state = _corner_bounce(box_body=True)
+    fine = _ends_at_substeps(world, state, 32)
+    assert np.linalg.norm(fine[:2] - [1.0, 0.6]) > 0.2
+    gaps = [float(np.linalg.norm(_ends_at_substeps(world, state, k) - fine)) for k in (2, 4, 8, 16)]
+    assert max(gaps) < 0.025 and gaps[-1] < 0.005, gaps
 
 
 @pytest.mark.parametrize("engine", ["native", "torch"])

@@ -441,10 +441,8 @@ struct StaticAdjoint {
         total += ct.law.depth;
         continue;
       }
-      const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + ct.sphere) * 3;
-      for (int i = 0; i < 3; ++i) ct.c[i] = c[i];
-      ct.r = w.radii[a * w.s_max + ct.sphere];
-      sphere_center(x, rot, c, ct.p);
+      ct.r = static_point(w, a, ct.shape, ct.sphere, ct.c);
+      sphere_center(x, rot, ct.c, ct.p);
       D3 p3[3], d3, n3[3];
       for (int i = 0; i < 3; ++i) {
         p3[i] = D3(ct.p[i]);
@@ -522,7 +520,10 @@ struct StaticAdjoint {
         it.n[i] = ct.law.n[i];
       }
     }
-    roll.forward(om, inv_w, inv_m, roll_stop_time(w));
+    if (is_box_body(w, a))  // no roll stick on a box's corners (contacts.h, static_wrench)
+      roll.on = false;
+    else
+      roll.forward(om, inv_w, inv_m, roll_stop_time(w));
     if (roll.on)
       for (int j = 0; j < m; ++j) {
         const Contact& ct = contacts[j];

@@ -26,8 +26,8 @@ template <typename S>
 struct World {
   int n, s_max, k, p;
   std::vector<int> count;  // real spheres per body
-  std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body
-  std::vector<S> pair_reach;  // ... and, for a box, its corners' (body pairs meet its surface)
+  std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body, and for a
+                           // box its corners' (statics meet its corners, body pairs its surface)
   const S *mass, *inertia, *inv_inertia, *centers, *radii, *bound, *inv_i_min;
   std::vector<Shape<S>> shapes;
   const S *mu_static, *unload_static;  // (N, K)
@@ -433,13 +433,43 @@ inline bool is_box_body(const World<S>& w, int a) {
   return hb[0] > 0 || hb[1] > 0 || hb[2] > 0;
 }
 
+// whether body a meets static shape k with its 8 corners (box_edges.CORNER_KINDS: a box body
+// against a plane or a static box) rather than its packing
+static_assert(schema::KIND_COUNT == 5, "corner_contacts names the flat kinds (box_edges.CORNER_KINDS)");
+
+template <typename S>
+inline bool corner_contacts(const World<S>& w, int a, int k) {
+  const int kind = w.shapes[k].kind;
+  return (kind == schema::KIND_PLANE || kind == schema::KIND_BOX) && is_box_body(w, a);
+}
+
+// sphere i of body a's static contacts with shape k: its centre c (3, body axes) and its radius;
+// a box's corner i against a flat shape (box_edges.box_corners: sign +1 along axis j where bit j
+// of i is set, radius min(BOX_CORNER_RADIUS, min(half) / 4), centred that far inside), else its
+// packing's sphere i
+template <typename S>
+inline S static_point(const World<S>& w, int a, int k, int i, S* c) {
+  if (corner_contacts(w, a, k)) {
+    const S* hb = w.box_half + 3 * a;
+    const S r = std::min(S(schema::BOX_CORNER_RADIUS), S(0.25) * std::min(hb[0], std::min(hb[1], hb[2])));
+    for (int j = 0; j < 3; ++j) c[j] = ((i >> j) & 1 ? S(1) : S(-1)) * (hb[j] - r);
+    return r;
+  }
+  const S* cc = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
+  for (int j = 0; j < 3; ++j) c[j] = cc[j];
+  return w.radii[a * w.s_max + i];
+}
+
 // select_static's spheres of body a against static shape k (cand: the cap deepest), the bounds
-// updated; box_edges: leave out the spheres whose closest point on the static box is on an edge
+// updated; box_edges: leave out the spheres whose closest point on the static box is on an edge.
+// A box body's 8 corners against a flat shape (corner_contacts) are looked at every time they
+// are not culled as a whole (floor, keymin); the keys are the packing's
 template <typename S>
 void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, std::vector<Pick>& cand, S* key,
                     S* floor, S* keymin, S travel, bool box_edges) {
   cand.clear();
-  const int cnt = w.count[a];
+  const bool corners = corner_contacts(w, a, k);
+  const int cnt = corners ? 8 : w.count[a];
   const Shape<S>& sh = w.shapes[k];
   const S shift = sh.lipschitz * travel;
   const S thr = S(schema::CLEAR_MARGIN) + shift;  // a key above this cannot touch now
@@ -454,7 +484,19 @@ void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, s
   S* kk = key + static_cast<int64_t>(k) * w.s_max;
   const S fl = floor[k];
   S low = std::numeric_limits<S>::infinity();
-  for (int i = 0; i < cnt; ++i) {
+  if (corners) {
+    for (int i = 0; i < cnt; ++i) {
+      S c[3], p[3], d;
+      const S r = static_point(w, a, k, i, c);
+      sphere_center(x, rot, c, p);
+      distance<S>(sh, p, d, nullptr);
+      low = std::min(low, (d - r) + shift);
+      const S depth = r - d;
+      if (depth > 0 && !(box_edges && on_static_edge(sh, p))) cand.push_back({k, i, static_cast<double>(depth)});
+    }
+    keymin[k] = low;
+  }
+  for (int i = 0; i < cnt && !corners; ++i) {
     if (std::max(kk[i], fl) > thr) {
       low = std::min(low, kk[i]);
       continue;
@@ -470,8 +512,10 @@ void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, s
     const S depth = r - d;
     if (depth > 0 && !(box_edges && on_static_edge(sh, p))) cand.push_back({k, i, static_cast<double>(depth)});
   }
-  keymin[k] = low;
-  if (static_cast<int>(cand.size()) > w.cap_static && w.s_max > w.cap_static) {
+  if (!corners) keymin[k] = low;
+  // the torch engine selects among the packing and the corners (more than 8) where a box meets a
+  // flat shape, among the packing where the packing holds more than the capacity
+  if (static_cast<int>(cand.size()) > w.cap_static && (corners || w.s_max > w.cap_static)) {
     std::nth_element(cand.begin(), cand.begin() + w.cap_static, cand.end(),
                      [](const Pick& u, const Pick& v) { return u.depth > v.depth; });
     cand.resize(w.cap_static);
@@ -608,8 +652,8 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
       total = total + depth[j];
       continue;
     }
-    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + pk.sphere) * 3;
-    const S r = w.radii[a * w.s_max + pk.sphere];
+    S c[3];
+    const S r = static_point(w, a, pk.shape, pk.sphere, c);
     T p[3];
     sphere_center(x, rot, c, p);
     T d;
@@ -721,7 +765,9 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   // the roll stick of a line contact: its changes of the normal forces (loading's slot holds fn)
   std::vector<T>& dfn = scratch<T>(13);
   dfn.resize(m);
-  if (line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, roll_stop_time(w), dfn.data()))
+  // (not for a box body: it meets flat shapes with its exact corners, line_contact.py)
+  if (!is_box_body(w, a) &&
+      line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, roll_stop_time(w), dfn.data()))
     for (int j = 0; j < m; ++j) {
       T f[3], tq[3];
       for (int i = 0; i < 3; ++i) f[i] = dfn[j] * nr[3 * j + i];

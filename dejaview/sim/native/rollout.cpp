@@ -58,8 +58,8 @@ struct Scratch {
   std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
   std::vector<StaticAdjoint<S>> static_adj;       // (N) static contacts' values for the way back
   std::vector<PairAdjoint<S>> pair_adj;           // (P) ... body pairs'
-  std::vector<S> move;                            // (N) how far a sphere of each body moved this substep
-  std::vector<S> pair_move;                       // (N) ... or a point of a box's surface (pair_reach)
+  std::vector<S> move;                            // (N) how far a sphere, corner or box surface point of each
+                                                  // body moved this substep (World::reach)
   std::vector<S> travel;                          // (N) the sum of move over the substeps
   std::vector<char> placed;                       // (N) selected before (last holds its pose)
   std::vector<S> pair_clear;                      // (P) clearance bound of each pair (select_pair)
@@ -109,7 +109,6 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     // |p_i' - p_i| <= |x' - x| + |R' - R|_F |c_i|
     // (no previous selection: every bound is -inf, nothing to lower)
     const S move = sc.placed[a] ? std::sqrt(dx) + std::sqrt(dr) * w.reach[a] : S(0);
-    sc.pair_move[a] = sc.placed[a] ? std::sqrt(dx) + std::sqrt(dr) * w.pair_reach[a] : S(0);
     sc.placed[a] = 1;
     for (int i = 0; i < 3; ++i) last[i] = state[13 * a + i];
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
@@ -135,7 +134,7 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
   for (int pi = 0; pi < w.p; ++pi) {
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
     S& bound = sc.pair_clear[pi];
-    bound -= sc.pair_move[a] + sc.pair_move[b];
+    bound -= sc.move[a] + sc.move[b];
     if (bound > S(CLEAR_MARGIN) || (need != nullptr && !need[a] && !need[b])) {
       sc.pair_picks[pi].clear();
       continue;
@@ -357,7 +356,6 @@ void init_scratch(const World<S>& w, Scratch<S>& sc) {
   sc.keymin.assign(static_cast<size_t>(n) * w.k, -std::numeric_limits<S>::infinity());
   sc.last.assign(static_cast<size_t>(12) * n, std::numeric_limits<S>::infinity());
   sc.move.assign(n, S(0));
-  sc.pair_move.assign(n, S(0));
   sc.travel.assign(n, S(0));
   sc.placed.assign(n, 0);
   sc.pair_clear.assign(w.p, -std::numeric_limits<S>::infinity());
@@ -564,9 +562,9 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
   for (int pi = 0; pi < w.p; ++pi)
     TORCH_CHECK(w.pair_surface[pi] >= -1 && w.pair_surface[pi] <= 1, "native world field 'pair_surface': pair ",
                 pi, " has ", w.pair_surface[pi], " (schema: -1, 0 or 1)");
-  for (int i = 0; i < w.n; ++i) {  // a box's surface reaches its corners, beyond its spheres' centres
+  for (int i = 0; i < w.n; ++i) {  // a box's surface and corner spheres reach its corners, beyond its spheres' centres
     const S* half = w.box_half + 3 * i;
-    w.pair_reach.push_back(std::max(w.reach[i], std::sqrt(half[0] * half[0] + half[1] * half[1] + half[2] * half[2])));
+    w.reach[i] = std::max(w.reach[i], std::sqrt(half[0] * half[0] + half[1] * half[1] + half[2] * half[2]));
   }
   const S* rows = t[SHAPES].data_ptr<S>();
   const S* grid = t[GRID].numel() ? t[GRID].data_ptr<S>() : nullptr;

@@ -95,6 +95,7 @@ constexpr double LINE_ASPECT = 4.0;  // a static contact set whose in-plane seco
 constexpr double ROLL_STOP_OMEGA_T = 0.25;  // omega_0 times the time in which the roll stick stops a line's roll, at least one substep
 constexpr double LINE_MIN_SPREAD = 1e-12;  // m^2: a static contact set whose in-plane second moment is at most this is a point, not a line
 constexpr double EDGE_SPACING = 0.005;  // m: spacing of the points along a static box's edges that meet a box body's exact faces (static_edge_points)
+constexpr double BOX_CORNER_RADIUS = 0.001;  // m: radius of the spheres at a box body's corners, which meet planes and static boxes (box_corners)
 constexpr double CLEAR_MARGIN = 1e-09;  // m: a sphere or pair whose clearance bound stays above this cannot touch and is skipped (native culling only)
 
 }  // namespace schema

@@ -100,6 +100,8 @@ CONSTANTS = {
                                                       "moment is at most this is a point, not a line"),
     "EDGE_SPACING": (box_edges.EDGE_SPACING, "m: spacing of the points along a static box's edges that "
                                             "meet a box body's exact faces (static_edge_points)"),
+    "BOX_CORNER_RADIUS": (box_edges.BOX_CORNER_RADIUS, "m: radius of the spheres at a box body's corners, "
+                                                      "which meet planes and static boxes (box_corners)"),
     "CLEAR_MARGIN": (1e-9, "m: a sphere or pair whose clearance bound stays above this cannot touch "
                            "and is skipped (native culling only)"),
 }
