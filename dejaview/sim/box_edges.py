@@ -50,8 +50,8 @@ import torch
 from dejaview.sim.rotation import small_matmul
 
 BOX_CORNER_RADIUS = 1e-3
-"""m: radius of the spheres at a box body's corners (``box_corners``); a box thinner than two of
-them gets spheres of a quarter of its smallest extent."""
+"""m: radius of the spheres at a box body's corners (``box_corners``); a box whose smallest half
+extent is under 4 mm gets spheres of a quarter of that half extent."""
 
 CORNER_KINDS = ("plane", "box")
 """Static shape kinds that a box body meets with its corners (``box_corners``) instead of its
