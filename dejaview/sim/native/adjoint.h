@@ -441,7 +441,7 @@ struct StaticAdjoint {
         total += ct.law.depth;
         continue;
       }
-      ct.r = static_point(w, a, ct.shape, ct.sphere, ct.c);
+      ct.r = static_point(w, a, corner_contacts(w, a, ct.shape), ct.sphere, ct.c);
       sphere_center(x, rot, ct.c, ct.p);
       D3 p3[3], d3, n3[3];
       for (int i = 0; i < 3; ++i) {

@@ -443,13 +443,13 @@ inline bool corner_contacts(const World<S>& w, int a, int k) {
   return (kind == schema::KIND_PLANE || kind == schema::KIND_BOX) && is_box_body(w, a);
 }
 
-// sphere i of body a's static contacts with shape k: its centre c (3, body axes) and its radius;
-// a box's corner i against a flat shape (box_edges.box_corners: sign +1 along axis j where bit j
-// of i is set, radius min(BOX_CORNER_RADIUS, min(half) / 4), centred that far inside), else its
-// packing's sphere i
+// sphere i of body a's static contacts: its centre c (3, body axes) and its radius; with corners
+// (corner_contacts of the shape) the box's corner i (box_edges.box_corners: sign +1 along axis j
+// where bit j of i is set, radius min(BOX_CORNER_RADIUS, min(half) / 4), centred that far
+// inside), else its packing's sphere i
 template <typename S>
-inline S static_point(const World<S>& w, int a, int k, int i, S* c) {
-  if (corner_contacts(w, a, k)) {
+inline S static_point(const World<S>& w, int a, bool corners, int i, S* c) {
+  if (corners) {
     const S* hb = w.box_half + 3 * a;
     const S r = std::min(S(schema::BOX_CORNER_RADIUS), S(0.25) * std::min(hb[0], std::min(hb[1], hb[2])));
     for (int j = 0; j < 3; ++j) c[j] = ((i >> j) & 1 ? S(1) : S(-1)) * (hb[j] - r);
@@ -462,8 +462,9 @@ inline S static_point(const World<S>& w, int a, int k, int i, S* c) {
 
 // select_static's spheres of body a against static shape k (cand: the cap deepest), the bounds
 // updated; box_edges: leave out the spheres whose closest point on the static box is on an edge.
-// A box body's 8 corners against a flat shape (corner_contacts) are looked at every time they
-// are not culled as a whole (floor, keymin); the keys are the packing's
+// A box body's 8 corners against a flat shape (corner_contacts) have no keys of their own (the
+// keys are the packing's): they are looked at every time they are not culled as a whole (floor,
+// keymin)
 template <typename S>
 void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, std::vector<Pick>& cand, S* key,
                     S* floor, S* keymin, S travel, bool box_edges) {
@@ -484,35 +485,22 @@ void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, s
   S* kk = key + static_cast<int64_t>(k) * w.s_max;
   const S fl = floor[k];
   S low = std::numeric_limits<S>::infinity();
-  if (corners) {
-    for (int i = 0; i < cnt; ++i) {
-      S c[3], p[3], d;
-      const S r = static_point(w, a, k, i, c);
-      sphere_center(x, rot, c, p);
-      distance<S>(sh, p, d, nullptr);
-      low = std::min(low, (d - r) + shift);
-      const S depth = r - d;
-      if (depth > 0 && !(box_edges && on_static_edge(sh, p))) cand.push_back({k, i, static_cast<double>(depth)});
-    }
-    keymin[k] = low;
-  }
-  for (int i = 0; i < cnt && !corners; ++i) {
-    if (std::max(kk[i], fl) > thr) {
+  for (int i = 0; i < cnt; ++i) {
+    if (!corners && std::max(kk[i], fl) > thr) {
       low = std::min(low, kk[i]);
       continue;
     }
-    const S* c = w.centers + (static_cast<int64_t>(a) * w.s_max + i) * 3;
-    S p[3];
+    S c[3], p[3], d;
+    const S r = static_point(w, a, corners, i, c);
     sphere_center(x, rot, c, p);
-    S d;
     distance<S>(sh, p, d, nullptr);
-    const S r = w.radii[a * w.s_max + i];
-    kk[i] = (d - r) + shift;
-    low = std::min(low, kk[i]);
+    const S clear = (d - r) + shift;
+    if (!corners) kk[i] = clear;
+    low = std::min(low, clear);
     const S depth = r - d;
     if (depth > 0 && !(box_edges && on_static_edge(sh, p))) cand.push_back({k, i, static_cast<double>(depth)});
   }
-  if (!corners) keymin[k] = low;
+  keymin[k] = low;
   // the torch engine selects among the packing and the corners (more than 8) where a box meets a
   // flat shape, among the packing where the packing holds more than the capacity
   if (static_cast<int>(cand.size()) > w.cap_static && (corners || w.s_max > w.cap_static)) {
@@ -653,7 +641,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
       continue;
     }
     S c[3];
-    const S r = static_point(w, a, pk.shape, pk.sphere, c);
+    const S r = static_point(w, a, corner_contacts(w, a, pk.shape), pk.sphere, c);
     T p[3];
     sphere_center(x, rot, c, p);
     T d;
