@@ -35,9 +35,11 @@ What carries over, and how (docs/robotics.md has the user-facing version):
   get an explicit ``<pair>`` (``_contact_pairs``): DejaView's combined
   material (friction by the geometric mean, restitution by the mean, where
   MuJoCo combines geoms' friction by their maximum and solref by the mean)
-  and ``solreffriction="0 -4 omega_0"`` (``FRICTION_DAMPING``), the friction's
+  and ``solreffriction="0 -2 omega_0"`` (``FRICTION_DAMPING``), the friction's
   own reference damping: by default MuJoCo damps a slip with the normal
-  contact's b, too slowly to stop it within an impact as Coulomb friction does.
+  contact's b, too slowly to stop it within an impact as Coulomb friction does;
+  a larger damping makes MuJoCo's convex soft contact take normal impulse away
+  from a sticking impact (``_contact_pairs``).
 * State: DejaView's linear velocity is the centre of mass's, world frame;
   a MuJoCo free joint's is the body origin's (world frame) and its angular
   velocity is in the body frame: both are converted.
@@ -65,10 +67,11 @@ DEFAULT_FREQUENCY = 250.0
 """rad/s: DejaView's default contact frequency (0.25 / (dt / substeps) at dt 2 ms, 2 substeps)."""
 SOLIMP = (0.99, 0.99, 0.001)  # constant impedance: solref's stiffness and damping act as given
 OPTION = {"integrator": "implicitfast", "cone": "elliptic", "impratio": "10"}
-FRICTION_DAMPING = 4.0
+FRICTION_DAMPING = 2.0
 """A contact pair's friction decays a slip at this many times the contact frequency
-(``solreffriction = (0, -FRICTION_DAMPING omega_0)``), in a sixth of an impact's loading phase:
-close to Coulomb friction's instant stick (``_contact_pairs`` has the measurements)."""
+(``solreffriction = (0, -FRICTION_DAMPING omega_0)``), in a third of an impact's loading phase:
+the slip stops within the impact as with Coulomb friction, and the normal impulse stays Coulomb's
+(``_contact_pairs`` has the measurements)."""
 
 
 class MJCFError(DejaViewError):
@@ -354,16 +357,18 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
     Each pair has DejaView's combined material (friction by the geometric mean, restitution by
     the mean; MuJoCo's own rule for geoms takes the larger friction) and its friction's
     reference acceleration ``solreffriction = (0, -FRICTION_DAMPING omega_0)``: a slip decays in
-    a quarter of 1 / omega_0, a sixth of an impact's loading phase. MuJoCo otherwise damps the
+    half of 1 / omega_0, a third of an impact's loading phase. MuJoCo otherwise damps the
     friction dimensions with the normal contact's damping b = 2 zeta omega_0 (61 /s at e = 0.7),
     and a ball dropped 0.5 m with 0.3 m/s sideways left the floor still slipping at 0.14 m/s,
     where Coulomb friction (and DejaView) stops the slip within the impact. The factor
-    (docs/physics-fidelity.md, "The friction's damping at 4 omega_0", measured at MuJoCo's
-    converged 5 us): a box landing on its front edge (40 deg, 2.2 m/s forward, 3.6 down, turning
-    at 110 deg/s: the box sliding off the table) turns on at 84 deg/s after a rigid impact with
-    Coulomb friction and at 87 in DejaView; MuJoCo at factors 1, 2, 4, 8: -6, 72, 99, 126. With too
-    little friction during the impact the normal impulse, ahead of the centre of mass, stops the
-    turn. An explicit pair replaces MuJoCo's automatic contact of the same two geoms.
+    (docs/physics-fidelity.md, "The friction's damping at 2 omega_0", MuJoCo at its 5 us): MuJoCo's
+    contact is a convex soft constraint, whose friction's reference feeds into the normal force;
+    a ball landing at 2 m/s with 2.5 m/s of backspin (e 0.3), whose rebound Coulomb friction
+    leaves as it is, rebounds 0.010 m/s slower than without spin at factor 2, 0.088 at 4, 0.19
+    at 8, while at 1 its slip is not stopped (7 % short of rolling). A box landing on its front
+    edge (40 deg, 2.2 m/s forward, 3.6 down, turning at 110 deg/s) turns on at 84 deg/s after a
+    rigid impact with Coulomb friction, 87 in DejaView, and in MuJoCo at factors 1, 2, 4, 8 at
+    -6, 72, 99, 126. An explicit pair replaces MuJoCo's automatic contact of the same two geoms.
     """
     frequency = scene_frequency(scene)
     out = []
