@@ -25,7 +25,9 @@ Three parts, printed as tables (docs/physics-fidelity.md has the measured ones):
    ratio with / without model uncertainty are printed too (not asserted).
    The floor cases' start areas are centred on the truth's x, y (a table
    case's is the table top); ``--area-offset DX DY`` (``offset_area``) moves
-   them so that the guess is not the truth's position either.
+   them so that the guess is not the truth's position either. ``--random-cases N``
+   (``random_cases``) solves N random tumbling boxes of the cases' kind, held out
+   from every choice tuned on the cases.
 3. **Random throws** (``throws``, ``--throws N``): the engines' gap on N boxes
    thrown at random, with controls that tell a model gap from chaos and from
    the steps: how typical the fidelity table's chosen rows are.
@@ -413,10 +415,15 @@ def _on_table(z):
     return TABLE_TOP + z
 
 
+def _floor_area(x, y, z0, z1) -> tuple:
+    """A floor case's start area: 0.6 x 0.6 m centred on (x, y), heights z0..z1."""
+    return ((x - 0.3, y - 0.3, z0), (x + 0.3, y + 0.3, z1))
+
+
 def _cases() -> tuple[Case, ...]:
     zb, zx = _on_table(BALL_R), _on_table(BOX[2] / 2)
     tab = lambda z: ((*TABLE_AREA[0], z), (*TABLE_AREA[1], z))  # noqa: E731
-    floor = lambda x, y, z0, z1: ((x - 0.3, y - 0.3, z0), (x + 0.3, y + 0.3, z1))  # noqa: E731
+    floor = _floor_area
     tilt = about((1, 2, 0), 30)
     return (
         Case("ball-off-table", ball("source", (-0.2, 0.05, zb), (1.2, 0.1, 0)), tab(zb)),
@@ -453,6 +460,49 @@ def _cases() -> tuple[Case, ...]:
 
 
 CASES = _cases()
+
+
+RANDOM_AREA = ((1.0, -0.6, 0.3), (1.8, 0.6, 0.5))
+"""(min, max) true start of ``random_cases``' boxes: above the floor, clear of the table."""
+RANDOM_TILT = 40.0
+"""deg: ``random_cases``' boxes start tilted up to this much (about a random horizontal axis)."""
+
+
+def _quat_mul(a, b) -> tuple:
+    """Hamilton product of quaternions ``a``, ``b`` (w, x, y, z)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
+    """``count`` tumbling boxes of the kind of box-tumble, box-tumble-2 and box-thrown that no
+    one tuned anything for (``--random-cases``): the start uniform in ``RANDOM_AREA``, any
+    heading, tilted uniformly up to ``RANDOM_TILT``, velocities normal (``THROW_SPEED``,
+    ``THROW_SPIN``: within the cases' ``PRIOR``), the orientation free, the area the floor cases'
+    around the truth (0.2 m of height), observed at 1.2 s. Named ``box-random-<seed>-<i>``;
+    ``seed`` seeds numpy's generator, so the same seed gives the same cases.
+
+    Raises:
+        ValueError: a count or seed that is not a whole number >= 0.
+    """
+    if int(count) != count or count < 0:
+        raise ValueError(f"random cases: {count!r} is not a whole number >= 0")
+    check_seeds((seed,))
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(int(count)):
+        position = rng.uniform(*(np.asarray(v) for v in RANDOM_AREA))
+        axis = rng.normal(size=2)
+        tilt = about((axis[0], axis[1], 0.0), RANDOM_TILT * math.sqrt(rng.uniform()))  # uniform on the cap
+        heading = about((0.0, 0.0, 1.0), rng.uniform(0.0, 360.0))
+        orientation = _quat_mul(tilt, heading)
+        linear, angular = rng.normal(size=3) * THROW_SPEED, rng.normal(size=3) * THROW_SPIN
+        x, y, z = position
+        out.append(Case(f"box-random-{seed}-{i}", box("source", position, linear, angular, orientation),
+                        _floor_area(x, y, z - 0.1, z + 0.1), orientation=True))
+    return tuple(out)
 
 
 PRIOR = {"box": 'speed="2" spin="5"', "ball": 'speed="2"'}
@@ -588,11 +638,11 @@ def _truth_start(scene) -> np.ndarray:
 
 def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
         with_fidelity: bool = True, baseline: bool = True, seeds=(0,), prior: bool = True,
-        area_offset=(0.0, 0.0)) -> list[dict]:
+        area_offset=(0.0, 0.0), extra_cases=()) -> list[dict]:
     """Fidelity table and the inference cases with and without model uncertainty (module docstring).
 
     Args:
-        cases: case names (default all of ``CASES``).
+        cases: case names (default all of ``CASES``, or none where ``extra_cases`` are given).
         uncertainty: (friction, restitution) relative standard deviations of the runs with it.
         warp: also re-simulate the answers in Warp (where it is installed).
         with_fidelity: print the fidelity table first.
@@ -603,13 +653,16 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
             noisy estimate of the rate.
         prior: the solves' ``<prior>`` is ``PRIOR`` (False: flat within the backend's bounds).
         area_offset: (dx, dy) m, the floor cases' start areas moved off the truth (``offset_area``).
+        extra_cases: more ``Case``s solved after the chosen ones (``random_cases``).
     Returns:
         rows (dicts) of both parts.
     """
     from dejaview.cli.bench import load_average
 
     seeds = check_seeds(seeds)
-    chosen = [offset_area(c, area_offset) for c in CASES if not cases or c.name in cases]
+    chosen = [offset_area(c, area_offset) for c in CASES
+              if (not cases and not extra_cases) or c.name in (cases or ())]
+    chosen += [offset_area(c, area_offset) for c in extra_cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
         raise ValueError(f"unknown case(s) {', '.join(sorted(unknown))}; cases: "
@@ -682,6 +735,9 @@ def main(argv=None) -> int:
     parser.add_argument("--timestep-study", action="store_true", help="only MuJoCo's step convergence")
     parser.add_argument("--throws", type=int, default=0, metavar="N",
                         help="only the engines' gap on N random box throws (throws; seeded by --seeds' first)")
+    parser.add_argument("--random-cases", type=int, default=0, metavar="N",
+                        help="N random tumbling boxes (random_cases), instead of the cases unless --cases names some")
+    parser.add_argument("--random-seed", type=int, default=0, help="the seed of --random-cases' draw")
     args = parser.parse_args(argv)
     if args.timestep_study:
         rows = timestep_study()
@@ -691,7 +747,8 @@ def main(argv=None) -> int:
         rows = run(cases=tuple(c for c in args.cases.split(",") if c), warp=not args.no_warp,
                    with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,
                    seeds=tuple(int(v) for v in args.seeds.split(",") if v), prior=not args.flat_prior,
-                   area_offset=tuple(args.area_offset))
+                   area_offset=tuple(args.area_offset),
+                   extra_cases=random_cases(args.random_cases, args.random_seed))
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

@@ -372,9 +372,14 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 @click.option("--throws", default=0, type=click.IntRange(min=0), metavar="N",
               help="Only the engines' gap on N random box throws, with its controls (seeded by the first "
                    "of --seeds).")
+@click.option("--random-cases", default=0, type=click.IntRange(min=0), metavar="N",
+              help="Also solve N random tumbling boxes of the cases' kind (bench/crossengine.py random_cases), "
+                   "held out from every choice made on the cases; alone without --cases.")
+@click.option("--random-seed", default=0, type=click.IntRange(min=0), show_default=True,
+              help="The seed of --random-cases' draw.")
 @csv_option
 def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
-                area_offset, timestep_study, throws, csv_path):
+                area_offset, timestep_study, throws, random_cases, random_seed, csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
@@ -403,7 +408,8 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
         else:
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
                               with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds,
-                              prior=not flat_prior, area_offset=area_offset)
+                              prior=not flat_prior, area_offset=area_offset,
+                              extra_cases=module.random_cases(random_cases, random_seed))
     except ValueError as exc:
         hint = ("--seeds" if "seeds" in str(exc) else "--area-offset" if "area offset" in str(exc)
                 else "--cases")

@@ -259,6 +259,58 @@ def test_random_throws_are_seeded_and_land_on_the_floor_clear_of_the_table(cross
         assert abs(np.linalg.norm(x["orientation"]) - 1) < 1e-12
 
 
+def test_random_cases_are_seeded_tumbling_boxes_clear_of_the_floor_and_the_table(crossengine):
+    """``random_cases``: the same seed draws the same cases, another seed others; each is a box whose
+    true start lies in ``RANDOM_AREA`` and in its own start area, tilted at most ``RANDOM_TILT``,
+    the whole box above the floor and clear of the table, its orientation free."""
+    import numpy as np
+
+    def starts(cases):
+        out = []
+        for case in cases:
+            scene = crossengine.case_scene(case)
+            (source,) = [o for o in scene.objects if o.id == "source"]
+            out.append((np.asarray(source.pose.position), np.asarray(source.pose.orientation), case))
+        return out
+
+    a, b, c = crossengine.random_cases(20, 5), crossengine.random_cases(20, 5), crossengine.random_cases(20, 6)
+    assert a == b and a != c
+    assert [x.name for x in a] == [f"box-random-5-{i}" for i in range(20)]
+    half_diagonal = float(np.linalg.norm(crossengine.BOX)) / 2
+    lo, hi = (np.asarray(v) for v in crossengine.RANDOM_AREA)
+    tilts = []
+    for p, q, case in starts(a):
+        assert np.all(p >= lo) and np.all(p <= hi), p
+        assert np.all(p >= case.area[0]) and np.all(p <= case.area[1]), (p, case.area)
+        assert p[2] - half_diagonal > 0 and p[0] - half_diagonal > 0.4, p
+        assert case.orientation and not case.ball
+        w, x, y, z = q / np.linalg.norm(q)
+        tilts.append(np.degrees(np.arccos(np.clip(1 - 2 * (x * x + y * y), -1, 1))))  # body z against world z
+    assert max(tilts) <= crossengine.RANDOM_TILT + 1e-9 and max(tilts) > 20, tilts
+    assert crossengine.random_cases(0) == ()
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="random cases"):
+            crossengine.random_cases(bad)
+
+
+@pytest.mark.slow
+def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
+    """``--random-cases 1`` solves one random box and none of the cases; with ``--cases`` both."""
+    import csv
+
+    out = tmp_path / "rows.csv"
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--random-cases", "1", "--random-seed", "3",
+                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    assert [r["case"] for r in rows] == ["box-random-3-0"], rows
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--random-cases", "1", "--cases", "ball-on-table",
+                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    assert [r["case"] for r in rows] == ["ball-on-table", "box-random-0-0"], rows
+
+
 def test_cli_throws_measures_the_engines_gap_and_its_controls(tmp_path):
     """One throw through ``dejaview bench crossengine --throws``: its row has the gap at both times
     and the three controls; MuJoCo at half its step ends within 5 mm of itself (the reference is
