@@ -468,18 +468,11 @@ RANDOM_TILT = 40.0
 """deg: ``random_cases``' boxes start tilted up to this much (about a random horizontal axis)."""
 
 
-def _quat_mul(a, b) -> tuple:
-    """Hamilton product of quaternions ``a``, ``b`` (w, x, y, z)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
-
-
 def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
     """``count`` tumbling boxes of the kind of box-tumble, box-tumble-2 and box-thrown that no
     one tuned anything for (``--random-cases``): the start uniform in ``RANDOM_AREA``, any
-    heading, tilted uniformly up to ``RANDOM_TILT``, velocities normal (``THROW_SPEED``,
+    heading, tilted about a random horizontal axis by ``RANDOM_TILT`` sqrt(u) (u uniform: the tilt
+    vector uniform over a disc), velocities normal (``THROW_SPEED``,
     ``THROW_SPIN``: within the cases' ``PRIOR``), the orientation free, the area the floor cases'
     around the truth (0.2 m of height), observed at 1.2 s. Named ``box-random-<seed>-<i>``;
     ``seed`` seeds numpy's generator, so the same seed gives the same cases.
@@ -487,6 +480,10 @@ def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
     Raises:
         ValueError: a count or seed that is not a whole number >= 0.
     """
+    import torch
+
+    from dejaview.sim.rotation import quat_multiply
+
     if int(count) != count or count < 0:
         raise ValueError(f"random cases: {count!r} is not a whole number >= 0")
     check_seeds((seed,))
@@ -495,9 +492,10 @@ def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
     for i in range(int(count)):
         position = rng.uniform(*(np.asarray(v) for v in RANDOM_AREA))
         axis = rng.normal(size=2)
-        tilt = about((axis[0], axis[1], 0.0), RANDOM_TILT * math.sqrt(rng.uniform()))  # uniform on the cap
+        tilt = about((axis[0], axis[1], 0.0), RANDOM_TILT * math.sqrt(rng.uniform()))
         heading = about((0.0, 0.0, 1.0), rng.uniform(0.0, 360.0))
-        orientation = _quat_mul(tilt, heading)
+        orientation = quat_multiply(torch.tensor(tilt, dtype=torch.float64),
+                                    torch.tensor(heading, dtype=torch.float64)).tolist()
         linear, angular = rng.normal(size=3) * THROW_SPEED, rng.normal(size=3) * THROW_SPIN
         x, y, z = position
         out.append(Case(f"box-random-{seed}-{i}", box("source", position, linear, angular, orientation),
