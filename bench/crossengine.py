@@ -503,6 +503,81 @@ def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
     return tuple(out)
 
 
+PERTURB_SHIFT = 0.05
+"""m: ``perturbed_cases`` moves a true start by up to this in x and y (uniform), and in z where the
+start height is free (the start area's heights are a range)."""
+PERTURB_SCALE = 0.2
+"""``perturbed_cases`` scales each velocity component by a factor uniform in 1 -/+ this (a zero stays
+zero: a slide stays a slide, a head-on hit head-on)."""
+PERTURB_TURN = 15.0
+"""deg: ``perturbed_cases`` turns a free start orientation about a random axis, and a given one (a
+box flat on a surface) about the vertical, by up to this."""
+
+
+def perturb_case(case: Case, rng) -> Case:
+    """``case`` with its true start moved, its velocity scaled and its orientation turned by draws
+    from ``rng`` (``PERTURB_SHIFT``, ``PERTURB_SCALE``, ``PERTURB_TURN``); the rest of the scene, what
+    is free and the observation time are the case's. A floor case's start area (centred on the
+    truth) moves with the start; a table case's (the table top) stays and the start is kept on it.
+
+    Raises:
+        ValueError: the moved start is not clear of the floor.
+    """
+    import torch
+
+    from dejaview.sim.rotation import quat_multiply
+
+    source = case_scene(case).object("source")
+    p = np.asarray(source.pose.position, dtype=np.float64)
+    lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
+    free_z = hi[2] > lo[2]
+    d = np.array([*rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT, 2), rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT)])
+    d[2] = d[2] if free_z else 0.0
+    table = np.allclose((lo[:2], hi[:2]), TABLE_AREA)
+    q = p + d
+    if table:
+        q[:2] = np.clip(q[:2], lo[:2], hi[:2])
+    else:
+        lo, hi = lo + (q - p), hi + (q - p)
+    linear = np.asarray(source.velocity.linear) * rng.uniform(1 - PERTURB_SCALE, 1 + PERTURB_SCALE, 3)
+    angular = np.asarray(source.velocity.angular) * rng.uniform(1 - PERTURB_SCALE, 1 + PERTURB_SCALE, 3)
+    axis = rng.normal(size=3) if case.orientation else np.array([0.0, 0.0, 1.0])
+    turn = about(axis, rng.uniform(-PERTURB_TURN, PERTURB_TURN))
+    orientation = quat_multiply(torch.tensor(turn, dtype=torch.float64),
+                                torch.tensor(source.pose.orientation, dtype=torch.float64)).tolist()
+    first, rest = case.objects.split("</object>", 1)
+    moved = (ball("source", q, linear, angular) if case.ball
+             else box("source", q, linear, angular, orientation)) + rest
+    if case.ball:
+        bottom = q[2] - BALL_R
+    else:
+        w, x, y, z = orientation
+        row = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])  # world z in body axes
+        bottom = q[2] - float(np.abs(row) @ np.asarray(BOX)) / 2
+    if bottom < -1e-9:
+        raise ValueError(f"perturbed case {case.name}: the source's start sinks {-bottom:.3f} m into the floor")
+    return replace(case, objects=moved, area=(tuple(lo.tolist()), tuple(hi.tolist())))
+
+
+def perturbed_cases(seed: int, cases=None) -> tuple[Case, ...]:
+    """Every case of ``cases`` (default ``CASES``) perturbed (``perturb_case``) by a numpy generator
+    seeded with ``seed``, named ``<case>-p<seed>``: cases of the bench's kinds (a ball rolling off the
+    table, a box tumbling, ...) whose truths no one tuned anything for (``--perturbed-seed``). Each
+    case draws from its own stream (``seed`` and its index in ``CASES``), so a case's perturbation does
+    not depend on which others are chosen.
+
+    Raises:
+        ValueError: a seed that is not a whole number >= 0.
+    """
+    check_seeds((seed,))
+    index = {c.name: i for i, c in enumerate(CASES)}
+    out = []
+    for case in (CASES if cases is None else cases):
+        rng = np.random.default_rng((int(seed), index.get(case.name, len(index))))
+        out.append(replace(perturb_case(case, rng), name=f"{case.name}-p{int(seed)}"))
+    return tuple(out)
+
+
 PRIOR = {"box": 'speed="2" spin="5"', "ball": 'speed="2"'}
 """``<prior>`` attributes of the cases' solves, by the source's shape: what is believed about a
 start before looking at its end. The objects here are pushed, dropped or thrown by hand: each
@@ -636,7 +711,7 @@ def _truth_start(scene) -> np.ndarray:
 
 def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
         with_fidelity: bool = True, baseline: bool = True, seeds=(0,), prior: bool = True,
-        area_offset=(0.0, 0.0), extra_cases=()) -> list[dict]:
+        area_offset=(0.0, 0.0), extra_cases=(), perturb: int | None = None) -> list[dict]:
     """Fidelity table and the inference cases with and without model uncertainty (module docstring).
 
     Args:
@@ -652,14 +727,17 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
         prior: the solves' ``<prior>`` is ``PRIOR`` (False: flat within the backend's bounds).
         area_offset: (dx, dy) m, the floor cases' start areas moved off the truth (``offset_area``).
         extra_cases: more ``Case``s solved after the chosen ones (``random_cases``).
+        perturb: a seed: the chosen cases' truths perturbed by it (``perturbed_cases``) instead.
     Returns:
         rows (dicts) of both parts.
     """
     from dejaview.cli.bench import load_average
 
     seeds = check_seeds(seeds)
-    chosen = [offset_area(c, area_offset) for c in CASES
-              if (not cases and not extra_cases) or c.name in (cases or ())]
+    chosen = [c for c in CASES if (not cases and not extra_cases) or c.name in (cases or ())]
+    if perturb is not None:
+        chosen = list(perturbed_cases(perturb, chosen))
+    chosen = [offset_area(c, area_offset) for c in chosen]
     chosen += [offset_area(c, area_offset) for c in extra_cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
@@ -736,6 +814,8 @@ def main(argv=None) -> int:
     parser.add_argument("--random-cases", type=int, default=0, metavar="N",
                         help="N random tumbling boxes (random_cases), instead of the cases unless --cases names some")
     parser.add_argument("--random-seed", type=int, default=0, help="the seed of --random-cases' draw")
+    parser.add_argument("--perturbed-seed", type=int, default=None, metavar="S",
+                        help="the cases' truths perturbed by seed S (perturbed_cases) instead of the cases")
     args = parser.parse_args(argv)
     if args.timestep_study:
         rows = timestep_study()
@@ -746,7 +826,7 @@ def main(argv=None) -> int:
                    with_fidelity=not args.no_fidelity, baseline=not args.no_baseline,
                    seeds=tuple(int(v) for v in args.seeds.split(",") if v), prior=not args.flat_prior,
                    area_offset=tuple(args.area_offset),
-                   extra_cases=random_cases(args.random_cases, args.random_seed))
+                   extra_cases=random_cases(args.random_cases, args.random_seed), perturb=args.perturbed_seed)
     if args.csv is not None:
         from dejaview.cli.bench import write_rows_csv
 

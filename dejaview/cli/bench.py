@@ -377,9 +377,13 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
                    "held out from every choice made on the cases; alone without --cases.")
 @click.option("--random-seed", default=0, type=click.IntRange(min=0), show_default=True,
               help="The seed of --random-cases' draw.")
+@click.option("--perturbed-seed", default=None, type=click.IntRange(min=0), metavar="S",
+              help="Solve the cases with their truths perturbed by seed S (bench/crossengine.py perturbed_cases: "
+                   "the start moved up to 5 cm, each velocity component scaled by 0.8-1.2, turned up to 15 deg) "
+                   "instead of the cases themselves: cases of the same kinds that nothing was tuned on.")
 @csv_option
 def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
-                area_offset, timestep_study, throws, random_cases, random_seed, csv_path):
+                area_offset, timestep_study, throws, random_cases, random_seed, perturbed_seed, csv_path):
     """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
 
     First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
@@ -409,7 +413,8 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
             rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
                               with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds,
                               prior=not flat_prior, area_offset=area_offset,
-                              extra_cases=module.random_cases(random_cases, random_seed))
+                              extra_cases=module.random_cases(random_cases, random_seed),
+                              perturb=perturbed_seed)
     except ValueError as exc:
         hint = ("--seeds" if "seeds" in str(exc) else "--area-offset" if "area offset" in str(exc)
                 else "--cases")

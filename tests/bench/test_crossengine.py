@@ -293,6 +293,61 @@ def test_random_cases_are_seeded_tumbling_boxes_clear_of_the_floor_and_the_table
             crossengine.random_cases(bad)
 
 
+def test_perturbed_cases_are_the_cases_kinds_moved_scaled_and_turned_within_their_bounds(crossengine):
+    """``perturbed_cases``: seeded (per case, whichever others are chosen); each keeps its case's kind
+    (ball or box, what is free, the duration, the restitution, the other objects); the start moved
+    at most ``PERTURB_SHIFT`` per axis (not in height where the height is given), inside its start area,
+    a floor case's area centred on it, a table case's the table top; every velocity component scaled
+    by 1 -/+ ``PERTURB_SCALE`` (zeros stay zero); the orientation turned at most ``PERTURB_TURN`` (a given
+    one about the vertical only); the source clear of the floor."""
+    import numpy as np
+
+    ce = crossengine
+    a, b, c = ce.perturbed_cases(3), ce.perturbed_cases(3), ce.perturbed_cases(4)
+    assert a == b and a != c
+    assert [x.name for x in a] == [f"{x.name}-p3" for x in ce.CASES]
+    subset = tuple(x for x in ce.CASES if x.name in ("box-thrown", "ball-bounce"))
+    assert ce.perturbed_cases(3, subset) == tuple(x for x in a if x.name in ("box-thrown-p3", "ball-bounce-p3"))
+    moved = []
+    for seed in range(4):
+        for case, new in zip(ce.CASES, ce.perturbed_cases(seed)):
+            assert (new.ball, new.orientation, new.duration, new.restitution) == \
+                (case.ball, case.orientation, case.duration, case.restitution)
+            assert new.objects.split("</object>", 1)[1] == case.objects.split("</object>", 1)[1]
+            s0, s1 = ce.case_scene(case).object("source"), ce.case_scene(new).object("source")
+            p0, p1 = np.asarray(s0.pose.position), np.asarray(s1.pose.position)
+            lo, hi = (np.asarray(v) for v in new.area)
+            assert np.all(np.abs(p1 - p0) <= ce.PERTURB_SHIFT + 1e-12), (new.name, p1 - p0)
+            assert np.all(p1 >= lo - 1e-12) and np.all(p1 <= hi + 1e-12), (new.name, p1, new.area)
+            if case.area[0][2] == case.area[1][2]:
+                assert p1[2] == p0[2], new.name
+            if np.allclose((case.area[0][:2], case.area[1][:2]), ce.TABLE_AREA):
+                assert new.area == case.area, new.name
+            else:
+                assert np.allclose((lo + hi) / 2 - p1, (np.asarray(case.area[0]) + case.area[1]) / 2 - p0), new.name
+            for v0, v1 in ((s0.velocity.linear, s1.velocity.linear), (s0.velocity.angular, s1.velocity.angular)):
+                v0, v1 = np.asarray(v0), np.asarray(v1)
+                assert np.all((v0 == 0) == (v1 == 0)), (new.name, v0, v1)
+                ratio = v1[v0 != 0] / v0[v0 != 0]
+                assert np.all(np.abs(ratio - 1) <= ce.PERTURB_SCALE + 1e-9), (new.name, ratio)
+            turn = ce.angle_deg(s0.pose.orientation, s1.pose.orientation)
+            assert turn <= ce.PERTURB_TURN + 1e-6, (new.name, turn)
+            w, x, y, z = s1.pose.orientation
+            up = 1 - 2 * (x * x + y * y)  # body z against world z
+            if not case.ball and not case.orientation:
+                assert up > 1 - 1e-9, (new.name, s1.pose.orientation)
+            if case.ball:
+                assert p1[2] - ce.BALL_R >= -1e-9, new.name
+            else:
+                rz = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), up])
+                assert p1[2] - float(np.abs(rz) @ np.asarray(ce.BOX)) / 2 >= -1e-9, new.name
+            moved.append((np.abs(p1 - p0).max(), turn))
+    assert max(m for m, _ in moved) > 0.03 and max(t for _, t in moved) > 8, moved
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="seeds"):
+            ce.perturbed_cases(bad)
+
+
 @pytest.mark.slow
 def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
     """``--random-cases 1`` solves one random box and none of the cases; with ``--cases`` both."""
@@ -309,6 +364,21 @@ def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
     assert result.exit_code == 0, result.output
     rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
     assert [r["case"] for r in rows] == ["ball-on-table", "box-random-0-0"], rows
+
+
+@pytest.mark.slow
+def test_cli_perturbed_seed_solves_the_named_cases_perturbed(tmp_path):
+    """``--perturbed-seed 2 --cases ball-slide-floor`` solves that case perturbed, under its new name,
+    and solves it (a ball sliding on the floor is solved by every seed in every setting)."""
+    import csv
+
+    out = tmp_path / "rows.csv"
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--perturbed-seed", "2", "--cases", "ball-slide-floor",
+                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    assert [r["case"] for r in rows] == ["ball-slide-floor-p2"], rows
+    assert rows[0]["success"] == "True", rows
 
 
 def test_cli_throws_measures_the_engines_gap_and_its_controls(tmp_path):
