@@ -531,7 +531,7 @@ def perturb_case(case: Case, rng) -> Case:
     p = np.asarray(source.pose.position, dtype=np.float64)
     lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
     free_z = hi[2] > lo[2]
-    d = np.array([*rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT, 2), rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT)])
+    d = rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT, 3)
     d[2] = d[2] if free_z else 0.0
     table = np.allclose((lo[:2], hi[:2]), TABLE_AREA)
     q = p + d
@@ -545,7 +545,7 @@ def perturb_case(case: Case, rng) -> Case:
     turn = about(axis, rng.uniform(-PERTURB_TURN, PERTURB_TURN))
     orientation = quat_multiply(torch.tensor(turn, dtype=torch.float64),
                                 torch.tensor(source.pose.orientation, dtype=torch.float64)).tolist()
-    first, rest = case.objects.split("</object>", 1)
+    rest = case.objects.split("</object>", 1)[1]
     moved = (ball("source", q, linear, angular) if case.ball
              else box("source", q, linear, angular, orientation)) + rest
     if case.ball:
