@@ -348,21 +348,24 @@ def test_perturbed_cases_are_the_cases_kinds_moved_scaled_and_turned_within_thei
             ce.perturbed_cases(bad)
 
 
-@pytest.mark.slow
-def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
-    """``--random-cases 1`` solves one random box and none of the cases; with ``--cases`` both."""
+def _solved_rows(tmp_path, *args) -> list[dict]:
+    """The inference rows (CSV dicts) of ``dejaview bench crossengine ARGS`` with model uncertainty only,
+    without the fidelity table or Warp."""
     import csv
 
     out = tmp_path / "rows.csv"
-    result = CliRunner().invoke(cli, ["bench", "crossengine", "--random-cases", "1", "--random-seed", "3",
-                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
+    result = CliRunner().invoke(cli, ["bench", "crossengine", *args, "--no-fidelity", "--no-baseline", "--no-warp",
+                                      "--csv", str(out)])
     assert result.exit_code == 0, result.output
-    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    return [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+
+
+@pytest.mark.slow
+def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
+    """``--random-cases 1`` solves one random box and none of the cases; with ``--cases`` both."""
+    rows = _solved_rows(tmp_path, "--random-cases", "1", "--random-seed", "3")
     assert [r["case"] for r in rows] == ["box-random-3-0"], rows
-    result = CliRunner().invoke(cli, ["bench", "crossengine", "--random-cases", "1", "--cases", "ball-on-table",
-                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
-    assert result.exit_code == 0, result.output
-    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    rows = _solved_rows(tmp_path, "--random-cases", "1", "--cases", "ball-on-table")
     assert [r["case"] for r in rows] == ["ball-on-table", "box-random-0-0"], rows
 
 
@@ -370,13 +373,7 @@ def test_cli_random_cases_are_solved_alone_unless_cases_are_named(tmp_path):
 def test_cli_perturbed_seed_solves_the_named_cases_perturbed(tmp_path):
     """``--perturbed-seed 2 --cases ball-slide-floor`` solves that case perturbed, under its new name,
     and solves it (a ball sliding on the floor is solved by every seed in every setting)."""
-    import csv
-
-    out = tmp_path / "rows.csv"
-    result = CliRunner().invoke(cli, ["bench", "crossengine", "--perturbed-seed", "2", "--cases", "ball-slide-floor",
-                                      "--no-fidelity", "--no-baseline", "--no-warp", "--csv", str(out)])
-    assert result.exit_code == 0, result.output
-    rows = [r for r in csv.DictReader(out.open()) if r["section"] == "inference"]
+    rows = _solved_rows(tmp_path, "--perturbed-seed", "2", "--cases", "ball-slide-floor")
     assert [r["case"] for r in rows] == ["ball-slide-floor-p2"], rows
     assert rows[0]["success"] == "True", rows
 
