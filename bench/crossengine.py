@@ -462,6 +462,20 @@ def _cases() -> tuple[Case, ...]:
 CASES = _cases()
 
 
+def _compose(a, b) -> list:
+    """The rotation ``a`` after ``b``: (4,) quaternions (w x y z), their product as a list."""
+    import torch
+
+    from dejaview.sim.rotation import quat_multiply
+
+    return quat_multiply(torch.tensor(a, dtype=torch.float64), torch.tensor(b, dtype=torch.float64)).tolist()
+
+
+def _on_table_top(lo, hi) -> bool:
+    """Whether a start area ((3,) min and max) spans the table top's x, y (``TABLE_AREA``): a table case's."""
+    return bool(np.allclose((np.asarray(lo)[:2], np.asarray(hi)[:2]), TABLE_AREA))
+
+
 RANDOM_AREA = ((1.0, -0.6, 0.3), (1.8, 0.6, 0.5))
 """(min, max) true start of ``random_cases``' boxes: above the floor, clear of the table."""
 RANDOM_TILT = 40.0
@@ -480,10 +494,6 @@ def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
     Raises:
         ValueError: a count or seed that is not a whole number >= 0.
     """
-    import torch
-
-    from dejaview.sim.rotation import quat_multiply
-
     if int(count) != count or count < 0:
         raise ValueError(f"random cases: {count!r} is not a whole number >= 0")
     check_seeds((seed,))
@@ -494,8 +504,7 @@ def random_cases(count: int, seed: int = 0) -> tuple[Case, ...]:
         axis = rng.normal(size=2)
         tilt = about((axis[0], axis[1], 0.0), RANDOM_TILT * math.sqrt(rng.uniform()))
         heading = about((0.0, 0.0, 1.0), rng.uniform(0.0, 360.0))
-        orientation = quat_multiply(torch.tensor(tilt, dtype=torch.float64),
-                                    torch.tensor(heading, dtype=torch.float64)).tolist()
+        orientation = _compose(tilt, heading)
         linear, angular = rng.normal(size=3) * THROW_SPEED, rng.normal(size=3) * THROW_SPIN
         x, y, z = position
         out.append(Case(f"box-random-{seed}-{i}", box("source", position, linear, angular, orientation),
@@ -525,7 +534,7 @@ def perturb_case(case: Case, rng) -> Case:
     """
     import torch
 
-    from dejaview.sim.rotation import quat_multiply
+    from dejaview.sim.rotation import quat_to_matrix
 
     source = case_scene(case).object("source")
     p = np.asarray(source.pose.position, dtype=np.float64)
@@ -533,9 +542,8 @@ def perturb_case(case: Case, rng) -> Case:
     free_z = hi[2] > lo[2]
     d = rng.uniform(-PERTURB_SHIFT, PERTURB_SHIFT, 3)
     d[2] = d[2] if free_z else 0.0
-    table = np.allclose((lo[:2], hi[:2]), TABLE_AREA)
     q = p + d
-    if table:
+    if _on_table_top(lo, hi):
         q[:2] = np.clip(q[:2], lo[:2], hi[:2])
     else:
         lo, hi = lo + (q - p), hi + (q - p)
@@ -543,16 +551,14 @@ def perturb_case(case: Case, rng) -> Case:
     angular = np.asarray(source.velocity.angular) * rng.uniform(1 - PERTURB_SCALE, 1 + PERTURB_SCALE, 3)
     axis = rng.normal(size=3) if case.orientation else np.array([0.0, 0.0, 1.0])
     turn = about(axis, rng.uniform(-PERTURB_TURN, PERTURB_TURN))
-    orientation = quat_multiply(torch.tensor(turn, dtype=torch.float64),
-                                torch.tensor(source.pose.orientation, dtype=torch.float64)).tolist()
+    orientation = _compose(turn, source.pose.orientation)
     rest = case.objects.split("</object>", 1)[1]
     moved = (ball("source", q, linear, angular) if case.ball
              else box("source", q, linear, angular, orientation)) + rest
     if case.ball:
         bottom = q[2] - BALL_R
-    else:
-        w, x, y, z = orientation
-        row = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])  # world z in body axes
+    else:  # the box's half extent along world z: its rotation's last row (world z in body axes)
+        row = quat_to_matrix(torch.tensor(orientation, dtype=torch.float64))[2].numpy()
         bottom = q[2] - float(np.abs(row) @ np.asarray(BOX)) / 2
     if bottom < -1e-9:
         raise ValueError(f"perturbed case {case.name}: the source's start sinks {-bottom:.3f} m into the floor")
@@ -610,7 +616,7 @@ def offset_area(case: Case, offset=(0.0, 0.0)) -> Case:
     dx, dy = (float(v) for v in offset)
     lo, hi = (np.asarray(v, dtype=np.float64) for v in case.area)
     truth = _truth_start(case_scene(case))
-    if (dx == 0 and dy == 0) or np.allclose((lo[:2], hi[:2]), TABLE_AREA) \
+    if (dx == 0 and dy == 0) or _on_table_top(lo, hi) \
             or not np.allclose((lo[:2] + hi[:2]) / 2, truth[:2]):
         return case
     d = np.array([dx, dy, 0.0])
