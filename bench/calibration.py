@@ -95,7 +95,7 @@ def base_scene(name: str):
                      SceneObject(id="box", shape="box", size=(0.12, 0.08, 0.06), mass=0.3,
                                  pose=Pose((0.0, 0.0, 0.3)))),
             inference=InferenceSettings(
-                source="box", target=Target(position=(0.0, 0.0, 0.03)), loss="pose", evaluate="final",
+                source="box", targets=(Target(position=(0.0, 0.0, 0.03), moving=True),), loss="pose", evaluate="final",
                 optimize=Optimize(position=True, orientation=True, linear_velocity=True, angular_velocity=True),
                 start_area=StartArea(min=(-0.3, -0.3, 0.3), max=(0.3, 0.3, 0.3)),
                 prior=Prior(speed=1.0, spin=3.0, tilt=0.3), observation=Observation(sigma=0.01, angle_sigma=0.1)))
@@ -127,8 +127,9 @@ def observe(scene, post, truth, generator):
     else:  # the centre of mass and the orientation are observed (``Posterior.observation_residuals``)
         origin = com + eps - quat_rotate(q_obs, problem.world.com[b])
     inf = scene.inference
-    target = replace(inf.target, position=tuple(origin.tolist()), orientation=tuple(q_obs.tolist()))
-    return replace(scene, inference=replace(inf, target=target))
+    # the end observed as it is, at rest or not (the truths are drawn without asking them to rest)
+    target = replace(inf.target, position=tuple(origin.tolist()), orientation=tuple(q_obs.tolist()), moving=True)
+    return replace(scene, inference=replace(inf, targets=(target,)))
 
 
 def prior_width90(post) -> list[float]:

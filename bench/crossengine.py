@@ -638,7 +638,7 @@ def case_scene(case: Case, target=None, uncertainty=None, seed: int = 0, prior: 
           f'<model-uncertainty friction="{uncertainty[0]}" restitution="{uncertainty[1]}"/>')
     belief = f"<prior {PRIOR['ball' if case.ball else 'box']}/>" if prior else ""
     inference = f"""<inference source="source" loss="{'position' if case.ball else 'pose'}" evaluate="final" seed="{int(seed)}">
-    <target position="{_v(target[0])}" orientation="{_v(target[1])}"/>
+    <target position="{_v(target[0])}" orientation="{_v(target[1])}" moving="true"/>
     <optimize position="true" orientation="{str(case.orientation).lower()}" linear-velocity="true" angular-velocity="true"/>
     <start-area min="{_v(lo)}" max="{_v(hi)}"/>
     {belief}

@@ -63,7 +63,7 @@ def make_default_scene() -> Path:
                                       extra={"substeps": "1", "contact-frequency": "60",
                                              "unload-velocity": "0.1"}),
         inference=InferenceSettings(
-            source="ball", target=Target((0.0, 0.0, 0.0)), iterations=100, optimizer="lbfgs",
+            source="ball", targets=(Target((0.0, 0.0, 0.0), moving=True),), iterations=100, optimizer="lbfgs",
             loss="pose", evaluate="final",
             start_area=StartArea((-0.5, -0.2, 0.05), (0.0, 0.2, 0.05))))
     scene, record = ms.with_truth(scene, truth, guess)

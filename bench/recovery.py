@@ -249,9 +249,9 @@ def make_case(case: Case):
         if story_holds(case.scene, world, traj, source) and penalties_met(true_scene, world, traj):
             end = world.object_position(traj.final)[0, source].tolist()
             q_end = traj.final.orientation[0, source].tolist()
-            target = Target(position=tuple(end), orientation=tuple(q_end))
+            target = Target(position=tuple(end), orientation=tuple(q_end), moving=True)  # at rest or not
             truth["final_position"], truth["final_orientation"] = end, q_end
-            return replace(scene, inference=replace(scene.inference, target=target)), truth, draw
+            return replace(scene, inference=replace(scene.inference, targets=(target,))), truth, draw
     raise RuntimeError(f"{case.name}: no draw in {MAX_DRAWS} told the story of {case.scene}")
 
 

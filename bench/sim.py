@@ -100,7 +100,7 @@ def make_reference_scene() -> Path:
         objects=(ms.floor(), ms.furniture("table"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.2),
         inference=InferenceSettings(
-            source="mug", target=Target((0.0, 0.0, 0.0)), iterations=150, optimizer="lbfgs",
+            source="mug", targets=(Target((0.0, 0.0, 0.0), moving=True),), iterations=150, optimizer="lbfgs",
             loss="pose", evaluate="best",
             # depth on every axis: all 12 parameters are free
             start_area=StartArea((-0.6, -0.3, 0.9), (-0.3, 0.3, 1.1)),

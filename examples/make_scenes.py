@@ -31,11 +31,13 @@ from dejaview.scene import (
     SimulationSettings,
     StartArea,
     Target,
+    Observation,
     Velocity,
 )
 from dejaview.sim import World
 from dejaview.sim.build import initial_state
 from dejaview.sim.integrate import rollout
+from dejaview.sim.rotation import quat_multiply, rotvec_to_quat
 
 HERE = Path(__file__).resolve().parent
 SCENES = HERE / "scenes"
@@ -69,7 +71,7 @@ def with_truth(scene: Scene, truth: SceneObject, guess: SceneObject, **target_kw
     end_q = traj.final.orientation[0, src].tolist()
     target = Target(position=tuple(round(v, 6) for v in end_pos),
                     orientation=tuple(round(v, 6) for v in end_q), **target_kw)
-    inf = replace(scene.inference, target=target)
+    inf = replace(scene.inference, targets=(target,))
     out = replace(scene.with_object(guess), inference=inf)
     record = {"source": truth.id,
               "initial_state": {"position": list(truth.pose.position),
@@ -90,26 +92,26 @@ def ball_off_table():
         objects=(floor(), furniture("table"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.2, friction=0.5, restitution=0.3),
         inference=InferenceSettings(
-            source="ball", target=Target((0, 0, 0)),
+            source="ball", targets=(Target((0, 0, 0)),),
             loss="position", evaluate="best",
             optimize=Optimize(position=True, orientation=False, linear_velocity=True,
                               angular_velocity=True),
             start_area=StartArea((-0.5, -0.3, 0.80), (0.5, 0.3, 0.80)),
             heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
-    return with_truth(scene, truth, guess)
+    return with_truth(scene, truth, guess, moving=True)  # seen rolling on the floor (balls roll on)
 
 
 def mug_off_counter():
-    """A mug knocked off a kitchen counter: it slides, tips over the edge, tumbles on the floor."""
+    """A mug knocked off a kitchen counter: it slides, tips over the edge, tumbles on the floor and comes to rest there (seen lying still)."""
     truth = movable("mug", "mug", (0.30, 0.02, 0.95), linear=(2.0, 0.2, 0.0), angular=(0.0, 0.0, 2.0),
                     mass=0.35)
     guess = movable("mug", "mug", (0.0, 0.0, 0.95), linear=(0.5, 0.0, 0.0), mass=0.35)
     scene = Scene(
         name="mug-off-the-counter",
         objects=(floor(), furniture("counter"), truth),
-        simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.2),
+        simulation=SimulationSettings(dt=0.002, duration=2.2, friction=0.5, restitution=0.2),
         inference=InferenceSettings(
-            source="mug", target=Target((0, 0, 0)),
+            source="mug", targets=(Target((0, 0, 0)),),
             loss="pose", evaluate="best",
             start_area=StartArea((-0.4, -0.25, 0.95), (0.45, 0.25, 0.95)),
             heatmap=HeatmapSettings(cells=(8, 6), samples=4, sigma=0.02)))
@@ -125,7 +127,7 @@ def box_along_shelf():
         objects=(floor(), furniture("shelf"), truth),
         simulation=SimulationSettings(dt=0.002, duration=1.0, friction=0.4, restitution=0.1),
         inference=InferenceSettings(
-            source="box", target=Target((0, 0, 0)),
+            source="box", targets=(Target((0, 0, 0)),),
             loss="pose", evaluate="best",
             optimize=Optimize(position=True, orientation=False, linear_velocity=True,
                               angular_velocity=False),
@@ -146,7 +148,7 @@ def box_among_boxes():
         objects=(floor(), truth, *others),
         simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.1),
         inference=InferenceSettings(
-            source="thrown", target=Target((0, 0, 0)),
+            source="thrown", targets=(Target((0, 0, 0)),),
             loss="pose", evaluate="best",
             start_area=StartArea((-0.3, -0.3, 0.4), (0.3, 0.3, 0.8)),
             penalties=(Penalty(("thrown", "box0"), 0.1),)))
@@ -165,11 +167,63 @@ def box_hits_arm():
         objects=(floor(), arm, truth),
         simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.1),
         inference=InferenceSettings(
-            source="box", target=Target((0, 0, 0)),
+            source="box", targets=(Target((0, 0, 0)),),
             loss="pose", evaluate="best",
             start_area=StartArea((0.2, -0.75, 0.6), (0.7, -0.35, 0.6)),
             heatmap=HeatmapSettings(cells=(6, 4), samples=2, sigma=0.02)))
     return with_truth(scene, truth, guess)
+
+
+TRACKED_TIMES = (0.15, 0.35, 0.6)
+"""Moments a tracker saw the tossed box in flight (s); it is seen again lying still at the end."""
+
+
+def box_tossed_tracked():
+    """A box tossed onto the floor, tracked by a camera: seen at 0.15 s and 0.35 s (position only,
+    mid-air), at 0.6 s (pose) and lying still at the end (pose); the tracker's noise is 1 cm and 0.1
+    rad. Where was it tossed from, and how?"""
+    truth = movable("box", "box", (0.05, -0.1, 0.55), orientation=(0.9659, 0.0, 0.2588, 0.0),
+                    linear=(1.4, 0.35, 1.2), angular=(1.5, -3.0, 2.0), mass=0.8)
+    guess = movable("box", "box", (0.0, 0.0, 0.5), linear=(1.0, 0.0, 0.5), mass=0.8)
+    scene = Scene(
+        name="box-tossed-tracked",
+        objects=(floor(), truth),
+        simulation=SimulationSettings(dt=0.002, duration=1.2, friction=0.5, restitution=0.1),
+        inference=InferenceSettings(
+            source="box", targets=(Target((0, 0, 0)),), loss="pose",
+            start_area=StartArea((-0.25, -0.3, 0.4), (0.25, 0.2, 0.7)),
+            observation=Observation(sigma=0.01, angle_sigma=0.1)))
+    scene = replace(scene, base_dir=SCENES)
+    true_scene = scene.with_object(truth)
+    world = World.from_scene(true_scene)
+    with torch.no_grad():
+        traj = rollout(world, initial_state(world, true_scene))
+    src = world.body_index(truth.id)
+    noise = torch.Generator().manual_seed(7)  # the tracker's errors, drawn once from its noise model
+    targets, seen = [], []
+    for k, t in enumerate((*TRACKED_TIMES, None)):
+        i = -1 if t is None else int(round(t / world.dt))
+        origin = world.object_position(traj.states)[i, 0, src]
+        q = traj.states.orientation[i, 0, src]
+        origin = origin + 0.01 * torch.randn(3, generator=noise, dtype=origin.dtype)
+        q = quat_multiply(rotvec_to_quat(0.1 * torch.randn(3, generator=noise, dtype=q.dtype)), q)
+        pose_seen = k >= 2
+        targets.append(Target(position=tuple(round(v, 4) for v in origin.tolist()),
+                              orientation=tuple(round(v, 5) for v in q.tolist()) if pose_seen else None,
+                              time=t if t is not None else scene.simulation.duration,
+                              moving=None if t is not None else False))  # the end: lying still
+        seen.append({"time": float(traj.steps[i]) * world.dt, "position": origin.tolist(),
+                     "orientation": q.tolist() if pose_seen else None})
+    out = replace(scene.with_object(guess), inference=replace(scene.inference, targets=tuple(targets)))
+    record = {"source": truth.id,
+              "initial_state": {"position": list(truth.pose.position),
+                                "orientation": list(truth.pose.orientation),
+                                "linear_velocity": list(truth.velocity.linear),
+                                "angular_velocity": list(truth.velocity.angular)},
+              "observed": seen,
+              "final_pose": {"position": world.object_position(traj.final)[0, src].tolist(),
+                             "orientation": traj.final.orientation[0, src].tolist()}}
+    return out, record
 
 
 RAMP_ANGLE = math.radians(20.0)
@@ -185,18 +239,18 @@ def ramp() -> SceneObject:
 
 def ramp_scene(name: str, truth: SceneObject, guess: SceneObject, *, dt: float, duration: float,
                area, cells, samples: int, sigma: float, loss: str, optimize: Optimize, extra: dict,
-               friction: float):
+               friction: float, **target_kw):
     scene = Scene(
         name=name,
         objects=(floor(), ramp(), truth),
         simulation=SimulationSettings(dt=dt, duration=duration, friction=friction, restitution=0.2,
                                       extra=extra),
         inference=InferenceSettings(
-            source=truth.id, target=Target((0, 0, 0)), iterations=60,
+            source=truth.id, targets=(Target((0, 0, 0)),), iterations=60,
             loss=loss, evaluate="final", optimize=optimize,
             start_area=StartArea(*area),
             heatmap=HeatmapSettings(cells=cells, samples=samples, sigma=sigma)))
-    return with_truth(scene, truth, guess)
+    return with_truth(scene, truth, guess, **target_kw)
 
 
 def ball_down_ramp():
@@ -208,7 +262,8 @@ def ball_down_ramp():
                       sigma=0.02, loss="position",
                       optimize=Optimize(position=True, orientation=False, linear_velocity=False,
                                         angular_velocity=False),
-                      extra={"substeps": "1", "contact-frequency": "100", "unload-velocity": "0.05"}, friction=0.5)
+                      extra={"substeps": "1", "contact-frequency": "100", "unload-velocity": "0.05"}, friction=0.5,
+                      time=1.2)  # seen at that moment, rolling
 
 
 def box_down_ramp():
@@ -217,7 +272,7 @@ def box_down_ramp():
                         mass=0.8, pose=Pose((-0.22, -0.1, 0.56),
                                             (math.cos(RAMP_ANGLE / 2), 0.0, math.sin(RAMP_ANGLE / 2), 0.0)))
     guess = replace(truth, pose=replace(truth.pose, position=(-0.2, 0.0, 0.56)))
-    return ramp_scene("box-down-the-ramp", truth, guess, dt=0.005, duration=1.6,
+    return ramp_scene("box-down-the-ramp", truth, guess, dt=0.005, duration=2.0,
                       area=((-0.4, -0.25, 0.56), (0.0, 0.25, 0.56)), cells=(8, 10), samples=2,
                       sigma=0.02, loss="pose",
                       optimize=Optimize(position=True, orientation=False, linear_velocity=False,
@@ -233,6 +288,7 @@ BUILDERS = {
     "box_hits_arm": box_hits_arm,
     "ball_down_ramp": ball_down_ramp,
     "box_down_ramp": box_down_ramp,
+    "box_tossed_tracked": box_tossed_tracked,
 }
 
 

@@ -3,8 +3,9 @@
     python scripts/demo_story.py TRUTH.json DIR [DIR ...]
 
 Each DIR holds a solve's result.json. For each: the start it found, the prior it assumed, its
-negative log posterior, how far its re-simulated end lies from the observation, and how many
-distinct pasts (modes) the search found that explain the end.
+negative log posterior, how far its re-simulated END lies from where the mug was seen lying (and
+when it came to rest), how many distinct pasts (modes) the search found that explain the end, and,
+where the solve drew posterior samples with ``--truth``, the truth's credible level.
 """
 
 from __future__ import annotations
@@ -36,12 +37,25 @@ def main(argv: list[str]) -> int:
         print(f"{Path(name).name:<18} {fmt(s['position']):<22} {fmt(s['linear_velocity']):<22} "
               f"{fmt(s['angular_velocity']):<22} {tilt_deg(s['orientation']):5.1f}d")
     for name, _, data in rows[1:]:
-        p, m, s = data["prior"], data["matched_pose"], data["search"]
+        p, e, s = data["prior"], data["end_error"], data["search"]
         prior = ("flat" if p["speed"] is None and p["spin"] is None and p["tilt"] is None else
                  f"speed {p['speed']} m/s, spin {p['spin']} rad/s, tilt {p['tilt']} rad")
-        print(f"{Path(name).name}: prior {prior}; -log posterior {s['neg_log_posterior']:.3g}; "
-              f"end {m['position_error'] * 1000:.1f} mm / {m['angle_error_deg']:.1f} deg from the "
-              f"observation; {len(s['modes'])} distinct pasts found that the search refined")
+        came = data.get("rest", {}).get("came_to_rest_s")
+        rest = f"at rest from {came:.2f} s" if came is not None else "still moving at the end"
+        print(f"{Path(name).name}: prior {prior}; -log posterior {s['neg_log_posterior']:.3g}; its end "
+              f"(t = {e['time']:.2f} s) lies {e['position_error'] * 1000:.1f} mm / {e['angle_error_deg']:.1f} deg "
+              f"from where the mug was seen lying ({rest}); {len(s['modes'])} distinct pasts refined")
+        truth = data.get("truth")
+        if truth is not None and "credible_level" in truth:
+            post = data["posterior"]
+            agree = post.get("agreement") or {}
+            print(f"{'':<{len(Path(name).name)}}  posterior: {post['samples']} samples (R-hat "
+                  f"{agree.get('max_rhat', float('nan')):.2f}); the truth (-log posterior "
+                  f"{truth['neg_log_posterior']:.3g}) lies on the edge of the {100 * truth['credible_level']:.0f} % "
+                  f"credible region: {sum(truth['in_90'].values())} of {len(truth['in_90'])} parameters "
+                  f"inside their 90 % intervals")
+        for w in data.get("warnings", []):
+            print(f"{'':<{len(Path(name).name)}}  warning: {w}")
     return 0
 
 

@@ -10,8 +10,9 @@ checkout has: a batch of two initial states (the scene's and a perturbed copy), 
 the native engine recording every 10th, and a scalar loss of the recorded states; stored are
 the states ``(16, 2, N, 13)``, the loss's reverse-mode gradient with respect to the initial
 state ``(2, N, 13)`` and its forward-mode derivative along a fixed direction ``()``.
-Each scene's XML is fingerprinted too (``NAME/scene_sha256``): ``compare`` skips a scene whose
-file changed between the two records. ``compare`` prints, per array, ``identical`` or the
+Each scene is fingerprinted too (``NAME/scene_sha256``, of the scene without its ``<inference>``,
+as the writer writes it): ``compare`` skips a scene whose objects or simulation changed between
+the two records. ``compare`` prints, per array, ``identical`` or the
 largest difference, and exits 1 when any array present in both differs by more than ``--atol``
 (default 0: bit for bit).
 
@@ -49,8 +50,9 @@ def record(out: Path, scenes_dir: Path) -> None:
         path = scenes_dir / f"{name}.xml"
         if not path.exists():
             continue
-        arrays[f"{name}/scene_sha256"] = np.array(hashlib.sha256(path.read_bytes()).hexdigest())
         scene = read_scene_file(path)
+        physics = scene.replace(inference=None).to_xml().encode()  # what the rollouts read, not the targets
+        arrays[f"{name}/scene_sha256"] = np.array(hashlib.sha256(physics).hexdigest())
         world = World.from_scene(scene)
         x0 = torch.cat(initial_state(world, scene, batch_size=2).tensors(), -1)  # (2, N, 13)
         x0[1] += 0.01 * torch.randn(x0[1].shape, generator=torch.Generator().manual_seed(1), dtype=x0.dtype)

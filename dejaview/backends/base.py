@@ -32,7 +32,7 @@ class Problem:
         backend: the backend's name; gradient_modes: the gradient modes it offers.
         layout: ParameterLayout of the source (may be replaced, e.g. per-candidate boxes).
         source: index of the source among the movable bodies.
-        target: the scene's Target.
+        targets: the scene's Targets; sightings: what each observes (``dejaview.losses.targets``).
         loss_kind: ``pose`` | ``add`` | ``position``; evaluate: ``best`` | ``final``.
         steps: rollout length of the loss (up to the target time when it is pinned).
         penalties: ((body_a, body_b, weight), ...).
@@ -87,13 +87,20 @@ class Problem:
         """dtype of the parameters and losses."""
         return self.frames.dtype
 
+    @property
+    def target(self):
+        """The last observation (``InferenceSettings.target``)."""
+        from dejaview.scene.model import last_target
+
+        return last_target(self.targets)
+
     def loss_of_trajectory(self, traj) -> torch.Tensor:
         """(K,) loss (plus weighted penalties) of a rollout."""
-        from dejaview.losses import contact_penalty, trajectory_loss
+        from dejaview.losses import contact_penalty
+        from dejaview.losses.trajectory import sightings_loss
 
-        t = self.target
-        loss = trajectory_loss(self.frames, traj, self.source, t, kind=self.loss_kind, evaluate=self.evaluate,
-                               time=t.time, orientation_weight=self.orientation_weight, points=self.points)
+        loss = sightings_loss(self.frames, traj, self.source, self.sightings, kind=self.loss_kind,
+                              orientation_weight=self.orientation_weight, points=self.points)
         for a, b, weight in self.penalties:
             loss = loss + weight * contact_penalty(self.frames, traj, a, b)
         return loss
@@ -208,19 +215,32 @@ def check_inference(scene):
     return inf
 
 
-def loss_steps(scene, dt: float, duration_steps: int) -> int:
-    """Rollout length of the loss: the scene's duration, or up to the target's pinned time."""
-    time = scene.inference.target.time
-    return duration_steps if time is None else max(1, int(round(time / dt)))
+def sightings_of(scene, dt: float, duration_steps: int) -> tuple:
+    """What each of the scene's targets observes (``dejaview.losses.targets.resolve``)."""
+    from dejaview.losses.targets import resolve
 
-
-def loss_record_every(scene, steps: int) -> int:
-    """Record interval of the loss's rollouts of ``steps`` steps: ``steps`` (the end state alone)
-    where the loss reads nothing else (``evaluate="final"`` or a pinned target time, and no
-    penalty, which reads every record), else 1."""
     inf = scene.inference
-    ends_only = (inf.evaluate == "final" or inf.target.time is not None) and not inf.penalties
-    return max(1, steps) if ends_only else 1
+    return resolve(inf.targets, inf.evaluate, dt, duration_steps)
+
+
+def loss_steps(scene, dt: float, duration_steps: int) -> int:
+    """Rollout length of the loss: the scene's duration, or up to the latest target where every
+    target's time is pinned."""
+    from dejaview.losses.targets import rollout_steps
+
+    return rollout_steps(sightings_of(scene, dt, duration_steps), duration_steps)
+
+
+def loss_record_every(scene, steps: int, dt: float | None = None) -> int:
+    """Record interval of the loss's rollouts of ``steps`` steps: the largest that records every
+    step a target reads (``dejaview.losses.targets.record_interval``: the end alone for one target
+    seen moving at the end, the rest window's steps for one seen at rest), 1 where a target takes
+    the best record or a ``<penalty>`` reads every record."""
+    from dejaview.losses.targets import record_interval
+
+    inf = scene.inference
+    dt = scene.simulation.dt if dt is None else dt
+    return record_interval(sightings_of(scene, dt, steps), steps, penalties=bool(inf.penalties))
 
 
 def objective_to_loss(value: float) -> float:

@@ -147,8 +147,10 @@ class ParameterLayout:
             w = self.base_angular.expand(b, 3)
         return {"position": pos, "orientation": q, "linear_velocity": v, "angular_velocity": w}
 
-    def encode(self, position=None, linear_velocity=None, angular_velocity=None) -> torch.Tensor:
-        """Parameters (1, P) of a given start (orientation: the base one, rotation vector 0).
+    def encode(self, position=None, linear_velocity=None, angular_velocity=None,
+               orientation=None) -> torch.Tensor:
+        """Parameters (1, P) of a given start (orientation (4,), w x y z: default the base one,
+        rotation vector 0; else the rotation vector from the base one, angle at most pi).
 
         Positions are clamped just inside the start area.
         """
@@ -164,7 +166,14 @@ class ParameterLayout:
             else:
                 parts.append((p[axes] - self.base_position[axes]) / self.scale["position"])
         if self.free["orientation"]:
-            parts.append(torch.zeros(3, dtype=dt))
+            if orientation is None:
+                parts.append(torch.zeros(3, dtype=dt))
+            else:
+                from dejaview.sim.rotation import normalize_quat, quat_conjugate, quat_multiply, quat_to_rotvec
+
+                q = normalize_quat(torch.as_tensor(orientation, dtype=dt))
+                rel = quat_multiply(q, quat_conjugate(self.base_orientation.to(dt)))
+                parts.append(quat_to_rotvec(rel) / self.scale["orientation"])
         if self.free["linear_velocity"]:
             v = torch.as_tensor(linear_velocity if linear_velocity is not None else self.base_linear, dtype=dt)
             parts.append(v / self.scale["linear_velocity"])

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import torch
 
 from dejaview.backends.base import (DEFAULT_ORIENTATION_WEIGHT, GRADIENT_MODES, Problem, check_inference,
-                                    loss_record_every, loss_steps, model_points)
+                                    loss_record_every, loss_steps, model_points, sightings_of)
 from dejaview.backends.params import ParameterLayout, layout_from_scene
 from dejaview.errors import InferenceError
 from dejaview.sim.integrate import rollout
@@ -34,7 +34,8 @@ class SpheresProblem(Problem):
         layout: ParameterLayout of the source.
         source: index of the source body in the world.
         base: State (1, N, ...) of every body as given in the scene.
-        target: the scene's Target.
+        targets: the scene's Targets.
+        sightings: what each observes (``dejaview.losses.targets``).
         loss_kind: ``pose`` | ``add`` | ``position``.
         evaluate: ``best`` | ``final``.
         steps: rollout length (up to the target time when it is pinned).
@@ -60,7 +61,8 @@ class SpheresProblem(Problem):
     layout: ParameterLayout
     source: int
     base: State
-    target: object
+    targets: tuple
+    sightings: tuple = ()
     loss_kind: str = "pose"
     evaluate: str = "best"
     steps: int = 0
@@ -106,10 +108,11 @@ class SpheresProblem(Problem):
             points = model_points(scene, scene.object(inf.source), world.dtype)
         return SpheresProblem(
             world=world, layout=layout, source=src, base=initial_state(world, scene),
-            target=inf.target, loss_kind=inf.loss, evaluate=inf.evaluate, steps=steps,
+            targets=tuple(inf.targets), sightings=sightings_of(scene, world.dt, world.steps),
+            loss_kind=inf.loss, evaluate=inf.evaluate, steps=steps,
             penalties=tuple((p.between[0], p.between[1], p.weight) for p in inf.penalties),
             orientation_weight=orientation_weight, points=points, checkpoint_every=checkpoint_every,
-            record_every=loss_record_every(scene, steps), engine=engine, compile=compile)
+            record_every=loss_record_every(scene, steps, world.dt), engine=engine, compile=compile)
 
     # ----------------------------------------------------------------- rollout
     @functools.cached_property

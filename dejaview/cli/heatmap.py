@@ -96,6 +96,8 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
             warning = agreement_warning(result.settings.get("agreement"), "this heatmap")
             if warning:
                 click.echo("  " + warning)
+            for warning in result.settings.get("warnings", []):
+                click.echo("  warning: " + warning)
         else:
             click.echo(f"{result.candidates} optimisations over {nx} x {ny} cells in {result.seconds:.1f} s; "
                        f"{len(result.solutions)} distinct solutions")

@@ -23,6 +23,8 @@ from dejaview.cli.options import backend_options, common_options, configure_torc
 @click.option("--samples", type=int, default=None,
               help="draw N samples of the posterior (posterior.csv; default: <posterior samples>, else 0)")
 @click.option("--plot", is_flag=True, help="also write loss.png")
+@click.option("--truth", "truth_file", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="a known true start (a .truth.json with initial_state): say where it lies in the posterior")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
 @click.option("--model-uncertainty", "model_uncertainty", nargs=2, default=None,
@@ -31,7 +33,7 @@ from dejaview.cli.options import backend_options, common_options, configure_torc
                    "<model-uncertainty>; 0 0: none)")
 @common_options
 @backend_options(with_compile=True)
-def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, tolerance,
+def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth_file, tolerance,
             model_uncertainty, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the most probable initial state of SCENE's source object (its <prior> and
     <observation>); write result.json, iterations.csv and trajectory.csv (the answer
@@ -42,6 +44,7 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
     from dejaview.scene import Scene
 
     configure_torch()
+    truth = read_truth(truth_file) if truth_file is not None else None
     sc = Scene.from_xml(scene)
     if sc.inference is None:
         raise click.ClickException(f"{scene}: the scene has no <inference> section")
@@ -64,13 +67,12 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
 
     result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, screen=screen, budget=budget, samples=samples,
-                   callback=progress, tolerance=tolerance, backend=backend)
+                   callback=progress, tolerance=tolerance, backend=backend, truth=truth)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:
         s = result.initial_state
         fmt = lambda v: "(" + ", ".join(f"{x:.3f}" for x in v) + ")"  # noqa: E731
-        end_pos, _ = result.final_pose()
         click.echo(f"best loss {result.loss:.5g} m after {len(result.iterations)} iterations "
                    f"({result.settings['backend']} backend, {result.settings['optimizer']}, "
                    f"{result.settings['gradient']} mode)")
@@ -85,11 +87,8 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
                            f"{mu['restitution']:g}, stiffness {mu['stiffness']:g} ({mu['variants']} variants)")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
-        if result.problem.backend == "spheres":
-            m = result.matched_pose()
-            click.echo(f"  meets the target at t = {m['time']:.3f} s: {m['position_error'] * 1000:.2f} mm, "
-                       f"{m['angle_error_deg']:.2f} deg off (position {fmt(m['position'])} m)")
-        click.echo(f"  end position     {fmt(end_pos)} m (target {fmt(sc.inference.target.position)})")
+        for line in observation_lines(result):
+            click.echo("  " + line)
         post = result.settings.get("posterior")
         if post is not None:
             sampler = post["sampler"]
@@ -106,4 +105,58 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, toler
             warning = agreement_warning(post.get("agreement"), "these intervals and mode probabilities")
             if warning:
                 click.echo("  " + warning)
+        t = result.settings.get("truth")
+        if t is not None:
+            level = ("" if "credible_level" not in t else
+                     f"; it lies on the edge of the {100 * t['credible_level']:.0f} % credible region "
+                     f"(the posterior mass more probable than it)")
+            click.echo(f"  the truth: -log posterior {t['neg_log_posterior']:.4g}, end misfit chi2 "
+                       f"{t['observation_chi2']:.3g}{level}")
+        for warning in result.settings.get("warnings", []):
+            click.echo("  warning: " + warning)
         click.echo("  wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+def observation_lines(result) -> list[str]:
+    """The answer against each observation as a user would check it (``SolveResult.observations``):
+    the re-simulated end against a target without time (where the source lies, or flies on), each
+    timed target against the answer at its moment; for a target seen moving at a moment not known,
+    the best-matching moment beside the end."""
+    fmt = lambda v: "(" + ", ".join(f"{x:.3f}" for x in v) + ")"  # noqa: E731
+    rest = result.settings.get("rest", {})
+    out = []
+    for row, target in zip(result.observations(), result.scene.inference.targets):
+        angle = "" if row["angle_error_deg"] is None else f", {row['angle_error_deg']:.2f} deg"
+        off = f"{row['position_error'] * 1000:.2f} mm{angle} off"
+        if target.time is not None:
+            seen = "seen lying still" if row["at_rest"] else "seen"
+            what = "" if target.orientation is not None else " (position only)"
+            out.append(f"at t = {row['time']:.3f} s ({seen}{what}): {off}, at {fmt(row['position'])} m")
+            continue
+        came = rest.get("came_to_rest_s")
+        when = (f"came to rest at {came:.2f} s" if came is not None else "still moving at the end")
+        if row["at_rest"]:
+            out.append(f"end (t = {row['time']:.2f} s) against where it was seen lying: {off} ({when})")
+        else:
+            out.append(f"end (t = {row['time']:.2f} s) at {fmt(row['position'])} m: {off} the observation")
+        if "matched" in row:
+            m = row["matched"]
+            angle = "" if m["angle_error_deg"] is None else f", {m['angle_error_deg']:.2f} deg"
+            out.append(f"passes the observed pose at t = {m['time']:.3f} s: {m['position_error'] * 1000:.2f} mm"
+                       f"{angle} off (seen moving, moment not known)")
+    return out
+
+
+def read_truth(path: Path) -> dict:
+    """The ``initial_state`` of a truth file (``examples/scenes/*.truth.json``), or a one-line error."""
+    import json
+
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        state = data["initial_state"]
+        return {k: [float(v) for v in state[k]] for k in ("position", "orientation", "linear_velocity",
+                                                          "angular_velocity")}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise click.ClickException(f"{path}: not a truth file with an initial_state "
+                                   f"(position, orientation, linear_velocity, angular_velocity): {exc}") from None
+

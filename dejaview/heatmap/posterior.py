@@ -137,7 +137,8 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
     settings = {"method": "posterior", "optimizer": "auto", "iterations": result.settings["iterations"],
                 "seed": result.settings["seed"], "backend": result.problem.backend, "cells": [nx, ny],
                 "samples": per_cell, "posterior_samples": n,
-                "sigma": result.settings["observation"]["sigma"], "agreement": summary.get("agreement")}
+                "sigma": result.settings["observation"]["sigma"], "agreement": summary.get("agreement"),
+                "warnings": list(result.settings.get("warnings", []))}
     return HeatmapResult(scene=scene, lo=lo, hi=hi, cells=(nx, ny), probability=p, solutions=solutions,
                          candidates=n, best=result, settings=settings, seconds=time.perf_counter() - t0)
 

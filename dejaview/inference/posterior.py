@@ -54,6 +54,12 @@ DEFAULT_SIGMA = 0.005
 """Metres: default standard deviation of the observed end position (a robot's pose estimate)."""
 DEFAULT_ANGLE_SIGMA = 0.05
 """Radians (2.9 degrees): default standard deviation of the observed end orientation."""
+DEFAULT_REST_SPEED = 0.02
+"""m/s: default standard deviation with which "at rest" observes the source's mean speed
+(``dejaview.losses.targets``): a tracker sees 2 mm of drift in 0.1 s."""
+DEFAULT_REST_SPIN = 0.2
+"""rad/s: default standard deviation with which "at rest" observes the source's mean spin: a mug
+settled on its side still rocks by about 0.02 rad in 0.1 s (measured on mug_off_counter's truth)."""
 SPEED_BOUND = 5.0
 """m/s: bound of the flat prior on the start's linear speed (no ``<prior speed>``)."""
 SPIN_BOUND = 50.0
@@ -72,12 +78,15 @@ class PosteriorSettings:
 
     Attributes:
         sigma, angle_sigma: observation noise (m, rad).
+        rest_speed, rest_spin: noise of an observed rest (m/s, rad/s; ``dejaview.losses.targets``).
         speed, spin, tilt: prior standard deviations (m/s, rad/s, rad), or None.
         speed_bound, spin_bound: bounds of the flat priors (m/s, rad/s).
     """
 
     sigma: float = DEFAULT_SIGMA
     angle_sigma: float = DEFAULT_ANGLE_SIGMA
+    rest_speed: float = DEFAULT_REST_SPEED
+    rest_spin: float = DEFAULT_REST_SPIN
     speed: float | None = None
     spin: float | None = None
     tilt: float | None = None
@@ -102,6 +111,10 @@ class PosteriorSettings:
             sigma=float(sigma),
             angle_sigma=float(obs.angle_sigma) if obs is not None and obs.angle_sigma is not None
             else DEFAULT_ANGLE_SIGMA,
+            rest_speed=float(obs.rest_speed) if obs is not None and obs.rest_speed is not None
+            else DEFAULT_REST_SPEED,
+            rest_spin=float(obs.rest_spin) if obs is not None and obs.rest_spin is not None
+            else DEFAULT_REST_SPIN,
             speed=None if prior is None or prior.speed is None else float(prior.speed),
             spin=None if prior is None or prior.spin is None else float(prior.spin),
             tilt=None if prior is None or prior.tilt is None else float(prior.tilt))
@@ -110,7 +123,8 @@ class PosteriorSettings:
 
     def check(self) -> None:
         """One-line InferenceError for a non-positive or non-finite value."""
-        for name in ("sigma", "angle_sigma", "speed", "spin", "tilt", "speed_bound", "spin_bound"):
+        for name in ("sigma", "angle_sigma", "rest_speed", "rest_spin", "speed", "spin", "tilt", "speed_bound",
+                     "spin_bound"):
             v = getattr(self, name)
             if v is None and name in ("speed", "spin", "tilt"):
                 continue
@@ -120,7 +134,8 @@ class PosteriorSettings:
     def to_json(self) -> dict:
         """``result.json``'s ``prior`` and ``observation``: every value in force, flat ones as null
         beside their bounds."""
-        return {"observation": {"sigma": self.sigma, "angle_sigma": self.angle_sigma},
+        return {"observation": {"sigma": self.sigma, "angle_sigma": self.angle_sigma,
+                                "rest_speed": self.rest_speed, "rest_spin": self.rest_spin},
                 "prior": {"speed": self.speed, "spin": self.spin, "tilt": self.tilt,
                           "position": "uniform in the start area",
                           "speed_bound": None if self.speed is not None else self.speed_bound,
@@ -150,10 +165,20 @@ class Posterior:
         """Candidate residual Jacobians computed so far."""
         world = problem.world
         dt = world.dtype
-        t = problem.target
-        self._target_origin = torch.as_tensor(t.position, dtype=dt)
-        self._target_q = normalize_quat(torch.as_tensor(t.orientation, dtype=dt))
-        self._target_com = self._target_origin + quat_rotate(self._target_q, world.com[problem.source])
+        com = world.com[problem.source]
+        self.sightings = tuple(problem.sightings)
+        """The scene's targets as compared (``dejaview.losses.targets.Sighting``), in file order."""
+        self._goals = []  # per sighting: target origin (3,), orientation (4,) or None, its COM (3,)
+        for sighting in self.sightings:
+            t = sighting.target
+            origin = torch.as_tensor(t.position, dtype=dt)
+            q = None if t.orientation is None else normalize_quat(torch.as_tensor(t.orientation, dtype=dt))
+            self._goals.append((origin, q, None if q is None else origin + quat_rotate(q, com)))
+        anchor = self.sightings.index(_anchor(self.sightings))
+        # the last observation (the end's), which dejaview.inference.symmetry aligns rollouts to
+        self._target_origin, self._target_q, self._target_com = self._goals[anchor]
+        if self._target_q is None:
+            self._target_com = None
 
     # ---------------------------------------------------------------- residuals
     @property
@@ -169,13 +194,25 @@ class Posterior:
                     or (free["linear_velocity"] and s.speed is not None)
                     or (free["angular_velocity"] and s.spin is not None))
 
+    def _kind(self, sighting) -> str:
+        """The loss a sighting is compared by: the scene's, ``position`` where its target observed
+        the position alone."""
+        return self.problem.loss_kind if sighting.orientation_observed else "position"
+
+    def columns(self, sighting) -> int:
+        """Observation residuals of one sighting: 6 for a pose, 3 for a position, 1 for ADD, plus 3
+        per target velocity, plus 6 per part of the window where lying still is observed."""
+        from dejaview.losses.targets import REST_PARTS
+
+        t = sighting.target
+        n = {"pose": 6, "position": 3, "add": 1}[self._kind(sighting)]
+        n += 3 * (t.linear_velocity is not None) + 3 * (t.angular_velocity is not None)
+        return n + (6 * REST_PARTS if sighting.at_rest else 0)
+
     @property
     def num_observed(self) -> int:
-        """Observation residuals per candidate (6 for a pose, 3 for a position, 1 for ADD, plus
-        3 per target velocity)."""
-        p = self.problem
-        n = {"pose": 6, "position": 3, "add": 1}[p.loss_kind]
-        return n + 3 * (p.target.linear_velocity is not None) + 3 * (p.target.angular_velocity is not None)
+        """Observation residuals per candidate (``columns`` summed over the sightings)."""
+        return sum(self.columns(s) for s in self.sightings)
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """Draws (n, P) from the prior: position uniform in the start area, orientation and
@@ -192,77 +229,90 @@ class Posterior:
         return x
 
     def observation_residuals(self, traj) -> tuple[torch.Tensor, torch.Tensor]:
-        """Residuals of the observed end at the compared record, and the scene's loss there.
+        """Residuals of every observation, and the scene's loss.
 
         Args:
-            traj: Trajectory of the candidates, states (T, B, N, ...).
+            traj: Trajectory of the candidates, states (T, B, N, ...), recording the steps the
+                sightings read (or every step).
         Returns:
-            residuals (B, M_obs) and the scene's per-record loss at the compared record (B,) in
-            metres (``InferenceProblem.loss_of_trajectory`` without penalties).
+            residuals (B, M_obs), the sightings' in file order (``columns`` each), and the scene's
+            per-record loss (B,) in metres at the compared records (the sightings' in quadrature;
+            ``InferenceProblem.loss_of_trajectory`` without penalties and rest).
         """
+        parts, losses = [], []
+        for sighting, goal in zip(self.sightings, self._goals):
+            r, loss = self._sighting_residuals(traj, sighting, goal)
+            parts.append(r)
+            losses.append(loss)
+        loss = losses[0] if len(losses) == 1 else torch.sqrt(sum(v * v for v in losses))
+        return torch.cat(parts, -1), loss
+
+    def _sighting_residuals(self, traj, sighting, goal) -> tuple[torch.Tensor, torch.Tensor]:
+        """One sighting's residuals (B, columns) and the scene's loss (B,) at its record."""
         from dejaview.losses import LOSSES
-        from dejaview.losses.trajectory import nearest_record
+        from dejaview.losses.targets import REST_PARTS, record_index, rest_velocities
 
         p, s = self.problem, self.settings
         body, world, st = p.source, p.world, traj.states
-        fixed = None  # the one record compared, where it does not depend on the candidate
-        if p.target.time is not None:
-            fixed = nearest_record(traj, p.target.time)
-        elif p.evaluate != "best":
-            fixed = st.position.shape[0] - 1
-        if fixed is None and p.loss_kind == "pose":  # evaluate=best: each candidate's record first,
-            k = self._best_pose_records(st)  # by a cheap chi-square, then its residuals alone
-            b = torch.arange(k.shape[0])
-            st = State(*(t[k, b].unsqueeze(0) for t in st.tensors()))
-            fixed = 0
-        elif fixed is not None:  # the residuals of that record only (the same numbers, T times cheaper)
-            st = State(*(t[fixed:fixed + 1] for t in st.tensors()))
-        pos, q = st.position[..., body, :], st.orientation[..., body, :]  # (T, B, 3/4)
-        if p.loss_kind == "position":
-            origin = pos - quat_rotate(q, world.com[body].expand_as(pos))
-            parts = [(origin - self._target_origin) / s.sigma]
-        elif p.loss_kind == "add":
-            add = LOSSES["add"](world, body, st, self._target_origin, self._target_q, points=p.points)
-            parts = [add.unsqueeze(-1) / s.sigma]
+        origin, q_goal, com_goal = goal
+        kind = self._kind(sighting)
+        b = torch.arange(st.position.shape[1])
+        if sighting.step is None:  # the record that fits best, per candidate (its choice not differentiated)
+            k = self._best_records(st, sighting, goal)
         else:
-            rel = quat_multiply(q, quat_conjugate(self._target_q).expand_as(q))
-            parts = [(pos - self._target_com) / s.sigma, quat_to_rotvec(rel) / s.angle_sigma]
-        r = torch.cat(parts + self._velocity_residuals(st), -1)  # (T, B, M)
-        b = torch.arange(r.shape[1])
-        if fixed is not None:
-            k = torch.zeros_like(b)
-        else:  # evaluate="best": the record that fits best, per candidate
-            k = (r.detach() ** 2).sum(-1).argmin(0)
-        with torch.no_grad():  # the scene's loss at the compared record only: (1, B, N, ...) states
-            at = State(*(t[k, b].unsqueeze(0) for t in st.tensors()))
-            loss = LOSSES[p.loss_kind](world, body, at, self._target_origin, self._target_q,
-                                       orientation_weight=p.orientation_weight, points=p.points)[0]
-        return r[k, b], loss
+            k = torch.full_like(b, record_index(traj.steps, sighting.step))
+        at = State(*(t[k, b] for t in st.tensors()))  # (B, N, ...)
+        pos, q = at.position[:, body], at.orientation[:, body]
+        if kind == "position":
+            origin_sim = pos - quat_rotate(q, world.com[body].expand_as(pos))
+            parts = [(origin_sim - origin) / s.sigma]
+        elif kind == "add":
+            one = State(*(t.unsqueeze(0) for t in at.tensors()))
+            parts = [LOSSES["add"](world, body, one, origin, q_goal, points=p.points)[0].unsqueeze(-1) / s.sigma]
+        else:
+            rel = quat_multiply(q, quat_conjugate(q_goal).expand_as(q))
+            parts = [(pos - com_goal) / s.sigma, quat_to_rotvec(rel) / s.angle_sigma]
+        parts += self._velocity_residuals(at, sighting.target)
+        if sighting.at_rest:
+            lin, ang = rest_velocities(traj, body, sighting)  # (B, parts, 3)
+            scale = 1.0 / math.sqrt(REST_PARTS)
+            parts += [lin.flatten(1) * (scale / s.rest_speed), ang.flatten(1) * (scale / s.rest_spin)]
+        with torch.no_grad():
+            one = State(*(t.detach().unsqueeze(0) for t in at.tensors()))
+            loss = LOSSES[kind](world, body, one, origin, q_goal if q_goal is not None else _IDENTITY_Q,
+                                orientation_weight=p.orientation_weight, points=p.points)[0]
+        return torch.cat(parts, -1), loss
 
-    def _velocity_residuals(self, st) -> list[torch.Tensor]:
-        """Residuals (T, B, 3) of the source's velocities against the target's, where the target
-        gives them (linear, then angular), at states (T, B, N, ...)."""
+    def _velocity_residuals(self, at, target) -> list[torch.Tensor]:
+        """Residuals (..., 3) of the source's velocities at states ``at`` (..., N, ...) against the
+        target's, where it gives them (linear, then angular)."""
         from dejaview.losses.trajectory import DEFAULT_VELOCITY_WEIGHT
 
         p, s = self.problem, self.settings
         out = []
-        for target, field, sd in ((p.target.linear_velocity, "linear_velocity", s.sigma),
-                                  (p.target.angular_velocity, "angular_velocity", s.angle_sigma)):
-            if target is not None:
-                v = torch.as_tensor(target, dtype=p.world.dtype)
-                out.append(DEFAULT_VELOCITY_WEIGHT * (getattr(st, field)[..., p.source, :] - v) / sd)
+        for value, field, sd in ((target.linear_velocity, "linear_velocity", s.sigma),
+                                 (target.angular_velocity, "angular_velocity", s.angle_sigma)):
+            if value is not None:
+                v = torch.as_tensor(value, dtype=p.world.dtype)
+                out.append(DEFAULT_VELOCITY_WEIGHT * (getattr(at, field)[..., p.source, :] - v) / sd)
         return out
 
-    def _best_pose_records(self, st) -> torch.Tensor:
-        """(B,) index of the record (of states (T, B, N, ...)) whose pose residuals' chi-square
-        is least, per candidate: the pose loss's residuals squared and summed, the orientation's
-        by its geodesic angle (the length of its rotation vector, without computing those)."""
+    def _best_records(self, st, sighting, goal) -> torch.Tensor:
+        """(B,) index of the record (of states (T, B, N, ...)) whose residuals' chi-square is least,
+        per candidate: the pose's squared and summed (the orientation's by its geodesic angle, the
+        length of its rotation vector, without computing those), the ADD's by the centres of mass,
+        plus the velocities'."""
         p, s = self.problem, self.settings
+        origin, q_goal, com_goal = goal
         with torch.no_grad():
             pos, q = st.position[..., p.source, :], st.orientation[..., p.source, :]
-            chi2 = (((pos - self._target_com) / s.sigma) ** 2).sum(-1)
-            chi2 = chi2 + (geodesic_angle(self._target_q.expand_as(q), q) / s.angle_sigma) ** 2
-            for part in self._velocity_residuals(st):
+            if self._kind(sighting) == "position":
+                pos = pos - quat_rotate(q, p.world.com[p.source].expand_as(pos))
+                chi2 = (((pos - origin) / s.sigma) ** 2).sum(-1)
+            else:
+                chi2 = (((pos - com_goal) / s.sigma) ** 2).sum(-1)
+                chi2 = chi2 + (geodesic_angle(q_goal.expand_as(q), q) / s.angle_sigma) ** 2
+            for part in self._velocity_residuals(st, sighting.target):
                 chi2 = chi2 + (part ** 2).sum(-1)
             return chi2.argmin(0)
 
@@ -389,6 +439,17 @@ class Posterior:
                 rows.append(torch.zeros_like(x) if g is None else g)
         self.jacobians += x.shape[0]
         return r.detach(), torch.stack(rows, 1)
+
+
+_IDENTITY_Q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+"""Stands for the unobserved orientation of a position-only target in a ``position`` loss (unread)."""
+
+
+def _anchor(sightings):
+    """The sighting of the last observation (``InferenceSettings.target``): the one without a
+    time, else the latest."""
+    untimed = [s for s in sightings if s.time is None]
+    return untimed[0] if untimed else max(sightings, key=lambda s: s.time)
 
 
 def feasibility_check(scene, problem, margin: float = FEASIBILITY_MARGIN):

@@ -127,6 +127,36 @@ def summary(samples, layout, modes) -> dict:
             "intervals": intervals, "agreement": agreement}
 
 
+def truth_report(post, samples, layout, truth: dict, intervals: dict | None = None) -> dict:
+    """Where a known true start lies in the posterior (benchmarks, the demo, the examples' truths).
+
+    Args:
+        post: the ``Posterior``; samples: ``PosteriorSamples`` or None; layout: its ``ParameterLayout``.
+        truth: the true ``initial_state`` (position, orientation, linear_velocity, angular_velocity).
+        intervals: ``summary``'s intervals (None: without samples).
+    Returns:
+        ``neg_log_posterior`` and ``observation_chi2`` of the truth; with samples its
+        ``credible_level``: the posterior mass of the starts more probable than it (the smallest
+        highest-density region holding it; uniform in [0, 1] over truths drawn from the prior), and
+        per parameter whether its central 90 % interval holds the truth (``in_90``).
+    """
+    from dejaview.inference.reference import log_density
+
+    x = layout.encode(position=truth.get("position"), orientation=truth.get("orientation"),
+                      linear_velocity=truth.get("linear_velocity"),
+                      angular_velocity=truth.get("angular_velocity")).to(torch.float64)
+    cost, chi2, _ = post.cost(x)
+    out = {"neg_log_posterior": float(cost[0]), "observation_chi2": float(chi2[0])}
+    if samples is not None:
+        level = log_density(post, x)[0]
+        out["credible_level"] = float(samples.weights[samples.log_density > level].sum())
+        if intervals is not None:
+            value = physical(layout, x)[0]
+            out["in_90"] = {name: bool(iv["90%"][0] <= float(value[j]) <= iv["90%"][1])
+                            for j, (name, iv) in enumerate(intervals.items())}
+    return out
+
+
 def agreement_warning(agreement: dict | None, what: str) -> str | None:
     """The one-line warning the CLI prints where ``summary``'s ``agreement`` says the runs disagree
     (None where they agree or there was one run); ``what``: what not to trust."""

@@ -50,42 +50,91 @@ class SolveResult:
         return self.problem.final_pose(self.trajectory)
 
     def matched_pose(self) -> dict:
-        """Where the answer meets the observation: the record of the re-simulated trajectory that
-        the scene compares with the target (its ``time``, else the best-matching record by the
-        scene's loss for ``evaluate="best"``, else the last), the source's object-frame pose
-        there and its errors against the target.
+        """Where the answer meets the last observation (``scene.inference.target``): the record of
+        the re-simulated trajectory the scene compares with it (its ``time``, else the end for a
+        source seen at rest, else the best-matching record by the scene's loss for a moving target
+        under ``evaluate="best"``, else the last), the source's object-frame pose there and its
+        errors against the target.
 
         Returns:
             dict with ``time`` (s), ``position``, ``orientation`` (w x y z), ``position_error``
-            (m, object-frame origins) and ``angle_error_deg`` (geodesic).
+            (m, object-frame origins) and ``angle_error_deg`` (geodesic; None where the target
+            observed the position alone).
         """
+        from dejaview.losses.targets import record_index
+
+        problem = getattr(self.problem, "inner", self.problem)
+        sightings = list(problem.sightings)
+        anchor = sightings[list(problem.targets).index(self.scene.inference.target)]
+        if anchor.step is not None:
+            k = record_index(self.trajectory.steps, anchor.step)
+        else:
+            k = self._best_record(anchor.target)
+        return self._pose_at(k, anchor.target)
+
+    def observations(self) -> list[dict]:
+        """The answer against every observation, as a user would check it: each target with a
+        ``time`` against the re-simulated trajectory at that moment, one without against its END
+        (where the source lies, or flies on), with, for a moving target under
+        ``evaluate="best"``, the best-matching record beside it (``matched``).
+
+        Returns:
+            one dict per target (file order): ``time`` (s, the moment compared), ``at_rest``,
+            ``position_error`` (m), ``angle_error_deg`` (None without an observed orientation),
+            ``position`` and ``orientation`` of the answer there, and ``matched`` where it differs.
+        """
+        from dejaview.losses.targets import record_index
+
+        problem = getattr(self.problem, "inner", self.problem)
+        out = []
+        for s in problem.sightings:
+            t = s.target
+            k = record_index(self.trajectory.steps, s.step) if t.time is not None else len(self.trajectory.steps) - 1
+            row = {"target_time": t.time, "at_rest": s.at_rest, **self._pose_at(k, t)}
+            if s.step is None:
+                row["matched"] = self._pose_at(self._best_record(t), t)
+            out.append(row)
+        return out
+
+    def end_error(self) -> dict:
+        """The re-simulated END against the last observation (``observations``' row of
+        ``scene.inference.target`` where it has no time; else that target at its time)."""
+        problem = getattr(self.problem, "inner", self.problem)
+        i = list(problem.targets).index(self.scene.inference.target)
+        row = self.observations()[i]
+        return {k: row[k] for k in ("time", "position_error", "angle_error_deg")}
+
+    def _best_record(self, target) -> int:
+        """Index of the re-simulated record that fits ``target`` best by the scene's loss."""
         from dejaview.losses import LOSSES
-        from dejaview.losses.trajectory import nearest_record
+
+        problem, traj = getattr(self.problem, "inner", self.problem), self.trajectory
+        world = problem.frames
+        kind = problem.loss_kind if target.orientation is not None else "position"
+        t_pos = torch.tensor(target.position, dtype=world.dtype)
+        t_q = torch.tensor(target.orientation if target.orientation is not None else (1.0, 0, 0, 0), dtype=world.dtype)
+        with torch.no_grad():
+            per_record = LOSSES[kind](world, problem.source, traj.states, t_pos, t_q / t_q.norm(),
+                                      orientation_weight=problem.orientation_weight, points=problem.points)[:, 0]
+        return int(torch.argmin(per_record))
+
+    def _pose_at(self, k: int, target) -> dict:
+        """The source's object-frame pose at record k of the re-simulated trajectory and its errors
+        against ``target``."""
         from dejaview.sim.rotation import geodesic_angle
 
         problem, traj = getattr(self.problem, "inner", self.problem), self.trajectory
-        target = self.scene.inference.target
-        world, source = problem.world, problem.source
-        kw = dict(dtype=world.dtype)
-        t_pos = torch.tensor(target.position, **kw)
-        t_q = torch.tensor(target.orientation, **kw)
-        t_q = t_q / t_q.norm()
+        world, source = problem.frames, problem.source
         with torch.no_grad():
-            if target.time is not None:
-                k = nearest_record(traj, target.time)
-            elif problem.evaluate == "best":
-                per_record = LOSSES[problem.loss_kind](world, source, traj.states, t_pos, t_q,
-                                                       orientation_weight=problem.orientation_weight,
-                                                       points=problem.points)[:, 0]  # (T,)
-                k = int(torch.argmin(per_record))
-            else:
-                k = len(traj.steps) - 1
             origin = world.object_position(traj.states)[k, 0, source]
             q = traj.states.orientation[k, 0, source]
-            return {"time": float(traj.steps[k]) * traj.dt, "position": origin.tolist(),
-                    "orientation": q.tolist(),
-                    "position_error": float(torch.linalg.vector_norm(origin - t_pos)),
-                    "angle_error_deg": math.degrees(float(geodesic_angle(q, t_q)))}
+            angle = None
+            if target.orientation is not None:
+                t_q = torch.tensor(target.orientation, dtype=q.dtype)
+                angle = math.degrees(float(geodesic_angle(q, t_q / t_q.norm())))
+            err = float(torch.linalg.vector_norm(origin - torch.tensor(target.position, dtype=origin.dtype)))
+            return {"time": float(traj.steps[k]) * traj.dt, "position": origin.tolist(), "orientation": q.tolist(),
+                    "position_error": err, "angle_error_deg": angle}
 
     def to_json(self) -> dict:
         """``result.json`` content (scene-format spec, "Outputs")."""
@@ -98,9 +147,13 @@ class SolveResult:
             "loss": self.loss,
             "initial_state": self.initial_state,
             "final_pose": {"position": end_pos, "orientation": end_q},
-            **({"matched_pose": self.matched_pose()} if self.problem.backend == "spheres" else {}),
-            "target": {"position": list(self.scene.inference.target.position),
-                       "orientation": list(self.scene.inference.target.orientation)},
+            "end_error": self.end_error(),
+            "matched_pose": self.matched_pose(),
+            "observations": self.observations(),
+            "target": _target_json(self.scene.inference.target),
+            "targets": [_target_json(t) for t in self.scene.inference.targets],
+            **({"rest": self.settings["rest"]} if "rest" in self.settings else {}),
+            "warnings": list(self.settings.get("warnings", [])),
             "loss_kind": self.problem.loss_kind,
             "evaluate": self.problem.evaluate,
             "seed": self.settings.get("seed", 0),
@@ -109,8 +162,8 @@ class SolveResult:
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
-            **{k: self.settings[k] for k in ("prior", "observation", "model_uncertainty", "search", "posterior")
-               if k in self.settings},
+            **{k: self.settings[k] for k in ("prior", "observation", "model_uncertainty", "search", "posterior",
+                                             "truth") if k in self.settings},
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}
                            for p in self.iterations],
@@ -141,6 +194,18 @@ class SolveResult:
             quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
             paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)
         return paths
+
+
+def _target_json(t) -> dict:
+    """A target as result.json lists it (what was given, and whether it was seen at rest)."""
+    out = {"position": list(t.position),
+           "orientation": None if t.orientation is None else list(t.orientation)}
+    for name in ("linear_velocity", "angular_velocity", "time", "moving"):
+        if getattr(t, name) is not None:
+            v = getattr(t, name)
+            out[name] = list(v) if isinstance(v, tuple) else v
+    out["at_rest"] = t.at_rest
+    return out
 
 
 def _num(v: float):

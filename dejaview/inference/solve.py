@@ -275,7 +275,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           backend=None,
           screen: int | None = None, screen_rounds: int | None = None,
           screen_near: float | None = None, budget: int | None = None,
-          samples: int | None = None) -> SolveResult:
+          samples: int | None = None, truth: dict | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object: its most probable past.
 
     The default (``optimizer="auto"``, what a scene without ``optimizer`` asks for) maximises the
@@ -290,6 +290,9 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
         budget: rollouts of the ``auto`` search.
         samples: posterior samples drawn around the search's modes (``dejaview.inference.sampling``;
             None: the scene's ``<posterior samples>``, else none); the result's ``posterior``.
+        truth: a known true ``initial_state`` (a ``.truth.json``'s): the result says where it lies
+            in the posterior (``posterior_report.truth_report``: its -log posterior, and with
+            samples its credible level); the default search only.
         gradient, lr, multistart, epsilon, patience, screen, screen_rounds, screen_near, x0: the
             local optimisers' settings (see ``optimize`` and ``screen_rounds_ranked``):
             multistart K guesses as one batch, ``screen`` random guesses ranked by loss first.
@@ -331,7 +334,14 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
             from dejaview.inference.posterior_report import summary
 
             extra["posterior"] = summary(samples_drawn, problem.layout, opt.modes)
+        if truth is not None and not opt.stopped:
+            from dejaview.inference.posterior_report import truth_report
+
+            intervals = extra["posterior"]["intervals"] if "posterior" in extra else None
+            extra["truth"] = truth_report(post, samples_drawn, problem.layout, truth, intervals)
     else:
+        if truth is not None:
+            raise InferenceError("a truth is placed in the posterior of the default search (optimizer auto)")
         opt, extra = _optimize_locally(problem, settings, x0, callback, should_stop)
     if not math.isfinite(opt.loss):
         if opt.stopped and not opt.history:
@@ -341,10 +351,22 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     with torch.no_grad():
         decoded = {k: v[0].tolist() for k, v in problem.layout.decode(best).items()}
         traj = problem.simulate(best, steps=problem.duration_steps, record_every=1)
+    rest, warnings = _rest_report(scene, problem, settings, best, samples_drawn)
     info = {"optimizer": settings.optimizer, "gradient": settings.gradient, "iterations": settings.iterations,
-            "seed": settings.seed, "backend": problem.backend, **extra}
+            "seed": settings.seed, "backend": problem.backend, **extra, "rest": rest,
+            "warnings": warnings + extra.get("warnings", [])}
     return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
                        loss=opt.loss, trajectory=traj, settings=info, posterior=samples_drawn)
+
+
+def _rest_report(scene, problem, settings: SolveSettings, best: torch.Tensor, samples) -> tuple[dict, list[str]]:
+    """When the answer came to rest, and warnings where it (or a sample) is still moving at the end
+    of a scene that saw the source lying still (``dejaview.inference.rest``)."""
+    from dejaview.inference.posterior import PosteriorSettings
+    from dejaview.inference.rest import duration_warnings
+
+    post = settings.posterior if settings.posterior is not None else PosteriorSettings.from_scene(scene)
+    return duration_warnings(problem, post, best, samples)
 
 
 def _make_problem(scene, problem, world, backend):

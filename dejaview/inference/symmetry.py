@@ -108,14 +108,14 @@ class FloorSymmetry:
     def of(post) -> "FloorSymmetry | None":
         """The symmetry of ``post``'s scene (a ``Posterior``), or None where it has none (another
         movable body, a static shape that is not a horizontal plane, gravity not vertical, a
-        position free in per-candidate boxes) or where the likelihood reads more than one record
-        of each rollout (``evaluate="best"`` without a target time, a ``<penalty>``): the moves
-        would carry every record of every candidate motion."""
+        position free in per-candidate boxes) or where the likelihood reads every record of each
+        rollout (a moving target without a time under ``evaluate="best"``, a ``<penalty>``): the
+        moves would carry every record of every candidate motion."""
         problem, lay = getattr(post, "problem", None), post.layout
         world = getattr(problem, "world", None)
         if world is None:  # not a simulated scene's posterior
             return None
-        if problem.penalties or (problem.target.time is None and problem.evaluate == "best"):
+        if problem.penalties or any(s.step is None for s in post.sightings):
             return None
         if world.mass.shape[0] != 1 or float(world.gravity[:2].abs().max()) > _TOL:
             return None
@@ -205,10 +205,10 @@ class FloorSymmetry:
         st = traj.states
         com, q = st.position[-1, :, b], st.orientation[-1, :, b]  # (B, 3), (B, 4)
         theta = torch.zeros(com.shape[0], dtype=com.dtype)
-        if self.rotate and problem.loss_kind != "position":
+        if self.rotate and problem.loss_kind != "position" and post._target_q is not None:
             d = quat_multiply(post._target_q.expand_as(q), torch.cat([q[:, :1], -q[:, 1:]], -1))
             theta = 2 * torch.atan2(d[:, 3], d[:, 0])
-        if problem.loss_kind == "position":
+        if problem.loss_kind == "position" or post._target_com is None:
             point = com - quat_rotate(q, problem.world.com[b].expand_as(com))
             goal = post._target_origin
         else:
@@ -229,7 +229,7 @@ class FloorSymmetry:
         extent = (max(float(lay.hi[a] - lay.lo[a]) for a in self.axes) if lay.lo is not None and self.axes
                   else 10 * lay.scale["position"])
         sd_t = min(WIDTH * s.sigma / math.sqrt(b), extent)
-        if post.problem.loss_kind == "position":
+        if post.problem.loss_kind == "position" or post._target_q is None:
             sd_theta = math.pi if s.tilt is None else min(s.tilt, math.pi)
         else:
             sd_theta = min(WIDTH * s.angle_sigma / math.sqrt(b), math.pi)
@@ -382,13 +382,17 @@ class FloorSymmetry:
 
 
 def compared_records(post, traj: Trajectory) -> Trajectory:
-    """The one record of ``traj`` that ``Posterior.observation_residuals`` compares (the last, or
-    the one nearest the target's time; ``FloorSymmetry.of`` leaves the other cases out)."""
-    from dejaview.losses.trajectory import nearest_record
+    """The records of ``traj`` that ``Posterior.observation_residuals`` reads: each sighting's and
+    its rest window's (``FloorSymmetry.of`` leaves out the likelihoods that read every record),
+    in step order; the last of them is the anchor's (the end, or the latest target time)."""
+    from dejaview.losses.targets import record_index
 
-    p = post.problem
-    k = nearest_record(traj, p.target.time) if p.target.time is not None else len(traj) - 1
-    return Trajectory(State(*(t[k:k + 1] for t in traj.states.tensors())), traj.steps[k:k + 1], traj.dt)
+    wanted = set()
+    for s in post.sightings:
+        wanted |= {s.step, *s.rest_steps}
+    keep = sorted({record_index(traj.steps, k) for k in wanted})
+    idx = torch.as_tensor(keep, dtype=torch.long)
+    return Trajectory(State(*(t[idx] for t in traj.states.tensors())), traj.steps[idx], traj.dt)
 
 
 def ends(post, x: torch.Tensor, known: tuple | None = None) -> list:

@@ -120,13 +120,36 @@ class SimulationSettings:
 
 @dataclass(frozen=True)
 class Target:
-    """``<target>``: the observed state of the source object."""
+    """``<target>``: one observation of the source (scene-format spec, "how the source was seen").
+
+    ``orientation`` None: the position alone was observed. ``time`` None: the observation's moment is
+    not known (the end, or any moment for ``moving``). ``moving``: ``True`` the source was seen in
+    motion, ``False`` lying still, None as the spec's default (``at_rest``).
+    """
 
     position: Vec3
-    orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+    orientation: Quat | None = None
     linear_velocity: Vec3 | None = None
     angular_velocity: Vec3 | None = None
     time: float | None = None
+    moving: bool | None = None
+
+    @property
+    def at_rest(self) -> bool:
+        """Whether the source was seen lying still: ``moving="false"``, or, by default, a target
+        without a ``time`` and without velocities (it must have come to rest at the pose and stay)."""
+        if self.moving is not None:
+            return not self.moving
+        return self.time is None and self.linear_velocity is None and self.angular_velocity is None
+
+
+def last_target(targets) -> Target:
+    """The last observation of several: the target without a ``time`` (seen at the end), else the
+    one with the latest time (the first of them where several share it)."""
+    untimed = [t for t in targets if t.time is None]
+    if untimed:
+        return untimed[0]
+    return max(targets, key=lambda t: t.time)
 
 
 @dataclass(frozen=True)
@@ -189,11 +212,14 @@ class Prior:
 
 @dataclass(frozen=True)
 class Observation:
-    """``<observation sigma angle-sigma>``: standard deviations of the observed end pose's noise,
-    position (m) and orientation (rad). None: the defaults of ``dejaview.inference.posterior``."""
+    """``<observation sigma angle-sigma rest-speed rest-spin>``: standard deviations of the observed
+    pose's noise, position (m) and orientation (rad), and of the speed (m/s) and spin (rad/s) with
+    which "at rest" is observed. None: the defaults of ``dejaview.inference.posterior``."""
 
     sigma: float | None = None
     angle_sigma: float | None = None
+    rest_speed: float | None = None
+    rest_spin: float | None = None
 
 
 @dataclass(frozen=True)
@@ -216,10 +242,11 @@ class PosteriorSamples:
 
 @dataclass(frozen=True)
 class InferenceSettings:
-    """``<inference>``: what to infer and how."""
+    """``<inference>``: what to infer and how. ``targets``: every ``<target>``, in file order
+    (one, or several with times: a tracked source)."""
 
     source: str
-    target: Target
+    targets: tuple[Target, ...]
     iterations: int = 200
     seed: int = 0
     optimizer: str = "auto"
@@ -235,6 +262,11 @@ class InferenceSettings:
     observation: Observation | None = None
     model_uncertainty: ModelUncertainty | None = None
     posterior: PosteriorSamples | None = None
+
+    @property
+    def target(self) -> Target:
+        """The last observation (``last_target``)."""
+        return last_target(self.targets)
 
 
 @dataclass(frozen=True)

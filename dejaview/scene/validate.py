@@ -7,7 +7,7 @@ none).
 
 ``lines`` keys name the elements: ``("scene",)``, ``("simulation",)``,
 ``("object", i)``, ``("object", i, "pose")``, ``("object", i, "velocity")``,
-``("inference",)``, ``("target",)``, ``("optimize",)``, ``("start-area",)``,
+``("inference",)``, ``("target", j)``, ``("optimize",)``, ``("start-area",)``,
 ``("exploration",)``, ``("penalty", j)``, ``("heatmap",)``.
 """
 
@@ -419,17 +419,7 @@ class _Checker:
         self.choice(key, "loss", inf.loss, LOSSES)
         self.choice(key, "evaluate", inf.evaluate, EVALUATES)
 
-        t, tkey = inf.target, ("target",)
-        self.vector(tkey, "position", t.position, limit=B.MAX_LENGTH, unit=" m")
-        self.quaternion(tkey, "orientation", t.orientation)
-        self.vector(tkey, "linear-velocity", t.linear_velocity, optional=True, norm=B.MAX_SPEED, unit=" m/s")
-        self.vector(tkey, "angular-velocity", t.angular_velocity, optional=True, norm=B.MAX_SPIN,
-                    unit=" rad/s")
-        if self.number(tkey, "time", t.time, nonnegative=True, optional=True):
-            duration = self.scene.simulation.duration
-            if isinstance(duration, numbers.Real) and t.time > duration:
-                self.report(tkey, f"'time' {t.time!r} is after the end of the simulation "
-                                  f"(duration {duration!r})")
+        self.targets(inf)
 
         if not inf.optimize.any():
             self.report(("optimize",), "nothing to optimize: every part of the initial "
@@ -476,7 +466,8 @@ class _Checker:
             for name in ("speed", "spin", "tilt"):
                 self.number(("prior",), name, getattr(inf.prior, name), positive=True, optional=True)
         if inf.observation is not None:
-            for attr, name in (("sigma", "sigma"), ("angle-sigma", "angle_sigma")):
+            for attr, name in (("sigma", "sigma"), ("angle-sigma", "angle_sigma"), ("rest-speed", "rest_speed"),
+                               ("rest-spin", "rest_spin")):
                 self.number(("observation",), attr, getattr(inf.observation, name), positive=True,
                             optional=True)
         if inf.model_uncertainty is not None:
@@ -485,6 +476,36 @@ class _Checker:
                             nonnegative=True, optional=True, limit=B.MAX_RELATIVE_UNCERTAINTY)
         if inf.posterior is not None:
             self.integer(("posterior",), "samples", inf.posterior.samples, 0, B.MAX_POSTERIOR_SAMPLES)
+
+    def targets(self, inf) -> None:
+        """Each ``<target>`` (key ``("target", j)``), and how several go together: every one of
+        several observations has a ``time`` but at most one (the end, seen at rest or moving)."""
+        untimed = []
+        duration = self.scene.simulation.duration
+        if not inf.targets:
+            self.report(("inference",), "no <target>: an inference needs at least one observation")
+        for j, t in enumerate(inf.targets):
+            tkey = ("target", j)
+            self.vector(tkey, "position", t.position, limit=B.MAX_LENGTH, unit=" m")
+            if t.orientation is not None:
+                self.quaternion(tkey, "orientation", t.orientation)
+            self.vector(tkey, "linear-velocity", t.linear_velocity, optional=True, norm=B.MAX_SPEED,
+                        unit=" m/s")
+            self.vector(tkey, "angular-velocity", t.angular_velocity, optional=True, norm=B.MAX_SPIN,
+                        unit=" rad/s")
+            if self.number(tkey, "time", t.time, nonnegative=True, optional=True):
+                if isinstance(duration, numbers.Real) and t.time > duration:
+                    self.report(tkey, f"'time' {t.time!r} is after the end of the simulation "
+                                      f"(duration {duration!r})")
+            else:
+                untimed.append(j)
+            if t.moving is False and (t.linear_velocity is not None or t.angular_velocity is not None):
+                self.report(tkey, "a target seen at rest (moving=\"false\") observes no velocities: "
+                                  "drop linear-velocity and angular-velocity or moving")
+        if len(inf.targets) > 1 and len(untimed) > 1:
+            self.report(("target", untimed[1]), f"{len(untimed)} targets have no 'time': of several "
+                                                f"observations each needs the moment it was made "
+                                                f"(at most one, the end, may leave it out)")
 
     def heatmap(self, area) -> None:
         h, key = self.scene.inference.heatmap, ("heatmap",)

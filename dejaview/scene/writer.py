@@ -120,16 +120,19 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
     el.set("evaluate", inf.evaluate)
     el.set("seed", str(int(inf.seed)))
 
-    t = inf.target
-    target = etree.SubElement(el, "target")
-    target.set("position", _v(t.position))
-    target.set("orientation", _v(t.orientation))
-    if t.linear_velocity is not None:
-        target.set("linear-velocity", _v(t.linear_velocity))
-    if t.angular_velocity is not None:
-        target.set("angular-velocity", _v(t.angular_velocity))
-    if t.time is not None:
-        target.set("time", _f(t.time))
+    for t in inf.targets:
+        target = etree.SubElement(el, "target")
+        target.set("position", _v(t.position))
+        if t.orientation is not None:
+            target.set("orientation", _v(t.orientation))
+        if t.linear_velocity is not None:
+            target.set("linear-velocity", _v(t.linear_velocity))
+        if t.angular_velocity is not None:
+            target.set("angular-velocity", _v(t.angular_velocity))
+        if t.time is not None:
+            target.set("time", _f(t.time))
+        if t.moving is not None:
+            target.set("moving", _b(t.moving))
 
     if inf.optimize != Optimize():
         o = etree.SubElement(el, "optimize")
@@ -156,7 +159,8 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
         h.set("sigma", _f(inf.heatmap.sigma))
     for tag, value, attrs in (("prior", inf.prior, (("speed", "speed"), ("spin", "spin"), ("tilt", "tilt"))),
                               ("observation", inf.observation,
-                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma"))),
+                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma"), ("rest-speed", "rest_speed"),
+                                ("rest-spin", "rest_spin"))),
                               ("model-uncertainty", inf.model_uncertainty,
                                (("friction", "friction"), ("restitution", "restitution")))):
         if value is not None:

@@ -63,7 +63,7 @@ __all__ = [
 # Counts that XML Schema 1.0 cannot express together with free element order.
 _AT_MOST_ONCE = {
     "scene": ("simulation", "inference"),
-    "inference": ("target", "optimize", "start-area", "exploration", "heatmap", "prior", "observation",
+    "inference": ("optimize", "start-area", "exploration", "heatmap", "prior", "observation",
                   "model-uncertainty", "posterior"),
 }
 _REQUIRED_CHILDREN = {"inference": ("target",)}
@@ -351,15 +351,17 @@ class _SceneReader:
         self.lines[("inference",)] = el.sourceline
         groups = self.grouped(el)
 
-        t = groups["target"][0]
-        self.lines[("target",)] = t.sourceline
-        target = Target(
-            position=self.vector_attr(t, "position", 3),
-            orientation=self.quat_attr(t, "orientation", _default(Target, "orientation")),
-            linear_velocity=self.vector_attr(t, "linear-velocity", 3),
-            angular_velocity=self.vector_attr(t, "angular-velocity", 3),
-            time=self.float_attr(t, "time"),
-        )
+        targets = []
+        for j, t in enumerate(groups["target"]):
+            self.lines[("target", j)] = t.sourceline
+            targets.append(Target(
+                position=self.vector_attr(t, "position", 3),
+                orientation=self.quat_attr(t, "orientation"),
+                linear_velocity=self.vector_attr(t, "linear-velocity", 3),
+                angular_velocity=self.vector_attr(t, "angular-velocity", 3),
+                time=self.float_attr(t, "time"),
+                moving=self.bool_attr(t, "moving", None),
+            ))
         optimize = Optimize()
         if "optimize" in groups:
             o = groups["optimize"][0]
@@ -409,7 +411,9 @@ class _SceneReader:
             ob = groups["observation"][0]
             self.lines[("observation",)] = ob.sourceline
             observation = Observation(sigma=self.float_attr(ob, "sigma"),
-                                      angle_sigma=self.float_attr(ob, "angle-sigma"))
+                                      angle_sigma=self.float_attr(ob, "angle-sigma"),
+                                      rest_speed=self.float_attr(ob, "rest-speed"),
+                                      rest_spin=self.float_attr(ob, "rest-spin"))
         model_uncertainty = None
         if "model-uncertainty" in groups:
             mu = groups["model-uncertainty"][0]
@@ -424,7 +428,7 @@ class _SceneReader:
                 samples=self.int_attr(po, "samples", _default(PosteriorSamples, "samples")))
         return InferenceSettings(
             source=el.get("source"),
-            target=target,
+            targets=tuple(targets),
             iterations=self.int_attr(el, "iterations", _default(InferenceSettings, "iterations")),
             seed=self.int_attr(el, "seed", _default(InferenceSettings, "seed")),
             optimizer=el.get("optimizer", _default(InferenceSettings, "optimizer")),

@@ -182,6 +182,8 @@ def _solve(scene, overrides, out_dir, progress, stop):
     summary = {"loss": _finite(result.loss), "iterations": len(result.iterations),
                "initial_state": result.initial_state,
                "final_pose": {"position": end_pos, "orientation": end_q},
+               "end_error": result.end_error(), "rest": result.settings.get("rest"),
+               "warnings": list(result.settings.get("warnings", [])),
                "optimizer": result.settings.get("optimizer"), "gradient": result.settings.get("gradient")}
     if "posterior" in result.settings:
         post = result.settings["posterior"]

@@ -50,8 +50,8 @@ def _shelf_observing_its_truth():
     with torch.no_grad():  # observed: the truth's end at 0.3 s
         pos, q = problem.final_pose(problem.simulate(x))
     inf = scene.inference
-    scene = replace(scene, inference=replace(inf, target=replace(inf.target, position=tuple(pos),
-                                                                 orientation=tuple(q))))
+    seen = replace(inf.target, position=tuple(pos), orientation=tuple(q), moving=True)  # still sliding
+    scene = replace(scene, inference=replace(inf, targets=(seen,)))
     return InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene), x
 
 
@@ -189,7 +189,12 @@ def test_the_jacobian_with_model_uncertainty_uses_the_carried_jacobians_and_equa
     assert torch.allclose(jac, jac_adj, rtol=1e-8, atol=1e-10 * float(jac.abs().max()))
     single = Posterior(problem, PosteriorSettings.from_scene(scene))
     single.jacobian(x)
-    assert paths[-1] == "adjoint"  # 6 rows: one adjoint pass each
+    assert single.num_observed == 18 and paths[-1] == "phi"  # the pose and its rest: 18 rows >= 13
+    moving = replace(scene.inference.target, moving=True)
+    scene = replace(scene, inference=replace(scene.inference, evaluate="final", targets=(moving,)))
+    single = Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    single.jacobian(x)
+    assert single.num_observed == 6 and paths[-1] == "adjoint"  # 6 rows: one adjoint pass each
 
 
 def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_errors():
@@ -212,7 +217,7 @@ SLIDE = """<scene version="1" name="slide"><simulation dt="0.002" duration="0.4"
   <object id="ball" shape="sphere" radius="0.05" mass="0.4">
     <pose position="0 0 0.05" orientation="1 0 0 0"/><velocity linear="1 0 0" angular="0 0 0"/></object>
   <inference source="ball" loss="position" evaluate="final">
-    <target position="0.35 0.02 0.05" orientation="1 0 0 0"/>
+    <target position="0.35 0.02 0.05" orientation="1 0 0 0" moving="true"/>
     <optimize position="false" orientation="false" linear-velocity="true" angular-velocity="false"/>
     {element}
   </inference></scene>"""

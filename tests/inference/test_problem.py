@@ -6,11 +6,14 @@ than one movable object (``box_among_boxes``, the billiards fixture) failed
 with "expected N bodies in the state" before its first rollout.
 """
 
+import math
 from pathlib import Path
 
+import pytest
 import torch
 
 from dejaview.inference import InferenceProblem
+from dejaview.losses.targets import REST_PARTS, REST_WINDOW
 from dejaview.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -63,19 +66,25 @@ def _with_inference(path, **attrs):
     return replace(scene, inference=replace(scene.inference, **attrs))
 
 
-def test_a_final_pose_loss_records_only_the_end_and_equals_the_every_step_loss_and_gradient():
-    """A loss that reads only the end state (evaluate final, no penalty) simulates recording the
-    end alone; value and gradient are those of the rollout that records every step."""
+@pytest.mark.parametrize("moving", [True, False])
+def test_a_final_pose_loss_records_only_what_it_reads_and_equals_the_every_step_loss_and_gradient(moving):
+    """A loss that reads only the end state (a target seen moving, evaluate final, no penalty)
+    simulates recording the end alone; one seen at rest, the end and its rest window's steps; value
+    and gradient are those of the rollout that records every step."""
     from dataclasses import replace
 
-    problem = InferenceProblem.from_scene(Scene.from_xml(BOX_RAMP))
+    scene = Scene.from_xml(BOX_RAMP)
+    target = replace(scene.inference.target, moving=True if moving else None)
+    problem = InferenceProblem.from_scene(replace(scene, inference=replace(scene.inference, targets=(target,))))
     assert problem.evaluate == "final" and not problem.penalties
-    assert problem.record_every == problem.steps
+    window = int(round(REST_WINDOW / REST_PARTS / problem.world.dt))
+    assert problem.record_every == (problem.steps if moving else math.gcd(problem.steps, window))
     every = replace(problem, record_every=1)
     gen = torch.Generator().manual_seed(1)
     x = problem.layout.sample(3, gen)
     with torch.no_grad():
-        assert problem.simulate(x).states.position.shape[0] == 2  # the start and the end
+        records = problem.simulate(x).states.position.shape[0]
+        assert records == (2 if moving else problem.steps // problem.record_every + 1)
     for mode in ("reverse", "forward"):
         value, grad = problem.value_and_grad(x, mode)
         value_1, grad_1 = every.value_and_grad(x, mode)
@@ -84,13 +93,22 @@ def test_a_final_pose_loss_records_only_the_end_and_equals_the_every_step_loss_a
 
 
 def test_losses_that_read_more_than_the_end_record_every_step():
-    best = InferenceProblem.from_scene(_with_inference(BOX_RAMP, evaluate="best"))
+    scene = Scene.from_xml(BOX_RAMP)
+    moving = replace_target(scene, moving=True)
+    best = InferenceProblem.from_scene(_with_inference(BOX_RAMP, evaluate="best", targets=moving))
     assert best.record_every == 1
     from dejaview.scene.model import Penalty
 
     penalised = InferenceProblem.from_scene(_with_inference(
         BOX_RAMP, penalties=(Penalty(between=("box", "ramp"), weight=1.0),)))
     assert penalised.record_every == 1
+
+
+def replace_target(scene, **changes) -> tuple:
+    """The scene's one target with ``changes``, as ``targets``."""
+    from dataclasses import replace
+
+    return (replace(scene.inference.target, **changes),)
 
 
 def test_decoding_every_position_axis_equals_decoding_them_one_by_one():

@@ -31,7 +31,7 @@ def test_losses_table_names_the_scene_losses():
 @pytest.mark.parametrize("kind", ["pose", "add", "position"])
 def test_best_is_below_final_for_a_ball_thrown_past_the_target(kind):
     world, traj = thrown_ball()  # ends at x = 0.4 m
-    target = Target(position=(0.2, 0.0, 0.0))
+    target = Target(position=(0.2, 0.0, 0.0), moving=True)  # seen in motion, at a moment not known
     best = trajectory_loss(world, traj, "ball", target, kind=kind, evaluate="best")
     final = trajectory_loss(world, traj, "ball", target, kind=kind, evaluate="final")
     assert best.shape == final.shape == (1,)
@@ -42,7 +42,7 @@ def test_best_is_below_final_for_a_ball_thrown_past_the_target(kind):
 
 def test_soft_min_approaches_the_hard_min_as_temperature_goes_to_zero():
     world, traj = thrown_ball()
-    target = Target(position=(0.2013, 0.0, 0.0))  # between records: the hard min is > 0
+    target = Target(position=(0.2013, 0.0, 0.0), moving=True)  # between records: the hard min is > 0
     hard = trajectory_loss(world, traj, "ball", target)
     gaps = [(hard - trajectory_loss(world, traj, "ball", target, softmin_temperature=t)).item()
             for t in (1e-2, 1e-3, 1e-4, 1e-6)]
@@ -112,7 +112,7 @@ def test_unknown_names_are_errors():
 def test_trajectory_loss_object_adds_weighted_penalties():
     world = make_world([ball_body("a"), ball_body("b")], [], gravity=(0.0, 0.0, 0.0))
     traj = rollout(world, world.state([[0.0, 0, 0], [0.3, 0, 0]]), steps=2)
-    inference = InferenceSettings(source="a", target=Target(position=(0.1, 0.0, 0.0)), loss="position",
+    inference = InferenceSettings(source="a", targets=(Target(position=(0.1, 0.0, 0.0)),), loss="position",
                                   penalties=(Penalty(("a", "b"), weight=0.5),))
     objective = TrajectoryLoss.from_inference(inference)
     expected = 0.1 + 0.5 * (0.3 - 0.1)
@@ -164,7 +164,7 @@ def test_gradients_through_a_rollout_agree_and_are_finite_at_zero_error():
     ref = simulate(x0)
     k = 3  # record at step 12; COM == origin for this box
     target = Target(position=tuple(ref.states.position[k, 0, 0].tolist()),
-                    orientation=tuple(ref.states.orientation[k, 0, 0].tolist()))
+                    orientation=tuple(ref.states.orientation[k, 0, 0].tolist()), moving=True)
     best = lambda x: trajectory_loss(world, simulate(x), "box", target, kind="pose")  # noqa: E731
     assert best(x0).item() < 1e-8
     g = assert_forward_equals_reverse(best, x0)
@@ -175,3 +175,9 @@ def test_gradients_through_a_rollout_agree_and_are_finite_at_zero_error():
     final = lambda x: trajectory_loss(world, simulate(x), "box", target, kind="add",  # noqa: E731
                                       evaluate="final")
     assert_forward_equals_reverse(final, x0 + torch.randn(2, 12, generator=rng(3), **F64) * 0.05)
+    # seen at rest: the end and the mean velocities over the rest window (its records 0 and 10 of 20)
+    resting = Target(position=target.position, orientation=target.orientation)
+    rest = lambda x: trajectory_loss(world, rollout(world, world.state(  # noqa: E731
+        x[..., None, 0:3], quat_multiply(rotvec_to_quat(x[..., 3:6]), q0)[..., None, :], x[..., None, 6:9],
+        x[..., None, 9:12]), steps=200, record_every=50), "box", resting)
+    assert_forward_equals_reverse(rest, x0 + torch.randn(2, 12, generator=rng(4), **F64) * 0.05)

@@ -223,12 +223,13 @@ def scenes(draw):
         pairs = [(a, b) for a in names for b in names if a != b]
         inference = InferenceSettings(
             source=draw(st.sampled_from([n for n, m in zip(names, movable) if m])),
-            target=Target(
-                position=draw(vec3), orientation=draw(unit_quaternions()),
+            targets=(Target(
+                position=draw(vec3), orientation=draw(st.one_of(st.none(), unit_quaternions())),
                 linear_velocity=draw(st.one_of(st.none(), vec3)),
                 angular_velocity=draw(st.one_of(st.none(), vec3)),
                 time=draw(st.one_of(st.none(), st.floats(0, duration))),
-            ),
+                moving=draw(st.sampled_from((None, True))),
+            ),),
             iterations=draw(st.integers(1, 10_000)), seed=draw(st.integers(0, 2**63 - 1)),
             optimizer=draw(st.sampled_from(OPTIMIZERS)),
             gradient=draw(st.sampled_from((None,) + GRADIENTS)),

@@ -119,8 +119,8 @@ def programmatic_scene() -> Scene:
         ),
         inference=InferenceSettings(
             source="box-1",
-            target=Target(position=(1.0, 2.0, 0.05), orientation=normalize_quaternion((0, 0, 0, -1)),
-                          linear_velocity=(0.0, 0.0, 0.0), angular_velocity=(1.0, 0.0, 0.0), time=0.25),
+            targets=(Target(position=(1.0, 2.0, 0.05), orientation=normalize_quaternion((0, 0, 0, -1)),
+                            linear_velocity=(0.0, 0.0, 0.0), angular_velocity=(1.0, 0.0, 0.0), time=0.25),),
             iterations=3, seed=123456789, optimizer="bfgs", gradient=None, loss="add", evaluate="final",
             optimize=Optimize(position=True, orientation=False, linear_velocity=True, angular_velocity=False),
             start_area=StartArea(min=(-1.0, -1.0, 0.0), max=(1.0, 1.0, 0.5)),
@@ -159,7 +159,7 @@ def test_minimal_scene_gets_model_defaults():
 def test_inference_defaults():
     text = ball_scene(extra='  <inference source="ball"><target position="1 0 0"/></inference>\n')
     inf = read_scene_string(text).inference
-    assert inf == InferenceSettings(source="ball", target=Target(position=(1.0, 0.0, 0.0)))
+    assert inf == InferenceSettings(source="ball", targets=(Target(position=(1.0, 0.0, 0.0)),))
     assert inf.gradient is None and inf.optimizer == "auto" and inf.iterations == 200
 
 
@@ -373,3 +373,48 @@ def test_posterior_and_model_uncertainty_are_checked(element, fragment):
         Scene.from_string(text).validate()
     assert fragment in str(info.value)
     assert len(str(info.value).splitlines()) == 1
+
+
+# -- how the source was seen ---------------------------------------------------------
+TRACKED = """<scene version="1">
+  <simulation duration="1.0"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.1"><pose position="0 0 1"/></object>
+  <inference source="ball">
+    <target position="0.1 0 0.9" time="0.2"/>
+    <target position="0.3 0 0.5" orientation="1 0 0 0" time="0.5" moving="true"/>
+    <target position="0.5 0 0.1" orientation="0 0 0 1" time="1.0" moving="false"/>
+    <observation sigma="0.01" rest-speed="0.05" rest-spin="0.5"/>
+  </inference>
+</scene>
+"""
+
+
+def test_several_timed_targets_position_only_and_moving_read_and_round_trip():
+    scene = read_scene_string(TRACKED)
+    a, b, c = scene.inference.targets
+    assert (a.time, a.orientation, a.moving, a.at_rest) == (0.2, None, None, False)
+    assert (b.time, b.orientation, b.moving, b.at_rest) == (0.5, (1.0, 0.0, 0.0, 0.0), True, False)
+    assert (c.time, c.moving, c.at_rest) == (1.0, False, True)
+    assert scene.inference.target == c  # the last observation
+    ob = scene.inference.observation
+    assert (ob.sigma, ob.rest_speed, ob.rest_spin) == (0.01, 0.05, 0.5)
+    text = scene.to_xml()
+    assert 'moving="false"' in text and text.count("<target ") == 3
+    assert read_scene_string(text) == scene
+    etree.fromstring(text.encode()).getroottree()  # well formed
+    assert load_schema().validate(etree.fromstring(text.encode()))
+
+
+def test_a_lone_target_without_orientation_reads_as_position_only_and_is_seen_at_rest():
+    t = read_scene_string(TRACKED.replace(TRACKED[TRACKED.index("    <target"):TRACKED.index("    <observation")],
+                                          '    <target position="0.5 0 0.1"/>\n')).inference.target
+    assert t.orientation is None and t.time is None and t.at_rest
+
+
+def test_two_targets_without_time_name_the_second_one_and_its_line():
+    text = TRACKED.replace(' time="0.2"', "").replace(' time="0.5"', "")
+    err = reason_of(text)
+    assert "targets have no 'time'" in err.reason and err.line == 7 and err.element == "target"
+    assert "'moving'" in reason_of(TRACKED.replace('moving="true"', 'moving="maybe"')).reason
+

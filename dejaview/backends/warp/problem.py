@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from dejaview.backends.base import Problem, check_inference, loss_steps, model_points
+from dejaview.backends.base import Problem, check_inference, loss_steps, model_points, sightings_of
 from dejaview.errors import InferenceError
 
 
@@ -51,12 +51,13 @@ class WarpProblem(Problem):
     backend = "warp"
     gradient_modes = ("reverse",)
 
-    def __init__(self, sim, layout, source: int, target, loss_kind: str, evaluate: str, steps: int,
-                 orientation_weight: float, points, max_envs: int):
+    def __init__(self, sim, layout, source: int, targets, sightings, loss_kind: str, evaluate: str,
+                 steps: int, orientation_weight: float, points, max_envs: int):
         self.sim = sim
         self.layout = layout
         self.source = source
-        self.target = target
+        self.targets = tuple(targets)
+        self.sightings = tuple(sightings)
         self.loss_kind = loss_kind
         self.evaluate = evaluate
         self.steps = steps
@@ -101,7 +102,8 @@ class WarpProblem(Problem):
         if layout.size == 0:
             raise InferenceError("no free parameter: the start area pins the position and nothing else is free")
         points = model_points(scene, scene.object(inf.source)) if inf.loss == "add" else None
-        return cls(sim, layout, sim.names.index(inf.source), inf.target, inf.loss, inf.evaluate,
+        return cls(sim, layout, sim.names.index(inf.source), inf.targets,
+                   sightings_of(scene, sim.dt, sim.duration_steps), inf.loss, inf.evaluate,
                    loss_steps(scene, sim.dt, sim.duration_steps),
                    DEFAULT_ORIENTATION_WEIGHT if orientation_weight is None else orientation_weight,
                    points, max_envs)
