@@ -45,3 +45,9 @@ class SimulationError(DejaViewError):
 
 class InferenceError(DejaViewError):
     """Invalid inference settings or a problem that cannot be optimised."""
+
+
+class StartAreaError(SceneError, InferenceError):
+    """A start area that cannot hold the source: inside other objects everywhere, or beyond the
+    bounds of positions (``dejaview.inference.start_area``). Both a scene error (it names the
+    element, as ``dejaview validate`` does) and an inference error (what ``solve`` raises)."""

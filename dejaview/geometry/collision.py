@@ -318,19 +318,8 @@ class SceneCollision:
         if not np.all(np.isfinite(pos)):
             raise GeometryError("penetration: positions must be finite")
         rot = quaternion_matrices(quat)
-        depth = np.zeros(len(pos))
-        other: list[str | None] = [None] * len(pos)
         limit = max(float(margin), TOUCHING)
-        for body in self._bodies.values():
-            if body.id == source_id:
-                continue
-            todo = np.flatnonzero(depth <= limit) if decide_only else np.arange(len(pos))
-            d = np.zeros(len(pos))
-            d[todo] = self._pair_depths(source, rot[todo], pos[todo], body, limit=limit, decide_only=decide_only)
-            deeper = d > depth
-            depth[deeper] = d[deeper]
-            for i in np.flatnonzero(deeper):
-                other[i] = body.id
+        depth, other = self._deepest(source, rot, pos, source_id, limit, decide_only)
         hit = depth > limit
         if as_torch:
             import torch
@@ -338,6 +327,81 @@ class SceneCollision:
             device = position.device
             return (torch.as_tensor(hit, device=device), torch.as_tensor(depth, device=device), other)
         return hit, depth, other
+
+    def ball_penetration(self, source_id: str, position, radius: float):
+        """How deep a ball of ``radius`` centred at each position overlaps the objects other than
+        ``source_id`` (each at its scene pose).
+
+        A ball inside the source about its object-frame origin (``inner_radius``) lies inside it at
+        every orientation, and a solid overlaps at least as deeply as any part of it: the ball's
+        depth is a lower bound of the source's at that position, whatever its orientation.
+
+        Args:
+            source_id: the object left out (the one the ball stands for).
+            position: (B, 3) ball centres, world frame, m.
+            radius: m, positive.
+        Returns:
+            depth (B,) numpy, m (0 where it overlaps nothing); other_id: list of B ids of the object
+            overlapped most deeply (None where depth is 0).
+        Raises:
+            GeometryError: positions of the wrong shape or not finite, a radius that is not positive.
+        """
+        import fcl
+
+        pos = np.asarray(position, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(pos)) or not (np.isfinite(radius) and radius > 0):
+            raise GeometryError("ball_penetration: positions must be finite and the radius positive")
+        ball = _Body("<ball>", "sphere", False, np.eye(3), np.zeros(3), size=(float(radius),),
+                     centres=np.zeros((1, 3)), radii=np.array([float(radius)]), shapes=[None],
+                     pieces=[fcl.CollisionObject(fcl.Sphere(float(radius)), fcl.Transform())])
+        rot = np.broadcast_to(np.eye(3), (len(pos), 3, 3))
+        return self._deepest(ball, rot, pos, source_id, TOUCHING, decide_only=False)
+
+    def inner_radius(self, object_id: str) -> float:
+        """Radius (m) of the largest ball about the object's frame origin that lies inside it
+        (0 where the origin is not inside: a mug's origin in its cavity, a plane).
+
+        Raises:
+            GeometryError: unknown ``object_id``.
+        """
+        body = self._body(object_id)
+        if body.kind == "sphere":
+            return body.size[0]
+        if body.kind == "cylinder":
+            return min(body.size[0], 0.5 * body.size[1])
+        if body.kind == "box":
+            return float(np.abs(body.hull).min())
+        if body.kind != "mesh":
+            return 0.0
+        if body.concave:
+            from dejaview.geometry.distance import contains, unsigned_distance
+
+            origin = np.zeros((1, 3))
+            if not contains(body.mesh, origin)[0]:
+                return 0.0
+            return float(unsigned_distance(body.mesh, origin)[0][0])
+        # a convex mesh is its one piece: the origin's distance to the nearest face plane
+        vertices, normals = body.shapes[0]
+        return max(0.0, float((vertices @ normals.T).max(axis=0).min()))
+
+    def _deepest(self, a: _Body, rot: np.ndarray, pos: np.ndarray, skip: str, limit: float,
+                 decide_only: bool) -> tuple[np.ndarray, list]:
+        """Deepest overlap of ``a`` at B poses (rot (B, 3, 3), pos (B, 3)) with every object but
+        ``skip``: depth (B,) and the id overlapped most deeply (None where none); ``limit`` and
+        ``decide_only`` as in ``penetration``."""
+        depth = np.zeros(len(pos))
+        other: list[str | None] = [None] * len(pos)
+        for body in self._bodies.values():
+            if body.id == skip:
+                continue
+            todo = np.flatnonzero(depth <= limit) if decide_only else np.arange(len(pos))
+            d = np.zeros(len(pos))
+            d[todo] = self._pair_depths(a, rot[todo], pos[todo], body, limit=limit, decide_only=decide_only)
+            deeper = d > depth
+            depth[deeper] = d[deeper]
+            for i in np.flatnonzero(deeper):
+                other[i] = body.id
+        return depth, other
 
     def interpenetrations(self, margin: float = DEFAULT_MARGIN) -> list[tuple[str, str, float]]:
         """Pairs of objects that overlap at their given poses.
@@ -405,7 +469,8 @@ class SceneCollision:
         depth that deep as it is): that depth, a lower bound of the deepest, decides. A concave
         pair whose pieces overlap by at most ``limit`` skips the exact check, which can only
         make the depth smaller (``_exact_depth``); one whose mesh has a vertex deeper than
-        ``limit`` inside a convex polytope skips it too (``overlap.vertex_depth``)."""
+        ``limit`` inside a convex polytope is decided by that vertex before any piece is tried
+        (``overlap.vertex_depth``: the pieces cover the mesh, so they overlap at least as deeply)."""
         import fcl
 
         ca = a.centres @ rot.T + pos
@@ -420,6 +485,10 @@ class SceneCollision:
         enough = np.inf
         if decide_only and limit is not None:
             enough = max(limit, REFINE_LIMIT) if concave else limit
+            if concave:  # a vertex deeper than the limit decides at once (the pieces cover the mesh)
+                bound = vertex_depth(a, rot, pos, b)
+                if bound > limit:
+                    return bound
         placed = -1
         for p, q in pairs.tolist():
             piece = a.pieces[p]
@@ -440,13 +509,8 @@ class SceneCollision:
             deepest = max(deepest, piece_depth(a, p, rot, pos, b, q, contact, limit))
             if deepest > enough:
                 break
-        if decide_only and limit is not None:
-            if deepest <= limit:
-                return deepest
-            if concave:  # a vertex deeper than the limit decides without fcl's contacts
-                bound = vertex_depth(a, rot, pos, b)
-                if bound > limit:
-                    return bound
+        if decide_only and limit is not None and deepest <= limit:
+            return deepest
         if deepest > TOUCHING and concave:
             deepest = self._exact_depth(a, rot, pos, b, deepest)
         return deepest

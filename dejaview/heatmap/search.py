@@ -128,11 +128,14 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     Returns:
         HeatmapResult.
     Raises:
-        InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite.
+        InferenceError: no start area with x-y extent, bad settings, stopped, or nothing finite;
+            ``StartAreaError`` before any work where the start area cannot hold the source
+            (``dejaview.inference.start_area``; the posterior method through ``solve``).
     """
     from dejaview.backends import BackendOptions, as_problem
     from dejaview.heatmap.posterior import choose_method, posterior_heatmap
     from dejaview.heatmap.weighting import deduplicate
+    from dejaview.inference.start_area import check_start_area
 
     if problem is not None and backend is not None:
         raise InferenceError("backend options build a problem; the heatmap got a built problem as well: "
@@ -155,6 +158,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
     t_start = time.perf_counter()
     run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
                     radii, directions)
+    check_start_area(run.scene)  # before anything is built or optimised
     run = replace(_with_problem(run, problem, options, gradient, lr), ray=ray)
     gen = torch.Generator().manual_seed(int(run.seed))
     guesses = _first_guesses(run, gen)

@@ -452,13 +452,14 @@ def _anchor(sightings):
     return untimed[0] if untimed else max(sightings, key=lambda s: s.time)
 
 
-def feasibility_check(scene, problem, margin: float = FEASIBILITY_MARGIN):
+def feasibility_check(scene, problem, margin: float = FEASIBILITY_MARGIN, collision=None):
     """``(position (B, 3), orientation (B, 4)) -> (B,) bool`` for ``Posterior``: the source, placed
     at each start, overlaps no other object (at its scene pose) by more than ``margin`` metres,
-    decided on the exact geometry by python-fcl (``dejaview.geometry.collision``)."""
+    decided on the exact geometry by python-fcl (``dejaview.geometry.collision``; ``collision``: the
+    scene's ``SceneCollision`` to reuse, else built here)."""
     from dejaview.geometry.collision import SceneCollision
 
-    collision = SceneCollision(scene)
+    collision = SceneCollision(scene) if collision is None else collision
     source = scene.inference.source
 
     def feasible(position: torch.Tensor, orientation: torch.Tensor):

@@ -308,15 +308,22 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     Returns:
         SolveResult.
     Raises:
-        InferenceError: bad settings (one line naming the problem).
+        InferenceError: bad settings (one line naming the problem); ``StartAreaError`` (an
+            ``InferenceError``) first of all where the start area cannot hold the source
+            (``dejaview.inference.start_area``).
     """
     from dejaview.scene import Scene
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
+    from dejaview.inference.problem import check_inference
+    from dejaview.inference.start_area import check_start_area
+
     local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
                  screen_near=screen_near, epsilon=epsilon, patience=patience, lr=lr, gradient=gradient,
                  x0=x0)
+    check_inference(scene)
+    collision = check_start_area(scene)  # before anything is built or simulated
     problem = _make_problem(scene, problem, world, backend)
     if (optimizer or scene.inference.optimizer) == "auto" and problem.backend != "spheres":
         optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
@@ -328,7 +335,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn = None
     if settings.optimizer == "auto":
-        opt, extra, post = _search(scene, problem, settings, callback, should_stop)
+        opt, extra, post = _search(scene, problem, settings, callback, should_stop, collision)
         if settings.samples and not opt.stopped and math.isfinite(opt.loss):
             samples_drawn = _sample(post, opt, settings, callback, should_stop)
             from dejaview.inference.posterior_report import summary
@@ -385,14 +392,15 @@ def _make_problem(scene, problem, world, backend):
     return options.make_problem(scene, **({} if world is None else {"world": world}))
 
 
-def _search(scene, problem, settings: SolveSettings, callback, should_stop):
-    """The default search: the most probable start under the scene's prior and observation noise."""
+def _search(scene, problem, settings: SolveSettings, callback, should_stop, collision=None):
+    """The default search: the most probable start under the scene's prior and observation noise
+    (``collision``: the scene's ``SceneCollision``, if one was built already)."""
     from dejaview.inference.model_uncertainty import ModelVariants, refine_under_variants
     from dejaview.inference.posterior import Posterior, feasibility_check
     from dejaview.inference.search import DEFAULT_BUDGET, LM_FINAL_ITERATIONS, map_search
 
     inner = getattr(problem, "inner", problem)
-    feasible = feasibility_check(scene, inner)
+    feasible = feasibility_check(scene, inner, collision=collision)
     post = Posterior(inner, settings.posterior, feasible=feasible)
     opt = map_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
                      should_stop=should_stop, tolerance=settings.tolerance,

@@ -167,10 +167,12 @@ class Optimize:
 
 @dataclass(frozen=True)
 class StartArea:
-    """``<start-area>``: axis-aligned box bounding the initial position."""
+    """``<start-area>``: axis-aligned box bounding the initial position (``line``: where it was read,
+    for messages)."""
 
     min: Vec3
     max: Vec3
+    line: int | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)

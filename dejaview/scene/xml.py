@@ -376,7 +376,8 @@ class _SceneReader:
         if "start-area" in groups:
             s = groups["start-area"][0]
             self.lines[("start-area",)] = s.sourceline
-            start_area = StartArea(min=self.vector_attr(s, "min", 3), max=self.vector_attr(s, "max", 3))
+            start_area = StartArea(min=self.vector_attr(s, "min", 3), max=self.vector_attr(s, "max", 3),
+                                   line=s.sourceline)
         exploration = None
         if "exploration" in groups:
             x = groups["exploration"][0]

@@ -24,6 +24,7 @@ class ServiceError(DejaViewError):
 # The library's errors as (code, HTTP status): bad scenes are the client's fault, the rest happen
 # while a job runs.
 LIBRARY_ERRORS = {
+    "StartAreaError": ("infeasible_start_area", 422),  # before SceneError and InferenceError, its bases
     "SceneError": ("invalid_scene", 422),
     "GeometryError": ("geometry_error", 422),
     "SimulationError": ("simulation_error", 422),

@@ -14,39 +14,42 @@ and each override is checked against the job kind it applies to.
 Error codes (``error.code`` on the WebSocket, ``code`` of a REST error body,
 with the HTTP status REST answers with):
 
-================== ====== ===================================================
-code               status meaning
-================== ====== ===================================================
-unauthorized       401    missing or wrong token (WebSocket: closed with code 4401)
-forbidden_origin   403    a browser page of another origin (WebSocket: handshake refused)
-forbidden_host     403    a ``Host`` that is not a name of a loopback-only server
-invalid_json       400    the text is not JSON (or holds NaN / Infinity)
-invalid_message    422    JSON that is not a valid message / request
-unknown_type       422    a message ``type`` the server does not know
-binary_frame       --     a binary WebSocket frame (only text is spoken)
-message_too_large  413    a WebSocket message or request body over its limit
-rate_limited       --     more messages per second than the connection may send
-scene_too_large    413    scene XML over the scene size limit
-invalid_scene      422    the scene XML is malformed or invalid (file:line: <element> reason)
-scene_not_found    400    ``scene_path`` names no file inside the scene root
-path_outside_root  400    a scene or mesh path that leaves the scene root
-limit_exceeded     422    a job bigger than the server allows (steps, iterations, heatmap size)
-queue_full         503    the job queue is full: retry later
-store_error        503    the job store (SQLite in the results dir) cannot be written
-too_many_jobs      429    this connection has too many unfinished jobs
-not_found          404    no such job (or route)
-not_ready          409    the job has not finished: no artefacts yet
-no_artefact        404    the job finished without this artefact
-not_cancellable    409    the job has already finished
-simulation_error   --     the job failed in the simulator
-geometry_error     --     the job failed loading a mesh or packing
-inference_error    --     the job failed in the optimiser
-timeout            --     the job ran longer than the server's job time limit
-interrupted        --     the server stopped under the job 5 times (or its record is from an
-                          older version); a job is otherwise run again after a restart
-worker_crashed     --     the job's worker process died twice while running it
-internal_error     500    a bug: the message names the exception
-================== ====== ===================================================
+===================== ====== ===================================================
+code                  status meaning
+===================== ====== ===================================================
+unauthorized          401    missing or wrong token (WebSocket: closed with code 4401)
+forbidden_origin      403    a browser page of another origin (WebSocket: handshake refused)
+forbidden_host        403    a ``Host`` that is not a name of a loopback-only server
+invalid_json          400    the text is not JSON (or holds NaN / Infinity)
+invalid_message       422    JSON that is not a valid message / request
+unknown_type          422    a message ``type`` the server does not know
+binary_frame          --     a binary WebSocket frame (only text is spoken)
+message_too_large     413    a WebSocket message or request body over its limit
+rate_limited          --     more messages per second than the connection may send
+scene_too_large       413    scene XML over the scene size limit
+invalid_scene         422    the scene XML is malformed or invalid (file:line: <element> reason)
+scene_not_found       400    ``scene_path`` names no file inside the scene root
+path_outside_root     400    a scene or mesh path that leaves the scene root
+limit_exceeded        422    a job bigger than the server allows (steps, iterations, heatmap size)
+queue_full            503    the job queue is full: retry later
+store_error           503    the job store (SQLite in the results dir) cannot be written
+too_many_jobs         429    this connection has too many unfinished jobs
+not_found             404    no such job (or route)
+not_ready             409    the job has not finished: no artefacts yet
+no_artefact           404    the job finished without this artefact
+not_cancellable       409    the job has already finished
+simulation_error      --     the job failed in the simulator
+geometry_error        --     the job failed loading a mesh or packing
+inference_error       --     the job failed in the optimiser
+infeasible_start_area --     the start area cannot hold the source (inside other objects
+                             everywhere, or beyond the bounds of positions): the one line names
+                             the objects and the depth; checked before any work
+timeout               --     the job ran longer than the server's job time limit
+interrupted           --     the server stopped under the job 5 times (or its record is from an
+                             older version); a job is otherwise run again after a restart
+worker_crashed        --     the job's worker process died twice while running it
+internal_error        500    a bug: the message names the exception
+===================== ====== ===================================================
 
 "--" codes appear only as a failed job's ``error`` (and on the WebSocket).
 """

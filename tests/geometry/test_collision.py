@@ -153,6 +153,27 @@ def test_primitives_against_closed_forms():
     assert depth[0] == pytest.approx(0.02, abs=1e-12)
 
 
+def test_inner_balls_and_their_depths():
+    """What the start-area check bounds a free orientation with (``dejaview.inference.start_area``):
+    the largest ball about an object's origin inside it, and how deep such a ball overlaps."""
+    scene = scene_of(FLOOR + obj("slab", 'shape="box" size="1 1 0.2"', (0, 0, 0.1), fixed=True)
+                     + obj("box", 'shape="box" size="0.1 0.2 0.3"', (5, 0, 5))
+                     + obj("ball", 'shape="sphere" radius="0.05"', (6, 0, 5))
+                     + obj("can", 'shape="cylinder" radius="0.05" height="0.06"', (7, 0, 5))
+                     + obj("mug", 'mesh="mug.obj"', (8, 0, 5)))
+    c = SceneCollision(scene)
+    assert c.inner_radius("box") == pytest.approx(0.05)
+    assert c.inner_radius("ball") == pytest.approx(0.05)
+    assert c.inner_radius("can") == pytest.approx(0.03)
+    assert c.inner_radius("mug") == 0.0  # its origin lies in the cavity
+    assert c.inner_radius("floor") == 0.0
+    depth, other = c.ball_penetration("box", np.array([[0, 0, 0.23], [0, 0, 0.5], [3, 0, 0.01]]), 0.05)
+    assert other == ["slab", None, "floor"]
+    np.testing.assert_allclose(depth, [0.02, 0.0, 0.04], atol=1e-6)
+    with pytest.raises(GeometryError, match="radius positive"):
+        c.ball_penetration("box", np.zeros((1, 3)), 0.0)
+
+
 def test_a_bead_in_the_handle_hole_is_not_inside_the_mug(mug_body):
     """The convex pieces fill the handle's hole; the exact surfaces decide.
 

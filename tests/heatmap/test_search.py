@@ -102,6 +102,23 @@ def test_a_heatmap_needs_a_start_area_with_extent():
         compute_heatmap(replace(scene, inference=replace(scene.inference, start_area=flat)))
 
 
+@pytest.mark.parametrize("method", ["posterior", "basins"])
+def test_a_start_area_that_cannot_hold_the_source_is_refused_before_any_work(method, monkeypatch):
+    """Issue 56: a start area inside a desk; both methods refuse it before a problem is built (the
+    posterior's through ``solve``), in one line naming the objects and the depth."""
+    from dejaview.errors import StartAreaError
+
+    def no_problem(*args, **kwargs):
+        raise AssertionError("a problem was built for a start area that cannot hold the source")
+
+    monkeypatch.setattr("dejaview.backends.BackendOptions.make_problem", no_problem)
+    scene = Scene.from_xml(Path(__file__).resolve().parents[1] / "fixtures" / "inference" / "box_in_desk.xml")
+    with pytest.raises(StartAreaError, match="cannot hold 'src': everywhere in it 'src' and 'desk' "
+                                             "interpenetrate, by 0.0267 m") as err:
+        compute_heatmap(scene, method=method, cells=(2, 2), samples=1)
+    assert "\n" not in str(err.value)
+
+
 @pytest.mark.parametrize("kw,match", [
     ({"cells": (0, 3)}, "cells"), ({"samples": 0}, "samples"), ({"sigma": -1.0}, "sigma"),
     ({"iterations": 0}, "iterations"), ({"optimizer": "newton"}, "unknown optimizer"),

@@ -143,6 +143,26 @@ def test_heatmap_job(client):
     assert sum(map(sum, grid["probability"])) == pytest.approx(1.0)
 
 
+def test_a_start_area_that_cannot_hold_the_source_fails_the_job_and_the_server_goes_on(client, tmp_path):
+    """Issue 56: solve and heatmap jobs of a start area inside a desk fail with
+    ``infeasible_start_area`` and the one line naming the objects and the depth; nothing but the
+    scene is left in the job's folder; the server answers and runs the next job."""
+    xml = (FIXTURES.parent / "inference" / "box_in_desk.xml").read_text()
+    for kind in ("solve", "heatmap"):
+        job_id = submit(client, kind=kind, scene_xml=xml)
+        status = wait_state(client, job_id)
+        assert status["state"] == "failed", status
+        assert status["error"]["code"] == "infeasible_start_area"
+        message = status["error"]["message"]
+        assert "<start-area> (-0.2, -0.1, 0.7233) to (0.2, 0.1, 0.7233) cannot hold 'src': everywhere in it " \
+               "'src' and 'desk' interpenetrate, by 0.0267 m" in message and "\n" not in message
+        assert status["artefacts"] == {}
+        assert client.get(f"/jobs/{job_id}/result.json").json()["code"] == "no_artefact"
+        assert sorted(p.name for p in (tmp_path / "results" / "jobs" / job_id).iterdir()) == ["scene.xml"]
+    assert client.get("/health").json()["status"] == "ok"
+    assert wait_state(client, submit(client, kind="solve", scene_path="ball.xml"))["state"] == "done"
+
+
 def test_cancel_running_job_stops_within_an_iteration(make_client):
     client = make_client(workers=1)
     job_id = submit(client, kind="solve", scene_path="solve_endless.xml")

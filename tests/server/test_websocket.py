@@ -140,6 +140,23 @@ def test_a_failed_job_sends_error_then_done(client, scene_root):
     assert messages[2]["state"] == "failed"
 
 
+def test_a_start_area_that_cannot_hold_the_source_sends_its_error_then_done(client):
+    """Issue 56: the job fails with ``infeasible_start_area`` and the one line; the connection
+    goes on."""
+    xml = (FIXTURES.parent / "inference" / "box_in_desk.xml").read_text()
+    with client.websocket_connect("/ws") as ws:
+        submit(ws, kind="solve", scene_xml=xml, request_id="desk")
+        messages = until_done(ws)
+        check_typed(messages)
+        assert types(messages) == ["accepted", "error", "done"]
+        assert messages[1]["code"] == "infeasible_start_area" and messages[1]["request_id"] == "desk"
+        assert "cannot hold 'src': everywhere in it 'src' and 'desk' interpenetrate, by 0.0267 m" \
+            in messages[1]["message"]
+        assert messages[2]["state"] == "failed"
+        ws.send_text(json.dumps({"type": "ping", "request_id": "p"}))
+        assert receive(ws) == {"type": "pong", "request_id": "p"}
+
+
 def test_a_backend_attribute_the_simulator_refuses_is_refused_at_submission(client):
     bad = BALL_XML.replace('restitution="0.2"/>', 'restitution="0.2" substeps="0"/>')
     with client.websocket_connect("/ws") as ws:
