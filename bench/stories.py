@@ -279,7 +279,7 @@ def base_scene(kind: Kind, area, folder: Path, duration: float = HORIZON):
     return Scene(name=kind.name.replace("_", "-"), objects=tuple(objects),
                  simulation=SimulationSettings(dt=DT, duration=duration, friction=FRICTION,
                                                restitution=src["restitution"]),
-                 inference=InferenceSettings(source=kind.source, target=Target((0.0, 0.0, 0.0)),
+                 inference=InferenceSettings(source=kind.source, targets=(Target((0.0, 0.0, 0.0)),),
                                              start_area=StartArea(tuple(area[0]), tuple(area[1]))),
                  base_dir=Path(folder))
 
@@ -420,7 +420,7 @@ def make_story(kind_name: str, rng, folder: Path, name: str | None = None) -> St
         target = Target(position=tuple(round(v, 9) for v in end_pos),
                         orientation=normalize_quaternion([round(v, 9) for v in end_q]))
         scene = replace(scene, simulation=replace(scene.simulation, duration=duration),
-                        inference=replace(scene.inference, target=target))
+                        inference=replace(scene.inference, targets=(target,)))
         truth = {"source": kind.source, "kind": kind.name, "story": kind.story,
                  "initial_state": {"position": start["position"], "orientation": start["orientation"],
                                    "linear_velocity": start["linear"], "angular_velocity": start["angular"]},
