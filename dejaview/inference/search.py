@@ -68,12 +68,18 @@ MAX_POPULATION_FACTOR = 4
 """A fresh instance doubles the population of the one it replaces (IPOP), up to this factor."""
 GLOBAL_PATIENCE = 40
 """Generations without a gain of ``STALL_RATIO`` in the best cost after which the search stops
-(where a prior keeps the maximum's misfit above ``CHI2_EXPLAINED``)."""
+(where a prior keeps the maximum's misfit above ``CHI2_EXPLAINED``), once the best explains the
+observations within their noise (``NOISE_QUANTILE``); until then it goes on to the budget."""
+NOISE_QUANTILE = 0.999
+"""Quantile of the chi-square law (a degree per observed residual) up to which a misfit is the
+observations' noise: a search whose best lies above it has not found a past that explains them."""
 JACOBIAN_COST = 3
 """Budget units of one candidate's residual Jacobian (a rollout with gradients ~3 rollouts)."""
 DEFAULT_BUDGET = 20000
 """Rollouts per solve: more than the searches of the bundled scenes need (the recovery suite's
 table in ``docs/benchmarks.md`` lists what each used)."""
+STAGE_SHARE = 0.25
+"""Share of the budget (and of the iterations) each earlier stage of ``staged_search`` may spend."""
 
 
 def screen_size(num_params: int) -> int:
@@ -123,8 +129,9 @@ class SearchResult(OptimizationResult):
 class _Search:
     """State of one search (``map_search``); its methods are the named steps."""
 
-    def __init__(self, post, iterations, seed, callback, should_stop, tolerance, budget):
+    def __init__(self, post, iterations, seed, callback, should_stop, tolerance, budget, seeds=None):
         self.post = post
+        self.seeds = seeds
         self.lay = post.layout
         self.P = self.lay.size
         self.iterations = iterations
@@ -182,6 +189,24 @@ class _Search:
         the end need not be the most probable one, so the search goes on (``GLOBAL_PATIENCE``)."""
         return self.post.prior_is_flat and mode.chi2 <= CHI2_EXPLAINED * self.n_obs
 
+    def within_noise(self) -> bool:
+        """Whether the best candidate explains the observations as well as their noise allows:
+        its observation chi-square at most the ``NOISE_QUANTILE`` quantile of the chi-square law
+        with one degree per observed residual. Until then patience does not end the search."""
+        from scipy.stats import chi2
+
+        return self.best.chi2 <= float(chi2.ppf(NOISE_QUANTILE, self.n_obs))
+
+    def rescreen(self) -> None:
+        """Fresh draws from the prior for the pool, where it has run dry and the observations are
+        not explained yet."""
+        x = self.post.sample(screen_size(self.P), self.gen)
+        cost, chi2, loss = self.post.cost(x)
+        self.consider(x, cost, chi2, loss)
+        order = torch.argsort(cost, stable=True)
+        self.pool += [x[i] for i in order.tolist() if math.isfinite(float(cost[i]))]
+        self.tick(float(cost.min()))
+
     def finished(self) -> bool:
         return self.stopped or self.done or self.out_of_budget()
 
@@ -193,12 +218,15 @@ class _Search:
         goes first in the pool whatever its cost, when feasible: one instance always starts there.
         """
         guess = self.lay.encode().to(torch.float64)
-        x = torch.cat([guess, self.post.sample(screen_size(self.P), self.gen)], 0)
+        given = (self.seeds.to(torch.float64) if self.seeds is not None else guess[:0])
+        k = 1 + given.shape[0]
+        x = torch.cat([guess, given, self.post.sample(screen_size(self.P), self.gen)], 0)
         cost, chi2, loss = self.post.cost(x)
         self.consider(x, cost, chi2, loss)
-        order = torch.argsort(cost[1:], stable=True) + 1
-        self.pool = ([x[0]] if math.isfinite(float(cost[0])) else []) + [
-            x[i] for i in order.tolist() if math.isfinite(float(cost[i]))]
+        order = torch.argsort(cost[k:], stable=True) + k
+        first = [i for i in range(k) if math.isfinite(float(cost[i]))]  # the given seeds, then the guess
+        first = first[1:] + first[:1] if first and first[0] == 0 else first
+        self.pool = [x[i] for i in first] + [x[i] for i in order.tolist() if math.isfinite(float(cost[i]))]
         self.tick(float(cost.min()))
 
     def take_seeds(self, k: int, avoid: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -302,7 +330,7 @@ class _Search:
         instances = [self.new_instance(x, popsize) for x in self.take_seeds(CANDIDATES, [])]
         while instances and not self.finished():
             self.generation(instances)
-            if self.generations - self.improved_at >= GLOBAL_PATIENCE:
+            if self.generations - self.improved_at >= GLOBAL_PATIENCE and self.within_noise():
                 break
             ended = [es for es in instances if self.stalled(es)]
             polish = ended or instances[0].countiter % POLISH_EVERY == 0
@@ -318,6 +346,9 @@ class _Search:
                 popsize = min(popsize * 2, MAX_POPULATION_FACTOR * population(self.P))
                 taken = [torch.as_tensor(es.result.xbest, dtype=torch.float64) for es in instances]
                 fresh = self.take_seeds(len(ended), taken + [m.x for m in self.modes])
+                if len(fresh) < len(ended) and not self.within_noise() and not self.finished():
+                    self.rescreen()  # the pool ran dry before the observations were explained
+                    fresh += self.take_seeds(len(ended) - len(fresh), taken + [m.x for m in self.modes] + fresh)
                 instances += [self.new_instance(x, popsize) for x in fresh]
                 if self.history:
                     self.history[-1].restarted = True
@@ -343,7 +374,8 @@ def _spd_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,
-               tolerance: float | None = None, budget: int = DEFAULT_BUDGET) -> SearchResult:
+               tolerance: float | None = None, budget: int = DEFAULT_BUDGET,
+               seeds: torch.Tensor | None = None) -> SearchResult:
     """Find the most probable start (maximum of the posterior ``post``; module docstring).
 
     Args:
@@ -356,10 +388,11 @@ def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, sho
         should_stop: polled after every iteration; True ends the search with its best so far.
         tolerance: end once the best candidate's scene loss (metres) is at or below this.
         budget: most rollouts (a Jacobian counts ``JACOBIAN_COST``).
+        seeds: (K, P) starts the instances take first (an earlier stage's modes, ``staged_search``).
     Returns:
         SearchResult; ``x`` the best parameters (P,), ``loss`` the scene's loss there (metres).
     """
-    s = _Search(post, iterations, seed, callback, should_stop, tolerance, budget)
+    s = _Search(post, iterations, seed, callback, should_stop, tolerance, budget, seeds)
     s.run()
     best = s.best
     if s.modes and s.modes[0].cost <= best.cost:
@@ -370,3 +403,64 @@ def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, sho
                         candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
                         cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts,
                         jacobians=post.jacobians)
+
+
+def stages(post) -> list[tuple]:
+    """The earlier stages of a tracked source's search (``staged_search``): the sightings up to each
+    observed moment but the last, in time order; none where fewer than two moments were observed
+    or a sighting takes the best record of all."""
+    steps = sorted({sg.step for sg in post.sightings if sg.step is not None})
+    if len(steps) < 2 or any(sg.step is None for sg in post.sightings):
+        return []
+    return [tuple(sg for sg in post.sightings if sg.step <= k) for k in steps[:-1]]
+
+
+def staged_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,
+                  tolerance: float | None = None, budget: int = DEFAULT_BUDGET) -> SearchResult:
+    """``map_search`` over a tracked source's observations in time order (continuation in the horizon).
+
+    A source seen at several moments: the likelihood of its first observations alone reads short
+    rollouts, before most contacts (a toss's first two positions fix its throw), and is far
+    smoother than that of all of them, whose end follows a tumble and a rest. So the search first
+    explains the observations up to the first moment, then up to the next, each stage starting its
+    instances from the previous stage's modes (``seeds``) beside fresh draws from the prior, and
+    last all of them. Earlier stages may spend ``STAGE_SHARE`` of the budget and iterations each
+    (their rollouts are shorter: they stop at their last moment). One observed moment: ``map_search``.
+
+    Arguments and return value as ``map_search`` (``rollouts`` and ``history`` over all stages).
+    """
+    from dataclasses import replace
+
+    from dejaview.inference.posterior import Posterior
+    from dejaview.losses.targets import record_interval
+
+    history, seeds, spent, rollouts, jacobians = [], None, 0, 0, 0
+    offset = 0
+
+    def report(p):
+        if callback is not None:
+            callback(replace(p, iteration=p.iteration + offset))
+
+    for prefix in stages(post):
+        steps = max(sg.step for sg in prefix)
+        problem = replace(post.problem, sightings=prefix, steps=steps,
+                          record_every=record_interval(prefix, steps, penalties=bool(post.problem.penalties)))
+        sub = Posterior(problem, post.settings, feasible=post.feasible_fn)
+        found = map_search(sub, iterations=max(1, int(STAGE_SHARE * iterations)), seed=seed, callback=report,
+                           should_stop=should_stop, budget=max(1, int(STAGE_SHARE * budget)), seeds=seeds)
+        spent += found.rollouts + JACOBIAN_COST * found.jacobians
+        rollouts, jacobians = rollouts + found.rollouts, jacobians + found.jacobians
+        history += found.history
+        offset = len(history)
+        if found.stopped:
+            break
+        seeds = torch.stack([m.x for m in found.modes])
+    final = map_search(post, iterations=max(1, iterations - offset), seed=seed, callback=report,
+                       should_stop=should_stop, tolerance=tolerance, budget=max(1, budget - spent), seeds=seeds)
+    for p in final.history:
+        p.iteration += offset
+    final.history = history + final.history
+    final.rollouts += rollouts
+    final.jacobians += jacobians
+    return final
+

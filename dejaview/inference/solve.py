@@ -397,14 +397,14 @@ def _search(scene, problem, settings: SolveSettings, callback, should_stop, coll
     (``collision``: the scene's ``SceneCollision``, if one was built already)."""
     from dejaview.inference.model_uncertainty import ModelVariants, refine_under_variants
     from dejaview.inference.posterior import Posterior, feasibility_check
-    from dejaview.inference.search import DEFAULT_BUDGET, LM_FINAL_ITERATIONS, map_search
+    from dejaview.inference.search import DEFAULT_BUDGET, LM_FINAL_ITERATIONS, staged_search
 
     inner = getattr(problem, "inner", problem)
     feasible = feasibility_check(scene, inner, collision=collision)
     post = Posterior(inner, settings.posterior, feasible=feasible)
-    opt = map_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
-                     should_stop=should_stop, tolerance=settings.tolerance,
-                     budget=settings.budget or DEFAULT_BUDGET)
+    opt = staged_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
+                        should_stop=should_stop, tolerance=settings.tolerance,
+                        budget=settings.budget or DEFAULT_BUDGET)
     model = ModelVariants.from_scene(scene, inner.world)
     if model is not None and not opt.stopped:  # the modes refined and ranked under model uncertainty
         post = Posterior(inner, settings.posterior, feasible=feasible, model=model)

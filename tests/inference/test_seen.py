@@ -1,0 +1,135 @@
+"""How the source was seen, through the posterior and the solve: at rest by default, moving, tracked.
+
+A box slides on a floor (friction 0.5): from 1.5 m/s it stops after 0.31 s, 0.23 m on. Seen lying
+there, only a start that stops there explains it; a faster one that slides through the same pose
+(a flyby) explains a target seen moving at a moment not known, not one seen at rest.
+"""
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from dejaview.inference import InferenceProblem, solve
+from dejaview.inference.posterior import Posterior, PosteriorSettings
+from dejaview.inference.search import stages
+from dejaview.scene import Scene
+
+SLIDE = """<scene version="1" name="slide">
+  <simulation dt="0.002" duration="{duration}" friction="0.5" restitution="0.1"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="box" shape="box" size="0.1 0.1 0.1" mass="0.5"><pose position="0 0 0.05"/></object>
+  <inference source="box" evaluate="{evaluate}">
+    {targets}
+    <optimize position="true" orientation="false" linear-velocity="true" angular-velocity="false"/>
+    <start-area min="-0.1 -0.1 0.05" max="0.1 0.1 0.05"/>
+  </inference>
+</scene>"""
+
+
+def slide_scene(targets: str, duration: float = 0.8, evaluate: str = "best") -> Scene:
+    return Scene.from_string(SLIDE.format(targets=targets, duration=duration, evaluate=evaluate))
+
+
+def start(problem, vx: float, x: float = 0.0):
+    return problem.layout.encode(position=(x, 0.0, 0.05), linear_velocity=(vx, 0.0, 0.0)).double()
+
+
+def end_of(problem, x) -> float:
+    with torch.no_grad():
+        pos, _ = problem.final_pose(problem.simulate(x, steps=problem.duration_steps, record_every=1))
+    return pos[0]
+
+
+@pytest.mark.parametrize("evaluate", ["best", "final"])
+def test_a_flyby_is_not_an_answer_to_a_source_seen_at_rest_but_is_to_one_seen_moving(evaluate):
+    problem = InferenceProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>', evaluate=evaluate))
+    rest_x = end_of(problem, start(problem, 1.5))  # where the slow start stops
+    fast = start(problem, 2.5)  # slides through rest_x at 0.1 s and on to 0.64 m
+    target = f'<target position="{rest_x} 0 0.05" orientation="1 0 0 0"'
+    for moving, explained in (("", False), (' moving="true"', evaluate == "best")):
+        scene = slide_scene(target + moving + "/>", evaluate=evaluate)
+        problem = InferenceProblem.from_scene(scene)
+        post = Posterior(problem, PosteriorSettings.from_scene(scene))
+        x = torch.cat([start(problem, 1.5), fast])
+        _, chi2, _ = post.cost(x)
+        assert chi2[0] < 1.0  # the start that stops there explains both readings
+        assert (float(chi2[1]) < 1.0) == explained, (moving, float(chi2[1]))
+
+
+def test_the_solve_of_a_source_seen_at_rest_ends_there_at_rest():
+    problem = InferenceProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>'))
+    rest_x = end_of(problem, start(problem, 1.5))
+    scene = slide_scene(f'<target position="{rest_x} 0.02 0.05" orientation="1 0 0 0"/>')
+    result = solve(scene, seed=0)
+    data = result.to_json()
+    assert data["end_error"]["position_error"] < 0.005 and data["end_error"]["time"] == pytest.approx(0.8)
+    assert data["rest"]["came_to_rest_s"] is not None and data["rest"]["came_to_rest_s"] < 0.6
+    assert data["warnings"] == []
+    assert data["targets"][0]["at_rest"] and data["observations"][0]["at_rest"]
+
+
+def test_a_duration_too_short_to_come_to_rest_is_warned_with_the_duration_it_needs():
+    """1 m from the area needs 3.1 m/s, which slides for 0.63 s: nothing rests there by 0.5 s."""
+    scene = slide_scene('<target position="1.0 0 0.05" orientation="1 0 0 0"/>', duration=0.5)
+    result = solve(scene, seed=0, iterations=40)
+    rest = result.settings["rest"]
+    assert rest["came_to_rest_s"] is None
+    assert 0.6 < rest["needs_duration_s"] <= 1.2
+    warning, = result.settings["warnings"]
+    assert "still moving at the end of the simulation (0.5 s)" in warning
+    assert f'<simulation duration="{rest["needs_duration_s"]:g}">' in warning
+
+
+TRACKED = """<scene version="1" name="toss">
+  <simulation dt="0.002" duration="0.3" friction="0.5" restitution="0.3"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.05" mass="0.3"><pose position="0 0 0.5"/></object>
+  <inference source="ball">
+    {targets}
+    <optimize position="true" orientation="false" linear-velocity="true" angular-velocity="false"/>
+    <start-area min="-0.2 -0.2 0.3" max="0.2 0.2 0.7"/>
+    <observation sigma="0.005"/>
+  </inference>
+</scene>"""
+
+
+def tracked_truth():
+    """A ball tossed from (0.05, -0.03, 0.5) at (1.2, 0.4, 1.0) m/s, seen by position at 0.1 s,
+    0.2 s and 0.3 s (in flight): its scene and true parameters."""
+    scene = Scene.from_string(TRACKED.format(targets='<target position="0 0 0" time="0.3"/>'))
+    problem = InferenceProblem.from_scene(scene)
+    truth = problem.layout.encode(position=(0.05, -0.03, 0.5), linear_velocity=(1.2, 0.4, 1.0)).double()
+    with torch.no_grad():
+        traj = problem.simulate(truth, steps=150, record_every=50)
+    seen = problem.world.object_position(traj.states)[1:, 0, problem.source]  # at 0.1, 0.2, 0.3 s
+    targets = "\n    ".join(f'<target position="{" ".join(f"{v:.6f}" for v in p.tolist())}" time="{t}"/>'
+                           for p, t in zip(seen, (0.1, 0.2, 0.3)))
+    return Scene.from_string(TRACKED.format(targets=targets)), truth
+
+
+def test_timed_position_only_targets_each_read_their_moment():
+    scene, truth = tracked_truth()
+    problem = InferenceProblem.from_scene(scene)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene))
+    assert post.num_observed == 9 and problem.steps == 150 and problem.record_every == 50
+    r, loss = post.observation_residuals(problem.simulate(truth))
+    assert r.abs().max() < 1e-3 and loss[0] < 1e-5  # the truth explains each moment (rounded to a micron)
+    moved = replace(scene.inference.targets[1], position=(0.0, 0.0, 0.0))
+    other = replace(scene, inference=replace(scene.inference, targets=(scene.inference.targets[0], moved,
+                                                                      scene.inference.targets[2])))
+    r2, _ = Posterior(InferenceProblem.from_scene(other), post.settings).observation_residuals(problem.simulate(truth))
+    assert r2[0, :3].abs().max() < 1e-3 and r2[0, 3:6].abs().max() > 10  # the second moment's misfit alone
+    assert r2[0, 6:].abs().max() < 1e-3
+
+
+def test_a_tracked_source_is_searched_stage_by_stage_and_found():
+    scene, truth = tracked_truth()
+    problem = InferenceProblem.from_scene(scene)
+    post = Posterior(problem, PosteriorSettings.from_scene(scene))
+    assert [len(prefix) for prefix in stages(post)] == [1, 2]
+    result = solve(scene, seed=0)
+    assert result.settings["search"]["observation_chi2"] < 1.0
+    for row in result.observations():
+        assert row["position_error"] < 0.005 and row["angle_error_deg"] is None
+    assert result.initial_state["linear_velocity"] == pytest.approx([1.2, 0.4, 1.0], abs=0.05)
