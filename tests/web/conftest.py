@@ -46,10 +46,17 @@ def artifacts() -> Path:
     return out
 
 
+# examples the viewer tests load as they ship (paths inside the examples folder, kept in the root)
+EXAMPLES = ("scenes/box_tossed_tracked.xml", "meshes/box.obj", "packings/box.spheres")
+
+
 @pytest.fixture(scope="session")
 def web_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("web") / "root"
     shutil.copytree(FIXTURES, root)
+    for name in EXAMPLES:
+        (root / "examples" / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(REPO / "examples" / name, root / "examples" / name)
     return root
 
 

@@ -8,14 +8,22 @@ import { LossChart } from './chart.js';
 import { Connection, serverFetch, socketUrl } from './connection.js';
 import { loadMesh, parseSpheres, primitiveGeometry, spheresMesh } from './geometry.js';
 import {
-  applyPose, heatmapDecal, parsePosterior, parsePosteriorPaths, parseTrajectory, sampleCloud,
-  samplePaths, trajectorySpline,
+  buildObservation, highlightObservation, observationLine, updateObservationLine,
+} from './observations.js';
+import {
+  applyPose, heatmapDecal, observationTimes, parsePosterior, parsePosteriorPaths, parseTrajectory, sampleCloud,
+  samplePaths, summarizeResult, trajectorySpline,
 } from './results.js';
 import { SceneModel } from './scene-xml.js';
 import { setupVR } from './vr.js';
 
 const $ = (id) => document.getElementById(id);
-const TARGET = '#target'; // selection id of the target ghost
+const TARGET = '#target'; // selection id of the target ghost (the last observation)
+const OBSERVATION = '#target:'; // selection ids of the other observations: '#target:<index>'
+// playback lights an observation up from a little before its time until a little after (at most
+// halfway to the next observation's time)
+const HIGHLIGHT_BEFORE_S = 0.03;
+const HIGHLIGHT_AFTER_S = 0.25;
 const PALETTE = [0x5b8fd9, 0x2ca02c, 0x9467bd, 0x17becf, 0xbcbd22, 0xe377c2, 0x8c564b];
 const SOURCE_COLOUR = 0xff7f0e;
 const FIXED_COLOUR = 0x8a8f98;
@@ -68,7 +76,9 @@ const app = {
   model: null,
   nodes: new Map(), // id -> {group, visual, packing}
   files: null, // uploaded files by name, or null: meshes come from the server's scene root
-  ghost: null, // the target: a translucent copy of the source at the observed pose
+  ghost: null, // the target: a translucent copy of the source at the last observed pose
+  observations: [], // every <target>: {index, id, group, label, ...} (observations.js)
+  observationLine: null, // dashed line through them in time order
   selected: null,
   trajectory: null,
   path: null,
@@ -110,14 +120,32 @@ function placeFromModel(id) {
   node.group.quaternion.copy(toQuat(obj.orientation));
 }
 
-function placeGhost() {
-  const target = app.model?.target;
-  if (!app.ghost) return;
-  app.ghost.visible = Boolean(target);
-  if (target) {
-    app.ghost.position.set(...target.position);
-    app.ghost.quaternion.copy(toQuat(target.orientation));
+// Every observation at its observed pose (a position-only one unturned).
+function placeObservations() {
+  if (!app.model) return;
+  const targets = app.model.targets;
+  for (const obs of app.observations) {
+    const target = targets[obs.index];
+    if (!target || obs.group.parent !== world) continue; // not while held in VR
+    obs.group.position.set(...target.position);
+    obs.group.quaternion.copy(toQuat(target.orientation ?? [1, 0, 0, 0]));
   }
+  if (app.observationLine) updateObservationLine(app.observationLine, app.observations);
+}
+
+// The selection id of an observation: the last one is the target, TARGET.
+const observationId = (target) => (target.last ? TARGET : `${OBSERVATION}${target.index}`);
+const isObservation = (id) => typeof id === 'string' && (id === TARGET || id.startsWith(OBSERVATION));
+
+function observationOf(id) {
+  if (id === TARGET) return app.observations.find((o) => o.last) || null;
+  if (isObservation(id)) return app.observations.find((o) => o.index === Number(id.slice(OBSERVATION.length))) || null;
+  return null;
+}
+
+// The group a selection id moves: an object's, or an observation's.
+function groupOf(id) {
+  return isObservation(id) ? observationOf(id)?.group ?? null : app.nodes.get(id)?.group ?? null;
 }
 
 // A gizmo or a VR controller moved `group`: write its pose into the scene.
@@ -125,8 +153,12 @@ function poseEdited(group) {
   if (!group || !app.model) return;
   const pos = group.position.toArray();
   const quat = fromQuat(group.quaternion);
-  if (group === app.ghost) app.model.setTarget(pos, quat);
-  else app.model.setPose(group.userData.objectId, pos, quat);
+  if (group.userData.observation !== undefined) {
+    app.model.setTarget(pos, quat, group.userData.observation);
+    if (app.observationLine) updateObservationLine(app.observationLine, app.observations);
+  } else {
+    app.model.setPose(group.userData.objectId, pos, quat);
+  }
   updateSelectionText();
 }
 
@@ -234,25 +266,92 @@ function buildStartArea() {
   app.startArea = box;
 }
 
-function buildGhost() {
-  if (app.ghost) world.remove(app.ghost);
-  app.ghost = null;
+// Every observation of the source: a translucent copy at each observed pose, a marker where only
+// the position was seen, each labelled with its time; the last one (the "Target") in the source's
+// colour as before, app.ghost. Rebuilt when the source or the observations change.
+function buildObservations() {
+  removeObservations();
   const source = app.model.source && app.nodes.get(app.model.source);
   if (!source?.visual) return;
-  const ghost = new THREE.Group();
-  const copy = source.visual.clone(true);
-  const ghostMaterial = new THREE.MeshStandardMaterial({ color: SOURCE_COLOUR, transparent: true,
-    opacity: 0.35, depthWrite: false });
-  copy.visible = true;
-  copy.traverse((m) => {
-    if (m.isMesh) m.material = ghostMaterial;
-    m.userData.objectId = TARGET;
+  const box = new THREE.Box3().setFromObject(source.visual, true);
+  const radius = box.isEmpty() ? 0.05 : box.getSize(new THREE.Vector3()).length() / 2;
+  const targets = app.model.targets;
+  app.observations = targets.map((target) => {
+    const obs = buildObservation(target, source.visual, radius, observationId(target));
+    world.add(obs.group, obs.label);
+    return obs;
   });
-  ghost.add(copy);
-  ghost.userData.objectId = TARGET;
-  world.add(ghost);
-  app.ghost = ghost;
-  placeGhost();
+  app.ghost = app.observations.find((o) => o.last)?.group ?? null;
+  placeObservations();
+  if (app.observations.length > 1) {
+    app.observationLine = observationLine(app.observations, targets);
+    world.add(app.observationLine);
+  }
+  placeLabels();
+}
+
+function removeObservations() {
+  for (const obs of app.observations) {
+    obs.group.removeFromParent();
+    obs.label.removeFromParent();
+  }
+  app.observationLine?.removeFromParent();
+  app.observations = [];
+  app.observationLine = null;
+  app.ghost = null;
+}
+
+// Each label above its observation (in the scene's z), wherever the observation is now; labels
+// that would cover one another on the screen are stacked upwards (nearest the floor first).
+const labelAt = new THREE.Vector3();
+function placeLabels() {
+  const height = renderer.domElement.clientHeight || 1;
+  const width = renderer.domElement.clientWidth || 1;
+  const boxes = [];
+  for (const obs of app.observations) {
+    world.worldToLocal(obs.group.getWorldPosition(labelAt));
+    obs.label.position.set(labelAt.x, labelAt.y, labelAt.z + obs.labelLift);
+    obs.label.visible = obs.group.visible;
+    obs.label.center.y = 0;
+    if (!obs.label.visible) continue;
+    // the label's box on the screen (pixels, y down): sizeAttenuation off, so its height in NDC is
+    // scale.y times the projection's y scale
+    const p = obs.label.getWorldPosition(labelAt).project(camera);
+    if (p.z > 1) continue;
+    const h = ((obs.label.scale.y * camera.projectionMatrix.elements[5]) / 2) * height;
+    const w = (h * obs.label.scale.x) / obs.label.scale.y;
+    boxes.push({ obs, x: ((p.x + 1) / 2) * width, bottom: ((1 - p.y) / 2) * height, w, h });
+  }
+  boxes.sort((a, b) => b.bottom - a.bottom);
+  const placed = [];
+  for (const box of boxes) {
+    let bottom = box.bottom;
+    for (let moved = true; moved;) {
+      moved = false;
+      for (const other of placed) {
+        const apartX = Math.abs(box.x - other.x) >= (box.w + other.w) / 2 + 2;
+        const apartY = bottom <= other.bottom - other.h - 2 || bottom - box.h >= other.bottom + 2;
+        if (!apartX && !apartY) {
+          bottom = other.bottom - other.h - 2;
+          moved = true;
+        }
+      }
+    }
+    box.obs.label.center.y = -(box.bottom - bottom) / box.h;
+    placed.push({ ...box, bottom });
+  }
+}
+
+// Light up the observations whose time the playback is passing (t: seconds; null: none).
+function highlightObservations(t) {
+  const times = t == null ? [] : observationTimes(app.model?.targets ?? [], app.result, app.trajectory?.duration);
+  const sorted = times.filter((x) => x != null).sort((a, b) => a - b);
+  for (const obs of app.observations) {
+    const at = times[obs.index];
+    const next = sorted.find((x) => x > at);
+    const after = next === undefined ? HIGHLIGHT_AFTER_S : Math.min(HIGHLIGHT_AFTER_S, (next - at) / 2);
+    highlightObservation(obs, at != null && t >= at - HIGHLIGHT_BEFORE_S && t <= at + after);
+  }
 }
 
 function clearScene() {
@@ -260,9 +359,8 @@ function clearScene() {
   clearResults();
   app.startArea?.removeFromParent();
   for (const node of app.nodes.values()) world.remove(node.group);
-  if (app.ghost) world.remove(app.ghost);
+  removeObservations();
   app.nodes.clear();
-  app.ghost = null;
   app.selected = null;
 }
 
@@ -276,6 +374,8 @@ function clearResults() {
   app.result = null;
   app.playing = false;
   app.time = 0;
+  showResultSummary(null);
+  highlightObservations(null);
   updatePlayback();
 }
 
@@ -289,7 +389,7 @@ async function loadScene(text, origin = '', files = null) {
   })));
   app.loading = loading;
   await loading;
-  buildGhost();
+  buildObservations();
   buildStartArea();
   recolour();
   fitCamera();
@@ -310,7 +410,7 @@ function fitCamera() {
   for (const [id, node] of app.nodes) {
     if (app.model.object(id).shape !== 'plane') box.expandByObject(node.group);
   }
-  if (app.ghost) box.expandByObject(app.ghost);
+  for (const obs of app.observations) box.expandByObject(obs.group);
   if (box.isEmpty()) return;
   const centre = box.getCenter(new THREE.Vector3());
   const size = Math.max(0.5, box.getSize(new THREE.Vector3()).length());
@@ -363,24 +463,29 @@ function updateSelectionText() {
     tr.classList.toggle('selected', tr.dataset.id === app.selected);
   }
   $('select-target').classList.toggle('on', app.selected === TARGET);
-  const group = app.selected === TARGET ? app.ghost : app.nodes.get(app.selected)?.group;
+  const group = groupOf(app.selected);
+  const obs = observationOf(app.selected);
+  const only = obs?.kind === 'position' ? ', position only' : '';
+  const name = obs ? `${obs.last ? 'target' : 'observation'} (${obs.text}${only})` : app.selected;
   $('selection').textContent = group
-    ? `${app.selected === TARGET ? 'target' : app.selected}: ${group.position.toArray().map((v) => v.toFixed(3)).join(', ')}`
+    ? `${name}: ${group.position.toArray().map((v) => v.toFixed(3)).join(', ')}`
     : 'click an object to move it';
 }
 
+// id: an object's id, TARGET (the last observation) or '#target:<index>' (any observation).
 function select(id) {
   showSetup();
+  if (observationOf(id)?.last) id = TARGET;
   app.selected = id;
-  const group = id === TARGET ? app.ghost : app.nodes.get(id)?.group;
-  if (group && (id === TARGET || app.model.object(id).shape !== 'plane')) gizmo.attach(group);
+  const group = groupOf(id);
+  if (group && (isObservation(id) || app.model.object(id).shape !== 'plane')) gizmo.attach(group);
   else gizmo.detach();
   updateSelectionText();
 }
 
 function setSource(id) {
   app.model.setSource(id);
-  buildGhost();
+  buildObservations();
   recolour();
   fillPanel();
 }
@@ -475,6 +580,8 @@ async function handleMessage(msg) {
       app.result = msg.result ?? JSON.parse(await fetchText(msg.url));
       if (app.result && Number.isFinite(app.result.loss)) notify(`best loss ${app.result.loss.toPrecision(3)}`);
       warnIfRunsDisagree(app.result?.posterior?.agreement);
+      for (const warning of app.result?.warnings ?? []) notify(warning, 'warning');
+      showResultSummary(app.result);
       break;
     case 'error':
       if (job) job.error = msg;
@@ -531,6 +638,27 @@ function warnIfRunsDisagree(agreement) {
     + `${agreement.limit}); do not trust these samples`, 'warning');
 }
 
+// The result's summary in the panel: how far the answer ends from where the source was seen (the
+// END, against the last observation), each observation of a tracked source, when it came to rest,
+// the warnings (results.js summarizeResult).
+function showResultSummary(result) {
+  const list = $('result-summary');
+  list.innerHTML = '';
+  const lines = result ? summarizeResult(result) : [];
+  for (const line of lines) {
+    const li = document.createElement('li');
+    li.className = line.kind;
+    li.textContent = line.text;
+    list.appendChild(li);
+  }
+  if (!lines.length) {
+    const li = document.createElement('li');
+    li.className = 'muted';
+    li.textContent = 'no result yet';
+    list.appendChild(li);
+  }
+}
+
 // The posterior's samples of a done job (solve with samples, heatmap), when it drew any.
 async function showSamples(jobId) {
   const response = await serverFetch(`jobs/${jobId}/posterior.csv`);
@@ -562,7 +690,8 @@ function showSetup() {
   app.playing = false;
   if (!app.model) return;
   for (const id of app.nodes.keys()) placeFromModel(id);
-  placeGhost();
+  placeObservations();
+  highlightObservations(null);
   updatePlayback();
 }
 
@@ -572,6 +701,7 @@ function applyTime(t) {
     const node = app.nodes.get(id);
     if (node && node.group.parent === world) applyPose(track, t, node.group); // not while held in VR
   }
+  highlightObservations(t);
 }
 
 function updatePlayback() {
@@ -674,9 +804,9 @@ renderer.domElement.addEventListener('pointerup', (e) => {
   const ray = new THREE.Raycaster();
   ray.setFromCamera(ndc, camera);
   const pickable = [...app.nodes.values()].map((n) => n.group);
-  if (app.ghost?.visible) pickable.push(app.ghost);
+  for (const obs of app.observations) if (obs.group.visible) pickable.push(obs.group);
   const hit = ray.intersectObjects(pickable, true).find((h) => h.object.visible &&
-    (h.object.userData.objectId === TARGET || app.model.object(h.object.userData.objectId)?.shape !== 'plane'));
+    (isObservation(h.object.userData.objectId) || app.model.object(h.object.userData.objectId)?.shape !== 'plane'));
   if (hit) select(hit.object.userData.objectId);
 });
 window.addEventListener('keydown', (e) => {
@@ -700,7 +830,7 @@ const vr = setupVR({
   renderer, scene, world,
   grabbable: () => {
     const groups = [...app.nodes].filter(([id]) => !app.model.isFixed(id)).map(([, n]) => n.group);
-    if (app.ghost?.visible) groups.push(app.ghost);
+    for (const obs of app.observations) if (obs.group.visible) groups.push(obs.group);
     return groups;
   },
   onGrab: () => showSetup(),
@@ -719,6 +849,7 @@ renderer.setAnimationLoop(() => {
     updatePlayback();
   }
   vr.update();
+  placeLabels();
   renderer.render(scene, camera);
 });
 
@@ -743,6 +874,15 @@ window.dejaview = {
       .map(([id, n]) => [id, { spheres: n.packing.count, visible: n.packing.visible }])),
     source: app.model?.source ?? null,
     target: app.model?.target ?? null,
+    targets: app.model?.targets ?? [],
+    // what is drawn for each observation: kind 'pose' (a ghost) or 'position' (a marker), its label
+    observations: app.observations.map((o) => ({
+      index: o.index, id: o.id, kind: o.kind, label: o.text, last: o.last, highlighted: o.highlighted,
+      shown: Boolean(o.group.parent && o.group.visible && o.label.parent && o.label.visible),
+      position: world.worldToLocal(o.group.getWorldPosition(new THREE.Vector3())).toArray(),
+    })),
+    resultSummary: [...$('result-summary').children].filter((li) => li.className !== 'muted')
+      .map((li) => ({ kind: li.className, text: li.textContent })),
     selected: app.selected,
     gizmoAttached: Boolean(gizmo.object),
     positions: positions(),
@@ -766,16 +906,20 @@ window.dejaview = {
   listScenes, loadScenePath, select, setSource, setFixed, setSettings, run, exportXml, play, pause, seek,
   showSetup,
   loadSceneXml: (text, origin = '') => loadScene(text, origin, null),
+  // the scene's observations: edit one ({position, orientation, time, moving}; null removes), add, remove
+  setObservation: (index, fields) => { app.model.setObservation(index, fields); buildObservations(); },
+  addObservation: (fields) => { const i = app.model.addObservation(fields); buildObservations(); return i; },
+  removeObservation: (index) => { app.model.removeObservation(index); buildObservations(); },
   setPose: (id, position, orientation) => {
     showSetup();
-    const group = id === TARGET ? app.ghost : app.nodes.get(id).group;
+    const group = groupOf(id);
     group.position.set(...position);
     if (orientation) group.quaternion.copy(toQuat(orientation));
     poseEdited(group);
   },
   // where an object is on the page, for real mouse input in tests: {x, y} in CSS pixels
   screenPoint: (id, offset = [0, 0, 0]) => {
-    const group = id === TARGET ? app.ghost : app.nodes.get(id).group;
+    const group = groupOf(id);
     const p = world.localToWorld(group.position.clone().add(new THREE.Vector3(...offset))).project(camera);
     const rect = renderer.domElement.getBoundingClientRect();
     return { x: rect.left + ((p.x + 1) / 2) * rect.width, y: rect.top + ((1 - p.y) / 2) * rect.height };

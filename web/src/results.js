@@ -1,5 +1,6 @@
 // Job results in the scene: the trajectory (a spline through the source's positions, poses over
-// time for playback) and the heatmap (a coloured decal on the surface under the start area).
+// time for playback), the heatmap (a coloured decal on the surface under the start area), the
+// posterior's samples, and result.json in words for the panel (summarizeResult).
 import * as THREE from 'three';
 import { DecalGeometry } from 'three/addons/geometries/DecalGeometry.js';
 
@@ -209,4 +210,97 @@ export function sampleCloud(samples, radius = 0.02) {
   points.name = 'posterior-samples';
   points.renderOrder = 3;
   return points;
+}
+
+// ------------------------------------------------------------------ result.json, in words
+
+// A distance in metres as a reader checks it: "0.2 mm", "36 mm", "1.25 m".
+export function formatDistance(m) {
+  const mm = Number(m) * 1000;
+  if (!Number.isFinite(mm)) return '?';
+  if (mm < 10) return `${mm.toFixed(1)} mm`;
+  if (mm < 1000) return `${Math.round(mm)} mm`;
+  return `${(mm / 1000).toFixed(2)} m`;
+}
+
+export function formatAngle(deg) {
+  const d = Number(deg);
+  if (!Number.isFinite(d)) return '?';
+  return d < 10 ? `${d.toFixed(1)}°` : `${Math.round(d)}°`;
+}
+
+const off = (row) => formatDistance(row.position_error)
+  + (row.angle_error_deg == null ? '' : ` / ${formatAngle(row.angle_error_deg)}`);
+
+// The last of several targets (as result.json lists them): the one without a time, else the latest.
+function lastIndex(targets) {
+  let best = -1;
+  for (const [i, t] of targets.entries()) {
+    if (t.time == null) return i;
+    if (best < 0 || t.time > targets[best].time) best = i;
+  }
+  return best;
+}
+
+// When the answer meets each observation (s), for lighting them up during playback: result.json's
+// `observations` (the moment compared; a target seen moving at a moment not known: its best match)
+// where the result has one row per target, else each target's time, the end (`duration`) without.
+export function observationTimes(targets, result, duration) {
+  const rows = result?.observations;
+  const fromResult = Array.isArray(rows) && rows.length === targets.length;
+  return targets.map((t, i) => {
+    const row = fromResult ? rows[i] : null;
+    const at = row ? (row.matched?.time ?? row.time) : (t.time ?? duration);
+    return Number.isFinite(at) ? at : null;
+  });
+}
+
+// result.json in lines for the panel, [{kind, text}]: the best loss; how far the END is from where
+// the source was last seen (`end_error`: "ends 0.2 mm / 0.6° from where it was seen lying"); when it
+// came to rest (`rest`); for a tracked source, the answer against each observation at its moment
+// (`observations`); the warnings (`warnings`, and the sampler's runs disagreeing).
+export function summarizeResult(result) {
+  const lines = [];
+  if (!result) return lines;
+  if (Number.isFinite(result.loss)) lines.push({ kind: 'info', text: `best loss ${result.loss.toPrecision(3)}` });
+  const targets = Array.isArray(result.targets) ? result.targets : (result.target ? [result.target] : []);
+  const end = result.end_error;
+  if (end && Number.isFinite(end.position_error)) {
+    const last = targets[lastIndex(targets)];
+    let where = 'from the observation';
+    if (last?.at_rest) where = 'from where it was seen lying';
+    else if (last?.time != null) where = `from where it was seen at ${Number(last.time).toFixed(2)} s`;
+    else if (last) where = 'from where it was seen moving';
+    lines.push({ kind: 'end', text: `ends ${off(end)} ${where}` });
+  }
+  const rest = result.rest;
+  if (rest) {
+    if (rest.came_to_rest_s != null) {
+      lines.push({ kind: 'info', text: `came to rest at ${Number(rest.came_to_rest_s).toFixed(2)} s` });
+    } else {
+      const need = rest.needs_duration_s == null ? ''
+        : ` (it needs about ${Number(rest.needs_duration_s).toFixed(2)} s)`;
+      lines.push({ kind: 'info', text: `still moving at the end${need}` });
+    }
+  }
+  const rows = Array.isArray(result.observations) ? result.observations : [];
+  if (rows.length > 1 || rows.some((r) => r.matched)) {
+    for (const row of rows) {
+      const time = row.target_time != null ? `${Number(row.target_time).toFixed(2)} s` : 'end';
+      const how = [row.at_rest ? 'at rest' : (row.target_time == null ? 'seen moving' : null),
+        row.angle_error_deg == null ? 'position only' : null].filter(Boolean).join(', ');
+      lines.push({ kind: 'observation', text: `${time}${how ? ` (${how})` : ''}: ${off(row)}` });
+      if (row.matched) {
+        const at = Number(row.matched.time).toFixed(2);
+        lines.push({ kind: 'observation', text: `  passes it at ${at} s: ${off(row.matched)}` });
+      }
+    }
+  }
+  const agreement = result.posterior?.agreement;
+  if (agreement && agreement.runs_agree === false) {
+    lines.push({ kind: 'warning', text: `posterior: the sampler's independent runs disagree (R-hat up to `
+      + `${Number(agreement.max_rhat).toFixed(2)}); do not trust these samples` });
+  }
+  for (const warning of result.warnings ?? []) lines.push({ kind: 'warning', text: String(warning) });
+  return lines;
 }

@@ -49,6 +49,21 @@ function normalizePath(path) {
   return out.join('/');
 }
 
+// Index of the last of several <target> elements: the one without `time`, else the latest time.
+function lastOf(els) {
+  let best = -1;
+  let bestTime = -Infinity;
+  for (const [i, el] of els.entries()) {
+    if (!el.hasAttribute('time')) return i;
+    const t = Number(el.getAttribute('time'));
+    if (best < 0 || t > bestTime) {
+      best = i;
+      bestTime = t;
+    }
+  }
+  return best;
+}
+
 export class SceneModel {
   // text: the XML; origin: the scene's path inside the server's scene root ('' for an upload).
   constructor(text, origin = '') {
@@ -125,19 +140,102 @@ export class SceneModel {
     this.setFixed(id, false);
   }
 
-  get target() {
-    const t = this.inference && child(this.inference, 'target');
-    if (!t) return null;
-    return {
-      position: numbers(t.getAttribute('position'), [0, 0, 0]),
-      orientation: numbers(t.getAttribute('orientation'), [1, 0, 0, 0]),
-    };
+  // ---------------------------------------------------------------- observations (<target>s)
+  // Every <target> is one observation of the source ("how the source was seen"): a pose, or a
+  // position alone (no orientation), at a `time` (a tracked source) or, without one, at the end;
+  // `moving` true / false, else the default: seen lying still when it has no time and no velocities.
+
+  targetElements() {
+    return this.inference ? [...this.inference.children].filter((e) => e.tagName === 'target') : [];
   }
 
-  setTarget(position, orientation) {
-    const t = ensureChild(this.inference, 'target');
-    t.setAttribute('position', vec(position));
-    t.setAttribute('orientation', vec(orientation));
+  // The observations in file order, as plain data (no DOM): index, position, orientation (null:
+  // position only), time (null: not known), moving (null: the default), linearVelocity /
+  // angularVelocity (null when not observed), atRest, last (the observation `target` is).
+  get targets() {
+    const els = this.targetElements();
+    const lastIndex = lastOf(els);
+    return els.map((el, index) => {
+      const time = el.hasAttribute('time') ? Number(el.getAttribute('time')) : null;
+      const movingAttr = el.getAttribute('moving');
+      const moving = movingAttr == null ? null : movingAttr.trim() === 'true' || movingAttr.trim() === '1';
+      const linearVelocity = numbers(el.getAttribute('linear-velocity'), null);
+      const angularVelocity = numbers(el.getAttribute('angular-velocity'), null);
+      const atRest = moving != null ? !moving : time == null && !linearVelocity && !angularVelocity;
+      return {
+        index,
+        position: numbers(el.getAttribute('position'), [0, 0, 0]),
+        orientation: numbers(el.getAttribute('orientation'), null),
+        time,
+        moving,
+        linearVelocity,
+        angularVelocity,
+        atRest,
+        last: index === lastIndex,
+      };
+    });
+  }
+
+  // Index of the last observation: the one without a time (seen at the end), else the latest time
+  // (the first of those that share it); -1 without targets. (dejaview.scene.model.last_target)
+  get lastTargetIndex() {
+    return lastOf(this.targetElements());
+  }
+
+  // The last observation (what the "Target" ghost edits), or null.
+  get target() {
+    const all = this.targets;
+    const i = this.lastTargetIndex;
+    return i < 0 ? null : all[i];
+  }
+
+  // Move observation `index` (default: the last). A position-only observation stays one: its
+  // orientation is written only where the target has one (setObservation changes what was seen).
+  setTarget(position, orientation, index = this.lastTargetIndex) {
+    let el = this.targetElements()[index];
+    if (!el) {
+      if (!this.inference) throw new Error('choose a source first: the scene has no <inference>');
+      el = ensureChild(this.inference, 'target', { orientation: vec([1, 0, 0, 0]) });
+    }
+    el.setAttribute('position', vec(position));
+    if (orientation && el.hasAttribute('orientation')) el.setAttribute('orientation', vec(orientation));
+  }
+
+  // Edit observation `index`: each of position, orientation, time, moving given is written; null
+  // removes the attribute (orientation: position only; time: at the end; moving: the default).
+  setObservation(index, { position, orientation, time, moving } = {}) {
+    const el = this.targetElements()[index];
+    if (!el) throw new Error(`no observation ${index}: the scene has ${this.targetElements().length}`);
+    const put = (name, value, text) => {
+      if (value === undefined) return;
+      if (value === null) el.removeAttribute(name);
+      else el.setAttribute(name, text(value));
+    };
+    put('position', position, vec);
+    put('orientation', orientation, vec);
+    put('time', time, fmt);
+    put('moving', moving, (m) => (m ? 'true' : 'false'));
+  }
+
+  // A new observation after the last <target>; returns its index.
+  addObservation({ position, orientation = null, time = null, moving = null }) {
+    if (!this.inference) throw new Error('choose a source first: the scene has no <inference>');
+    const els = this.targetElements();
+    const el = this.doc.createElementNS(null, 'target');
+    el.setAttribute('position', vec(position));
+    if (els.length) els[els.length - 1].after(el);
+    else this.inference.prepend(el);
+    const index = els.length;
+    this.setObservation(index, { orientation: orientation ?? undefined, time: time ?? undefined,
+      moving: moving ?? undefined });
+    return index;
+  }
+
+  removeObservation(index) {
+    const els = this.targetElements();
+    if (els.length <= 1) throw new Error('an inference needs at least one observation');
+    if (!els[index]) throw new Error(`no observation ${index}: the scene has ${els.length}`);
+    els[index].remove();
   }
 
   get startArea() {
