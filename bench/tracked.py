@@ -57,7 +57,8 @@ def rows(results: dict) -> list[dict]:
     for name, iv in tracked["posterior"]["intervals"].items():
         other = last["posterior"]["intervals"][name]
         w_t, w_l = iv["90%"][1] - iv["90%"][0], other["90%"][1] - other["90%"][0]
-        out.append({"parameter": name, "tracked_90": iv["90%"], "last_90": other["90%"],
+        out.append({"parameter": name, "tracked_lo": iv["90%"][0], "tracked_hi": iv["90%"][1],
+                    "last_lo": other["90%"][0], "last_hi": other["90%"][1],
                     "width_ratio": w_t / w_l if w_l > 0 else float("nan"),
                     "truth_in_tracked": tracked["truth"]["in_90"][name],
                     "truth_in_last": last["truth"]["in_90"][name]})
@@ -70,8 +71,8 @@ def run(print_fn=print, samples: int = 300, seed: int = 0, scene_path: Path = SC
     table = rows(results)
     print_fn(f"{'parameter':22s} {'tracked 90 %':>22s} {'last alone 90 %':>22s} {'width':>7s}  truth in")
     for r in table:
-        lo, hi = r["tracked_90"]
-        lo2, hi2 = r["last_90"]
+        lo, hi = r["tracked_lo"], r["tracked_hi"]
+        lo2, hi2 = r["last_lo"], r["last_hi"]
         print_fn(f"{r['parameter']:22s} [{lo:8.3f}, {hi:8.3f}]   [{lo2:8.3f}, {hi2:8.3f}]  {r['width_ratio']:6.2f}x  "
                  f"{'yes' if r['truth_in_tracked'] else 'NO':>3s} / {'yes' if r['truth_in_last'] else 'NO'}")
     for name in ("tracked", "last"):

@@ -462,6 +462,29 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
     _finish(rows, csv_path, check and not no_solve, [7 * solved >= 6 * len(rows)])
 
 
+@command.command("tracked")
+@click.option("--samples", default=300, show_default=True, type=click.IntRange(min=20),
+              help="Posterior samples of each solve.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Seed of the solves.")
+@csv_option
+@check_option
+def tracked(samples, seed, csv_path, check):
+    """A tracked source against its last observation alone (issue 56).
+
+    Solves examples/scenes/box_tossed_tracked.xml (a box tossed, seen at four moments, two of them
+    by position alone) with posterior samples, and the same scene with its last observation alone,
+    and prints each free parameter's two 90 % intervals, their widths' ratio and whether each holds
+    the truth. --check: exit 1 unless every start-velocity interval is narrower tracked and holds
+    the truth.
+    """
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("tracked").run(print_fn=click.echo, samples=samples, seed=seed)
+    velocity = [r for r in rows if r["parameter"].startswith("linear_velocity")]
+    _finish(rows, csv_path, check, [all(r["width_ratio"] < 1 and r["truth_in_tracked"] for r in velocity)])
+
+
 @command.command("peers")
 @click.option("--quick", is_flag=True, help="N = 1, 2 over 50 steps, small batches (smoke test).")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(min=1),

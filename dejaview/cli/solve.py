@@ -14,7 +14,7 @@ from dejaview.cli.options import backend_options, common_options, configure_torc
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               required=True, help="output folder (created)")
 @click.option("--budget", type=click.IntRange(min=1), default=None,
-              help="most rollouts of the default search (default 20000; a Jacobian counts 3)")
+              help="most rollouts of the default search (default 40000; a Jacobian counts 3)")
 @click.option("--multistart", type=click.IntRange(min=1), default=None,
               help="with --optimizer gd|adam|lbfgs|bfgs: initial guesses run as one batch")
 @click.option("--screen", type=click.IntRange(min=0), default=None,
