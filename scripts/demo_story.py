@@ -51,9 +51,10 @@ def main(argv: list[str]) -> int:
             agree = post.get("agreement") or {}
             print(f"{'':<{len(Path(name).name)}}  posterior: {post['samples']} samples (R-hat "
                   f"{agree.get('max_rhat', float('nan')):.2f}); the truth (-log posterior "
-                  f"{truth['neg_log_posterior']:.3g}) lies on the edge of the {100 * truth['credible_level']:.0f} % "
-                  f"credible region: {sum(truth['in_90'].values())} of {len(truth['in_90'])} parameters "
-                  f"inside their 90 % intervals")
+                  f"{truth['neg_log_posterior']:.3g}) at the {100 * truth['credible_level']:.0f} % credible level "
+                  f"(the posterior mass more probable than it; spread evenly over 0-100 % where the samples "
+                  f"are calibrated): {sum(truth['in_90'].values())} of {len(truth['in_90'])} parameters inside "
+                  f"their 90 % intervals")
         for w in data.get("warnings", []):
             print(f"{'':<{len(Path(name).name)}}  warning: {w}")
     return 0

@@ -108,8 +108,8 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
         t = result.settings.get("truth")
         if t is not None:
             level = ("" if "credible_level" not in t else
-                     f"; it lies on the edge of the {100 * t['credible_level']:.0f} % credible region "
-                     f"(the posterior mass more probable than it)")
+                     f"; credible level {100 * t['credible_level']:.0f} % (the posterior mass more probable "
+                     f"than it)")
             click.echo(f"  the truth: -log posterior {t['neg_log_posterior']:.4g}, end misfit chi2 "
                        f"{t['observation_chi2']:.3g}{level}")
         for warning in result.settings.get("warnings", []):

@@ -133,3 +133,24 @@ def test_a_tracked_source_is_searched_stage_by_stage_and_found():
     for row in result.observations():
         assert row["position_error"] < 0.005 and row["angle_error_deg"] is None
     assert result.initial_state["linear_velocity"] == pytest.approx([1.2, 0.4, 1.0], abs=0.05)
+
+
+def test_the_truths_credible_level_is_the_posterior_mass_more_probable_than_it():
+    """``solve(truth=)``: the most probable start itself lies at the 0 % credible level (nothing is more
+    probable), a start that misses every observation at 100 %; each carries its -log posterior."""
+    from dejaview.inference.posterior_report import truth_report
+
+    scene, truth = tracked_truth()
+    result = solve(scene, seed=0, samples=40, truth=dict(position=[0.05, -0.03, 0.5], orientation=[1, 0, 0, 0],
+                                                        linear_velocity=[1.2, 0.4, 1.0],
+                                                        angular_velocity=[0, 0, 0]))
+    t = result.settings["truth"]
+    assert 0.0 <= t["credible_level"] <= 1.0 and set(t["in_90"]) == set(result.settings["posterior"]["intervals"])
+    assert t["observation_chi2"] < 1e-4  # the observations were made of this start (to a micron)
+    problem = result.problem
+    post = Posterior(problem, PosteriorSettings.from_scene(scene))
+    best = {k: result.initial_state[k] for k in ("position", "orientation", "linear_velocity", "angular_velocity")}
+    assert truth_report(post, result.posterior, problem.layout, best)["credible_level"] <= 0.05
+    far = dict(best, linear_velocity=[0.0, 0.0, 0.0])
+    report = truth_report(post, result.posterior, problem.layout, far)
+    assert report["credible_level"] == 1.0 and report["observation_chi2"] > 100
