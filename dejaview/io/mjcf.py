@@ -170,15 +170,13 @@ def contact_parameters(friction: float, restitution: float,
 
 
 def scene_frequency(scene) -> float:
-    """DejaView's contact frequency of a scene (``<simulation contact-frequency>`` or
-    0.25 / (dt / substeps)), rad/s."""
-    from dejaview.sim.build import simulation_extras
+    """DejaView's contact frequency of a scene (``<simulation contact-frequency>``, else
+    0.25 / (dt / substeps): ``dejaview.sim.build.step_settings``), rad/s."""
+    from dejaview.sim.build import step_settings
     from dejaview.sim.world import DEFAULT_OMEGA_H
 
-    extras = simulation_extras(scene)
-    if extras.get("contact-frequency"):
-        return float(extras["contact-frequency"])
-    return DEFAULT_OMEGA_H * extras.get("substeps", 2) / scene.simulation.dt
+    substeps, frequency = step_settings(scene)
+    return float(frequency) if frequency else DEFAULT_OMEGA_H * substeps / scene.simulation.dt
 
 
 def _num(x) -> str:

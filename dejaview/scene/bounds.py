@@ -67,7 +67,21 @@ MAX_SEED = 2 ** 63 - 1
 """Largest random seed (torch takes 64-bit seeds)."""
 
 DEFAULT_SUBSTEPS = 2
-"""The sphere simulator's substeps per step when ``<simulation substeps>`` is absent."""
+"""The sphere simulator's substeps per step when ``<simulation substeps>`` is absent ..."""
+BOX_BODY_SUBSTEPS = 4
+"""... and in a scene with a movable box, whose 8 corners meet planes and static boxes
+(``dejaview.sim.box_edges``), at the same contact frequency (``dejaview.sim.build.step_settings``):
+a corner takes an impact at one point, where a packing spreads it over spheres that engage one
+after another, and at 2 substeps (omega_0 h = 0.25) where in its substep the contact begins moves
+the end by millimetres per 1e-7 of the start; L-BFGS stalls on that (docs/physics.md, "Steps")."""
+
+
+def default_substeps(scene) -> int:
+    """Substeps per step of ``scene`` when its ``<simulation>`` does not say: ``BOX_BODY_SUBSTEPS``
+    where a movable object is a box primitive, else ``DEFAULT_SUBSTEPS``."""
+    boxes = any(not o.fixed and o.mesh is None and o.robot is None and o.shape == "box"
+                for o in scene.objects)
+    return BOX_BODY_SUBSTEPS if boxes else DEFAULT_SUBSTEPS
 
 # <simulation> attributes of the sphere simulator: name -> (type, minimum, maximum)
 SIM_EXTRAS = {

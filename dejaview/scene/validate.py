@@ -242,7 +242,7 @@ class _Checker:
                     self.report(key, reason)
                 else:
                     extras[name] = parsed
-        substeps = extras.get("substeps", B.DEFAULT_SUBSTEPS)
+        substeps = extras.get("substeps", B.default_substeps(self.scene))
         if dt_ok and "contact-frequency" in extras:
             h = s.dt / substeps
             omega = extras["contact-frequency"]

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 from dejaview.errors import SceneError
+from dejaview.scene.bounds import default_substeps
 from dejaview.server.errors import ServiceError
 
 SCENE_XML_NAME = "<scene_xml>"
@@ -198,9 +199,9 @@ def check_job(kind: str, scene, overrides: dict, config) -> None:
                            f"{sim.dt:g} s is beyond counting, over the server's limit of {config.max_steps} "
                            f"integration substeps", 422) from None
     try:
-        substeps = int(scene.simulation.extra.get("substeps", 2))
+        substeps = int(scene.simulation.extra.get("substeps", default_substeps(scene)))
     except ValueError:
-        substeps = 2  # the simulator reports it when it builds the world
+        substeps = default_substeps(scene)  # the simulator reports it when it builds the world
     if steps * max(substeps, 1) > config.max_steps:
         def n(x):
             return f"{x}" if x < 10 ** 12 else f"{float(x):.3g}"

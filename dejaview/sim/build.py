@@ -8,8 +8,9 @@ grid (built from the mesh and cached) for meshes; a robot (``urdf``/``mjcf``)
 one static shape per link collision geometry.
 
 Backend-specific ``<simulation>`` attributes read here:
-``substeps`` (int, default 2), ``contact-frequency`` (rad/s, default
-``0.25 / (dt / substeps)``), ``unload-velocity`` (m/s, default 0.01), ``sdf-spacing`` (m, default 0.01).
+``substeps`` (int, default 2, 4 in a scene with a movable box: ``step_settings``),
+``contact-frequency`` (rad/s, default ``0.25 / (dt / substeps)``, at 2 substeps where the
+scene left them out), ``unload-velocity`` (m/s, default 0.01), ``sdf-spacing`` (m, default 0.01).
 """
 
 from __future__ import annotations
@@ -148,6 +149,30 @@ def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShap
     return statics
 
 
+def step_settings(scene, extras: dict | None = None) -> tuple[int, float | None]:
+    """Substeps per step and contact frequency (rad/s; None: ``World.build``'s default
+    ``DEFAULT_OMEGA_H / h``) of a scene.
+
+    Given substeps keep their meaning (more substeps, stiffer contacts). Left out, they are
+    ``bounds.default_substeps(scene)``: 4 in a scene with a movable box, at the contact frequency
+    of the default 2 substeps (``DEFAULT_OMEGA_H * 2 / dt``, 250 rad/s at dt 2 ms): the same
+    stiffness, resolved twice as finely.
+
+    Args:
+        scene: a validated ``Scene``; extras: its ``simulation_extras`` (parsed here when None).
+    """
+    from dejaview.sim.world import DEFAULT_OMEGA_H
+
+    extras = simulation_extras(scene) if extras is None else extras
+    frequency = extras.get("contact-frequency")
+    if "substeps" in extras:
+        return int(extras["substeps"]), frequency
+    substeps = bounds.default_substeps(scene)
+    if frequency is None and substeps != bounds.DEFAULT_SUBSTEPS:
+        frequency = DEFAULT_OMEGA_H * bounds.DEFAULT_SUBSTEPS / scene.simulation.dt
+    return substeps, frequency
+
+
 def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
                      max_spheres: int = 256, sdf_spacing: float | None = None,
                      progress=None, max_steps: int | None = None) -> World:
@@ -183,10 +208,11 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
         raise SceneError("the scene has no movable object to simulate",
                          file=str(scene.path) if scene.path else None, element="scene")
     sim = scene.simulation
+    substeps, frequency = step_settings(scene, extras)
     world = World.build(bodies, statics, gravity=scene.gravity, dt=sim.dt,
-                        substeps=extras.get("substeps", 2), duration=sim.duration,
+                        substeps=substeps, duration=sim.duration,
                         friction=sim.friction, restitution=sim.restitution,
-                        contact_frequency=extras.get("contact-frequency"),
+                        contact_frequency=frequency,
                         unload_velocity=extras.get("unload-velocity", 0.01),
                         max_static_contacts=extras.get("max-static-contacts", DEFAULT_MAX_STATIC_CONTACTS),
                         max_pair_contacts=extras.get("max-pair-contacts", DEFAULT_MAX_PAIR_CONTACTS),

@@ -64,8 +64,7 @@ def _end_pose(problem, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return com - quat_rotate(q, problem.world.com[problem.source]), q
 
 
-@pytest.mark.xfail(strict=True, reason="since befb267 a box body's corner contacts are under-resolved "
-                                       "at the default step: L-BFGS stalls on the way down (issue 56)")
+
 def test_lbfgs_with_restarts_solves_an_own_engine_box_thrown_onto_the_floor():
     """The answer, re-simulated, ends within 1 cm and 5 degrees of the observed end."""
     truth = InferenceProblem.from_scene(_scene(TRUTH))

@@ -55,9 +55,9 @@ def test_the_good_scene_reads():
     (dict(extra=' sdf-spacing="1e-9"'), 3, "simulation", "sdf-spacing='1e-9' must be at least 0.0001"),
     (dict(extra=' max-pair-contacts="99999999999999999999"'), 3, "simulation", "is over the limit of 1e+09"),
     (dict(extra=' contact-frequency="1e300"'), 3, "simulation",
-     "contact-frequency='1e300' is unstable with substeps of 0.001 s"),
+     "contact-frequency='1e300' is unstable with substeps of 0.0005 s"),  # a box body: 4 substeps
     (dict(extra=' substeps="4" contact-frequency="4001"'), 3, "simulation", "unstable with substeps of 0.0005 s"),
-    (dict(dt="1e-300"), 3, "simulation", "1.0 s / 1e-300 s is 1e+300 steps x 2 substeps = 2e+300 integration"),
+    (dict(dt="1e-300"), 3, "simulation", "1.0 s / 1e-300 s is 1e+300 steps x 4 substeps = 4e+300 integration"),
     (dict(duration="1e308"), 3, "simulation", "over the budget of 2000000"),
     (dict(dt="0.001", duration="2000.001", extra=' substeps="1"'), 3, "simulation",
      "2000.001 s / 0.001 s is 2000001 steps = 2000001 integration steps, over the budget of 2000000"),
@@ -80,8 +80,9 @@ def test_at_the_limits_is_accepted():
 def test_the_step_budget_can_be_raised(monkeypatch):
     with pytest.raises(SceneError, match="over the budget of 2000000"):
         read(dt="1e-6", duration="2")
-    assert read(max_steps=4_000_000, dt="1e-6", duration="2").simulation.steps == 2_000_000
-    monkeypatch.setenv("DEJAVIEW_MAX_STEPS", "4000000")
+    # 2,000,000 steps of the box body's 4 substeps (bounds.BOX_BODY_SUBSTEPS)
+    assert read(max_steps=8_000_000, dt="1e-6", duration="2").simulation.steps == 2_000_000
+    monkeypatch.setenv("DEJAVIEW_MAX_STEPS", "8000000")
     assert read(dt="1e-6", duration="2").simulation.steps == 2_000_000
     with pytest.raises(SceneError, match="over the budget of 10 "):
         read(max_steps=10)

@@ -262,7 +262,8 @@ def _corner_bounce(box_body: bool):
     <velocity linear="0.3 -0.6 0.5" angular="2.0 1.0 3.0"/></object>
 </scene>""")
     world = World.from_scene(scene)
-    assert world.substeps == 2 and world.box_bodies == (True,)
+    # a scene with a box body takes 4 substeps at the stiffness of 2 (bounds.BOX_BODY_SUBSTEPS)
+    assert world.substeps == 4 and world.contact.frequency == 250.0 and world.box_bodies == (True,)
     if not box_body:
         body = _tilted_box(0.0)[0]
         world = World.build([body], list(world.statics), dt=0.002, substeps=2, steps=500)
@@ -298,7 +299,8 @@ def test_a_box_on_its_corners_bouncing_over_them_converges_with_the_substeps():
     (``dejaview.sim.box_edges``): its end at 2, 4, 8 and 16 substeps is 1.18, 2.40, 0.66 and
     0.17 cm from 32 substeps'. A corner is a point carrying the whole body spring (its stiffness
     m omega_0^2 acts about a lever of 12 cm, so the impact's own frequency is about 2.6 omega_0:
-    the default step resolves it less finely than a face's), and where the box tips over an edge
+    2 substeps resolve it less finely than a face's: a scene with a box body takes 4 by default,
+    ``bounds.BOX_BODY_SUBSTEPS``), and where the box tips over an edge
     at 0.4-0.7 s it amplifies the first impact's difference; a 1 mm nudge of the start moves the
     end 1 mm. So this checks convergence, within 2.5 cm at every step and 0.5 cm at 16."""
     _needs("native")
