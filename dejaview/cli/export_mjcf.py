@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from dejaview.cli.options import package_path_option
+
 
 @click.command("export-mjcf")
 @click.argument("scene", type=click.Path(dir_okay=False, path_type=Path))
@@ -19,6 +21,7 @@ import click
               help="MuJoCo's time step (default 0.0005; the contacts' damping is mapped for it). "
                    "5e-05 is converged where 0.0005 is not: a box tipping over an edge "
                    "(docs/physics-fidelity.md, \"MuJoCo's time step\").")
+@package_path_option
 def command(scene: Path, output: Path, state: Path | None, timestep: float | None) -> None:
     """Write SCENE as an MJCF model that MuJoCo loads as it is.
 

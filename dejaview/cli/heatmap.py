@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
+from dejaview.cli.options import (backend_options, common_options, configure_torch, package_path_option,
+                                  show_progress)
 
 
 def _cells(ctx, param, value):
@@ -45,6 +46,7 @@ def _cells(ctx, param, value):
                    "(docs/scale.md; default $DEJAVIEW_RAY_ADDRESS); needs pip install 'dejaview[ray]'")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
+@package_path_option
 @backend_options()
 def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, no_plot, backend,
             iterations, optimizer, gradient, seed, quiet):

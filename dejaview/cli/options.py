@@ -1,8 +1,10 @@
-"""Options shared by the simulate, solve and heatmap commands (scene-format spec, "Command line")."""
+"""Options shared by the simulate, solve and heatmap commands (scene-format spec, "Command line"), and
+``--package-path`` of every command that reads robots."""
 
 from __future__ import annotations
 
 import functools
+import os
 import sys
 
 import click
@@ -64,6 +66,22 @@ def backend_options(*, with_compile: bool = False):
         return command
 
     return decorate
+
+
+def _prepend_package_path(ctx, param, folders) -> None:
+    """Put the folders first in ``DEJAVIEW_PACKAGE_PATH``, where ``dejaview.geometry.packages.resolve_package``
+    looks (and worker processes, which inherit the environment)."""
+    if folders:
+        variable = "DEJAVIEW_PACKAGE_PATH"  # dejaview.geometry.packages.PACKAGE_PATH_VARIABLES[0]
+        rest = [f for f in os.environ.get(variable, "").split(os.pathsep) if f]
+        os.environ[variable] = os.pathsep.join([os.path.abspath(f) for f in folders] + rest)
+
+
+package_path_option = click.option(
+    "--package-path", multiple=True, metavar="DIR", expose_value=False, callback=_prepend_package_path,
+    type=click.Path(file_okay=False), help="a folder that holds the packages robots' package://NAME/... "
+    "URIs name, searched before DEJAVIEW_PACKAGE_PATH and ROS_PACKAGE_PATH (may be repeated)")
+"""``--package-path DIR``: the command's robots find ``package://`` URIs there too."""
 
 
 def show_progress(quiet: bool) -> bool:

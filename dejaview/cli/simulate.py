@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
+from dejaview.cli.options import (backend_options, common_options, configure_torch, package_path_option,
+                                  show_progress)
 
 
 @click.command("simulate")
@@ -19,6 +20,7 @@ from dejaview.cli.options import backend_options, common_options, configure_torc
 @click.option("--max-steps", type=int, default=None,
               help="step budget, steps x substeps (default 2000000 or DEJAVIEW_MAX_STEPS)")
 @common_options
+@package_path_option
 @backend_options()
 def command(scene, out_dir, steps, record_every, float32, max_steps, backend, iterations, optimizer,
             gradient, seed, quiet):

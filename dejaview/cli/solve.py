@@ -6,7 +6,8 @@ from pathlib import Path
 
 import click
 
-from dejaview.cli.options import backend_options, common_options, configure_torch, show_progress
+from dejaview.cli.options import (backend_options, common_options, configure_torch, package_path_option,
+                                  show_progress)
 
 
 @click.command("solve")
@@ -32,6 +33,7 @@ from dejaview.cli.options import backend_options, common_options, configure_torc
               help="relative standard deviations the likelihood averages over (overrides the scene's "
                    "<model-uncertainty>; 0 0: none)")
 @common_options
+@package_path_option
 @backend_options(with_compile=True)
 def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth_file, tolerance,
             model_uncertainty, backend, iterations, optimizer, gradient, seed, quiet):

@@ -6,6 +6,8 @@ import sys
 
 import click
 
+from dejaview.cli.options import package_path_option
+
 from dejaview.errors import GeometryError, SceneError
 
 DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not imported: --help stays cheap)
@@ -19,6 +21,7 @@ DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not import
               metavar="METRES", help="Overlap accepted as resting contact between objects.")
 @click.option("--max-steps", type=click.IntRange(min=1), default=None,
               help="step budget of a simulation, steps x substeps (default 2000000 or DEJAVIEW_MAX_STEPS)")
+@package_path_option
 def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_steps: int | None) -> None:
     """Check each SCENE file against the scene format, and that no objects overlap.
 
@@ -29,6 +32,8 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
     Objects that interpenetrate at their given poses (deeper than --margin;
     two fixed objects may) are errors too, one line per pair:
     ``file:line: <object> 'a' and 'b' interpenetrate by D m``.
+    A robot's collision mesh that is not watertight takes part as its convex
+    hull: a ``note:`` line per mesh says so, and the scene stays valid.
     Exit status 0 when every scene is valid, 2 otherwise.
     """
     from dejaview.scene.xml import read_scene_file
@@ -37,6 +42,7 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
     for path in scenes:
         try:
             scene = read_scene_file(path, check_files=not no_file_check, max_steps=max_steps)
+            notes = [] if no_file_check else _hull_notes(scene, path)
             overlaps = [] if no_file_check else _interpenetrations(scene, path, margin)
         except SceneError as exc:
             failed += 1
@@ -47,6 +53,8 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
             for line in overlaps:
                 click.echo(f"error: {line}", err=True)
             continue
+        for line in notes:
+            click.echo(f"note: {line}")
         n = len(scene.objects)
         source = scene.inference.source if scene.inference is not None else "none"
         click.echo(f"OK {path}: {n} object{'' if n == 1 else 's'}, source={source}")
@@ -54,6 +62,22 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
         # sys.exit, not ctx.exit: the entry point runs click with standalone_mode=False,
         # where click would return ctx.exit's status instead of exiting with it.
         sys.exit(2)
+
+
+def _hull_notes(scene, path: str) -> list[str]:
+    """One line per robot collision mesh that takes part as its convex hull (it has holes)."""
+    from dejaview.geometry.robot_links import hull_notes
+
+    out = []
+    for obj in scene.objects:
+        if obj.robot is None:
+            continue
+        where = f"{path}:{obj.line}" if obj.line is not None else path
+        try:
+            out.extend(f"{where}: <object> {note}" for note in hull_notes(scene, obj))
+        except GeometryError as exc:
+            raise SceneError(f"object {obj.id!r}: {exc}", file=path, line=obj.line, element="object") from exc
+    return out
 
 
 def _interpenetrations(scene, path: str, margin: float) -> list[str]:

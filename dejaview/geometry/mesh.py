@@ -9,6 +9,7 @@ file or mesh and the reason.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from dataclasses import dataclass
@@ -227,6 +228,52 @@ def watertight_mesh(mesh: trimesh.Trimesh, name: str | None = None) -> trimesh.T
     if not fixed.volume > 0:
         raise GeometryError(f"{name}: the mesh encloses no volume")
     return fixed
+
+
+def collision_solid(path, scale: float = 1.0, convex_hull: bool = False) -> tuple[trimesh.Trimesh, bool]:
+    """The solid a robot's collision mesh file takes part in contacts as, in the file's frame, scaled.
+
+    The file's mesh made watertight (:func:`watertight_mesh`); where its holes cannot be closed,
+    its convex hull, as MuJoCo and Bullet collide meshes. Kept for the process (keyed by the file's
+    path, modification time and size): every consumer of one robot loads each mesh once.
+
+    Args:
+        path: the mesh file.
+        scale: uniform scale applied to the vertices.
+        convex_hull: the hull in any case (an MJCF mesh: MuJoCo collides it as its hull).
+    Returns:
+        (mesh, hull): a watertight mesh with outward normals, vertices (V, 3) and faces (F, 3),
+        not to be modified; ``hull`` True where the convex hull stands in for the file's surface.
+    Raises:
+        GeometryError: a file that cannot be read, or whose hull encloses no volume.
+    """
+    path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError:
+        raise GeometryError(f"{path}: mesh file not found") from None
+    return _collision_solid(str(path), stat.st_mtime_ns, stat.st_size, float(scale), bool(convex_hull))
+
+
+@functools.lru_cache(maxsize=64)
+def _collision_solid(path: str, _mtime_ns: int, _size: int, scale: float,
+                     convex_hull: bool) -> tuple[trimesh.Trimesh, bool]:
+    mesh = load_mesh(path)
+    solid = None
+    if not convex_hull:
+        try:
+            solid = watertight_mesh(mesh)
+        except GeometryError:  # holes that cannot be closed: the hull, as MuJoCo and Bullet take it
+            solid = None
+    hull = solid is None
+    if hull:
+        solid = mesh.convex_hull
+        if not solid.volume > 0:
+            raise GeometryError(f"{path}: the mesh's convex hull encloses no volume (a flat mesh)")
+    if scale != 1.0:
+        solid = solid.copy()
+        solid.apply_scale(scale)
+    return solid, hull
 
 
 def mass_properties(mesh: trimesh.Trimesh, mass: float | None = None,

@@ -12,8 +12,9 @@ Reading is in two parts so that checks stay cheap:
 * :func:`read_robot` parses the file (lxml, no torch): movable joints and their limits, and each
   link's collision geometry. The XML is untrusted: DOCTYPE and ENTITY declarations are refused
   before any parser sees the text, and no entity, DTD or network access is ever resolved.
-  URDF mesh names resolve against the URDF's folder (``package://`` and ``file://`` URIs are
-  refused); an MJCF robot may name no file at all (``<include>``, mesh, texture...): primitives only.
+  URDF mesh names resolve against the URDF's folder, absolute paths as they stand, and
+  ``package://NAME/path`` URIs by ``dejaview.geometry.packages.resolve_package``; an MJCF robot
+  may name no file at all (``<include>``, mesh, texture...): primitives only.
 * :func:`robot_pieces` poses the geometry with pytorch-kinematics' forward kinematics
   (``build_chain_from_urdf`` / ``build_chain_from_mjcf``, imported here, lazily: it costs ~2 s).
 
@@ -30,8 +31,8 @@ import numpy as np
 
 from dejaview.errors import SceneError
 
-__all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_objects",
-           "link_transforms", "read_robot", "robot_model", "robot_pieces"]
+__all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_transforms",
+           "read_robot", "robot_model", "robot_pieces"]
 
 MAX_ROBOT_BYTES = 4 << 20
 """Largest URDF or MJCF file read (4 MiB)."""
@@ -60,6 +61,8 @@ class LinkGeometry:
         size: (3,) box edge lengths (m).
         radius, height: sphere and cylinder radius, cylinder height (m).
         mesh: the mesh file (resolved) and ``scale`` its uniform scale.
+        convex_hull: the mesh collides as its convex hull whatever its shape (MJCF: as in MuJoCo);
+            else as itself, or as its hull where it has holes (``dejaview.geometry.mesh.collision_solid``).
         origin: (4, 4) link-from-geometry transform.
         line: line of the element in the robot file.
     """
@@ -72,6 +75,7 @@ class LinkGeometry:
     height: float | None = None
     mesh: Path | None = None
     scale: float = 1.0
+    convex_hull: bool = False
     line: int | None = None
 
 
@@ -83,7 +87,9 @@ class RobotModel:
         path: the file; format: ``urdf`` | ``mjcf``.
         joints: the movable joints, in the file's order (the order of a scene's ``joints``).
         geometry: every link's collision geometry.
-        text: the file's XML as parsed (comments dropped), what pytorch-kinematics reads.
+        text: what the forward kinematics reads: a URDF's links (names only) and joints (origin, parent,
+            child, axis, limit), the tags pytorch-kinematics' parser knows (it prints a line for every
+            other); an MJCF file's XML as parsed (comments dropped).
         files: files the model names (URDF meshes), resolved.
     """
 
@@ -101,7 +107,8 @@ class RobotPiece:
 
     ``name``: ``robot-id/link`` (``#k`` appended for a link's k-th extra geometry); ``kind``: box |
     sphere | cylinder | mesh | plane; ``position`` (3,) and ``orientation`` (4,) w x y z of the
-    geometry's frame; ``size``/``radius``/``height``/``mesh``/``scale`` as in :class:`LinkGeometry`.
+    geometry's frame; ``size``/``radius``/``height``/``mesh``/``scale``/``convex_hull`` as in
+    :class:`LinkGeometry`.
     """
 
     name: str
@@ -114,18 +121,31 @@ class RobotPiece:
     height: float | None = None
     mesh: Path | None = None
     scale: float = 1.0
+    convex_hull: bool = False
+
+    def solid(self):
+        """The mesh piece's solid, scaled, and whether its convex hull stands in:
+        ``dejaview.geometry.mesh.collision_solid``."""
+        from dejaview.geometry.mesh import collision_solid
+
+        return collision_solid(self.mesh, self.scale, self.convex_hull)
 
 
 # ---------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------
-def read_robot(path: str | Path, format: str) -> RobotModel:
+def read_robot(path: str | Path, format: str, root: Path | None = None) -> RobotModel:
     """Parse a URDF (``format="urdf"``) or MJCF (``"mjcf"``) file's joints and collision geometry.
 
+    Args:
+        path: the robot file.
+        format: ``urdf`` | ``mjcf``.
+        root: where given, ``package://`` URIs resolve only inside this folder (the service's scene
+            root); None: anywhere on the search path (``dejaview.geometry.packages``).
     Raises:
         SceneError: naming the robot file, line and element: unreadable, hostile or malformed XML,
-            a joint type a fixed robot cannot have, geometry that is not supported, a ``package://``
-            mesh name.
+            a joint type a fixed robot cannot have, geometry that is not supported, a mesh URI that
+            is not ``package://`` or a package not found on the search path.
     """
     path = Path(path)
     try:
@@ -139,12 +159,11 @@ def read_robot(path: str | Path, format: str) -> RobotModel:
 
     from dejaview.scene.parsing import parse_xml
 
-    root = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
-    text = etree.tostring(root)
+    tree = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
     if format == "urdf":
-        return _read_urdf(path, root, text)
+        return _read_urdf(path, tree, root)
     if format == "mjcf":
-        return _read_mjcf(path, root, text)
+        return _read_mjcf(path, tree, etree.tostring(tree))
     raise ValueError(f"unknown robot format {format!r}")
 
 
@@ -201,7 +220,7 @@ def _urdf_origin(path: Path, el) -> np.ndarray:
     return _transform(rpy_matrix(rpy), xyz)
 
 
-def _read_urdf(path: Path, root, text: bytes) -> RobotModel:
+def _read_urdf(path: Path, root, confine: Path | None) -> RobotModel:
     if root.tag != "robot":
         raise _err(path, root, f"the root element is <{root.tag}>, a URDF's is <robot>")
     links = {}
@@ -233,7 +252,7 @@ def _read_urdf(path: Path, root, text: bytes) -> RobotModel:
                 h = _positive(path, g, "length", _floats(path, g, "length", 1))
                 geometry.append(LinkGeometry(name, "cylinder", origin, radius=r, height=h, line=g.sourceline))
             elif g.tag == "mesh":
-                mesh, scale = _urdf_mesh(path, g)
+                mesh, scale = _urdf_mesh(path, g, confine)
                 files.append(mesh)
                 geometry.append(LinkGeometry(name, "mesh", origin, mesh=mesh, scale=scale, line=g.sourceline))
             else:
@@ -267,17 +286,34 @@ def _read_urdf(path: Path, root, text: bytes) -> RobotModel:
             if lower > upper:
                 raise _err(path, limit, f"joint {name!r}: lower limit {lower!r} is above upper {upper!r}")
         joints.append(RobotJoint(name, kind, lower, upper))
-    return RobotModel(path=path, format="urdf", joints=tuple(joints), geometry=tuple(geometry), text=text,
-                      files=tuple(files))
+    return RobotModel(path=path, format="urdf", joints=tuple(joints), geometry=tuple(geometry),
+                      text=_urdf_skeleton(root), files=tuple(files))
 
 
-def _urdf_mesh(path: Path, g) -> tuple[Path, float]:
+_SKELETON_JOINT_TAGS = ("origin", "parent", "child", "axis", "limit")
+
+
+def _urdf_skeleton(root) -> bytes:
+    """The URDF's kinematic tree alone: ``<link name>`` and ``<joint>`` with the children in
+    ``_SKELETON_JOINT_TAGS`` (pytorch-kinematics prints "Unknown tag" for the rest)."""
+    from lxml import etree
+
+    robot = etree.Element("robot", name=root.get("name") or "robot")
+    for el in root:
+        if el.tag == "link":
+            etree.SubElement(robot, "link", name=el.get("name"))
+        elif el.tag == "joint":
+            joint = etree.SubElement(robot, "joint", dict(el.attrib))
+            for child in el:
+                if child.tag in _SKELETON_JOINT_TAGS:
+                    joint.append(etree.fromstring(etree.tostring(child)))
+    return etree.tostring(robot)
+
+
+def _urdf_mesh(path: Path, g, root: Path | None) -> tuple[Path, float]:
     name = g.get("filename")
     if not name:
         raise _err(path, g, "a <mesh> needs a 'filename'")
-    if "://" in name:
-        raise _err(path, g, f"mesh {name!r}: URIs (package://, file://) are not resolved; give a path "
-                            "relative to the URDF file")
     from dejaview.scene.model import MESH_SUFFIXES
 
     if Path(name).suffix.lower() not in MESH_SUFFIXES:
@@ -285,6 +321,16 @@ def _urdf_mesh(path: Path, g) -> tuple[Path, float]:
     scale = _floats(path, g, "scale", 3, (1.0, 1.0, 1.0))
     if not (scale[0] > 0 and scale[0] == scale[1] == scale[2]):
         raise _err(path, g, f"mesh {name!r}: scale {g.get('scale')!r} must be uniform and positive")
+    if name.startswith("package://"):
+        try:
+            from dejaview.geometry.packages import resolve_package
+
+            return resolve_package(name, path, root), float(scale[0])
+        except ValueError as exc:
+            raise _err(path, g, f"mesh {name!r}: {exc}") from None
+    if "://" in name:
+        raise _err(path, g, f"mesh {name!r}: URIs other than package:// are not resolved; give a path "
+                            "relative to the URDF file or a package:// URI")
     p = Path(name)
     return (p if p.is_absolute() else path.absolute().parent / p), float(scale[0])
 
@@ -480,9 +526,10 @@ def matrix_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def robot_model(scene, obj) -> RobotModel:
-    """The robot model of a scene object (``urdf`` or ``mjcf``), its file resolved against the scene."""
+    """The robot model of a scene object (``urdf`` or ``mjcf``), its file resolved against the scene
+    (``package://`` URIs only inside ``scene.root`` where the scene has one)."""
     fmt = "urdf" if obj.urdf is not None else "mjcf"
-    return read_robot(scene.resolve(obj.robot), fmt)
+    return read_robot(scene.resolve(obj.robot), fmt, root=scene.root)
 
 
 def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece]:
@@ -515,23 +562,5 @@ def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece
         name = f"{obj.id}/{g.link}" + (f"#{k}" if k else "")
         pieces.append(RobotPiece(name=name, link=g.link, kind=g.kind, position=tuple(float(v) for v in world[:3, 3]),
                                  orientation=matrix_quaternion(world[:3, :3]), size=g.size, radius=g.radius,
-                                 height=g.height, mesh=g.mesh, scale=g.scale))
+                                 height=g.height, mesh=g.mesh, scale=g.scale, convex_hull=g.convex_hull))
     return pieces
-
-
-def link_objects(scene, obj) -> list:
-    """A fixed robot's link geometry as fixed scene objects named ``robot-id/link``, posed in the world
-    (for consumers that know scene objects: fcl checks, MJCF export). Meshes with a ``scale`` other
-    than 1 are left out (a scene object's mesh has no scale)."""
-    from dejaview.scene.model import Pose, SceneObject
-
-    parts = []
-    for p in robot_pieces(scene, obj):
-        if p.kind == "mesh" and p.scale != 1.0:
-            continue
-        parts.append(SceneObject(id=p.name, pose=Pose(p.position, p.orientation), fixed=True,
-                                 shape=None if p.kind == "mesh" else p.kind,
-                                 mesh=None if p.mesh is None else str(p.mesh), size=p.size, radius=p.radius,
-                                 height=p.height, friction=obj.friction, restitution=obj.restitution,
-                                 line=obj.line))
-    return parts

@@ -185,7 +185,7 @@ class SignedDistanceGrid:
 
 
 def load_or_build_sdf(mesh_path, spacing: float = 0.01, padding: float = 0.1,
-                      cache_dir=None) -> SignedDistanceGrid:
+                      cache_dir=None, convex_hull: bool = False) -> SignedDistanceGrid:
     """The signed distance grid of a mesh file, from the cache or built and cached.
 
     Args:
@@ -193,6 +193,8 @@ def load_or_build_sdf(mesh_path, spacing: float = 0.01, padding: float = 0.1,
         spacing, padding: as in :meth:`SignedDistanceGrid.from_mesh`.
         cache_dir: cache folder (default: ``$DEJAVIEW_CACHE_DIR`` if set, else
             ``.dejaview-cache/`` beside the mesh). Keyed by the file's SHA-256.
+        convex_hull: the grid of the mesh's convex hull (a robot's mesh with holes,
+            ``dejaview.geometry.mesh.collision_solid``).
     Returns:
         The grid.
     """
@@ -200,11 +202,14 @@ def load_or_build_sdf(mesh_path, spacing: float = 0.01, padding: float = 0.1,
     mesh_path = Path(mesh_path)
     if not mesh_path.is_file():
         raise GeometryError(f"{mesh_path}: mesh file not found")
-    key = _cache_key(file_hash(mesh_path), spacing, padding)
-    cached = cache_folder(mesh_path, cache_dir) / f"{mesh_path.stem}-sdf-{key}.npz"
+    key = _cache_key(file_hash(mesh_path), spacing, padding, convex_hull)
+    kind = "hull-sdf" if convex_hull else "sdf"
+    cached = cache_folder(mesh_path, cache_dir) / f"{mesh_path.stem}-{kind}-{key}.npz"
     grid = _read_cache(cached)
     if grid is None:
-        grid = SignedDistanceGrid.from_mesh(load_mesh(mesh_path), spacing=spacing, padding=padding)
+        mesh = load_mesh(mesh_path)
+        grid = SignedDistanceGrid.from_mesh(mesh.convex_hull if convex_hull else mesh, spacing=spacing,
+                                            padding=padding)
         _write_cache(grid, cached)
     return grid
 
@@ -217,9 +222,11 @@ def _check_parameters(spacing, padding) -> tuple[float, float]:
     return float(spacing), float(padding)
 
 
-def _cache_key(digest: str, spacing: float, padding: float) -> str:
-    text = json.dumps({"mesh": digest, "spacing": spacing, "padding": padding,
-                       "version": SDF_VERSION}, sort_keys=True)
+def _cache_key(digest: str, spacing: float, padding: float, convex_hull: bool = False) -> str:
+    fields = {"mesh": digest, "spacing": spacing, "padding": padding, "version": SDF_VERSION}
+    if convex_hull:  # only then: the keys of grids already cached stay as they were
+        fields["hull"] = True
+    text = json.dumps(fields, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

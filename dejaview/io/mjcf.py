@@ -213,22 +213,22 @@ def _initial_states(scene, state: dict | None) -> dict[str, dict]:
 
 
 def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP, owner: str = "",
-          record: list | None = None) -> list[str]:
+          record: list | None = None, part=None) -> list[str]:
     """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``, and
     ``(geom name, owner, friction, restitution)`` of each geom to ``record`` (``_contact_pairs``;
-    ``owner`` the body's name, "" for the world)."""
+    ``owner`` the body's name, "" for the world); ``part``: the robot ``LinkPart`` of a link's ``obj``."""
     sim = scene.simulation
     mu = sim.friction if obj.friction is None else obj.friction
     e = sim.restitution if obj.restitution is None else obj.restitution
     contact = contact_parameters(mu, e, scene_frequency(scene), timestep)
-    geoms = _geom_elements(scene, obj, assets, contact)
+    geoms = _geom_elements(scene, obj, assets, contact, part)
     if record is not None:
         record.extend((name, owner, float(mu), float(e)) for name, _ in geoms)
     return [text for _, text in geoms]
 
 
-def _geom_elements(scene, obj, assets: list[str], contact: dict) -> list[tuple[str, str]]:
-    """(name, ``<geom>`` element) of each of one object's geoms."""
+def _geom_elements(scene, obj, assets: list[str], contact: dict, part=None) -> list[tuple[str, str]]:
+    """(name, ``<geom>`` element) of each of one object's geoms (``part`` as in ``_geom``)."""
     attrs = {"name": obj.id}
     kind = obj.geometry_kind
     if kind == "plane":
@@ -243,7 +243,13 @@ def _geom_elements(scene, obj, assets: list[str], contact: dict) -> list[tuple[s
         from dejaview.geometry.convex_pieces import load_or_build_pieces
 
         # MuJoCo collides a mesh as its convex hull: a non-convex one goes as its convex pieces
-        pieces = load_or_build_pieces(scene.resolve(obj.mesh))
+        if part is None:
+            pieces = load_or_build_pieces(scene.resolve(obj.mesh))
+        elif part.hull or part.solid.is_convex:  # a robot's mesh that collides as its hull, or is convex
+            pieces = [part.solid]
+        else:  # the pieces of the file's mesh, scaled as the link's
+            pieces = [p.copy().apply_scale(part.scale) if part.scale != 1.0 else p
+                      for p in load_or_build_pieces(scene.resolve(obj.mesh))]
         geoms = []
         for i, piece in enumerate(pieces):
             name = obj.id if i == 0 else f"{obj.id}#{i}"
@@ -303,13 +309,14 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     world, qpos, qvel = [], [], []
     for obj in scene.objects:
         if obj.fixed:
-            from dejaview.geometry.robot import link_objects
+            from dejaview.geometry.robot_links import link_objects
 
             # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
-            for part in link_objects(scene, obj) if obj.robot is not None else [obj]:
-                for geom in _geom(scene, part, assets, timestep, "", geoms):
-                    world.append(geom.replace("<geom ", f'<geom pos="{_vec(part.pose.position)}" '
-                                                        f'quat="{_vec(part.pose.orientation)}" ', 1))
+            for part in link_objects(scene, obj) if obj.robot is not None else [None]:
+                one = obj if part is None else part.object
+                for geom in _geom(scene, one, assets, timestep, "", geoms, part):
+                    world.append(geom.replace("<geom ", f'<geom pos="{_vec(one.pose.position)}" '
+                                                        f'quat="{_vec(one.pose.orientation)}" ', 1))
             continue
         s = states[obj.id]
         props = _mass_properties(scene, obj)

@@ -288,6 +288,9 @@ class Scene:
     inference: InferenceSettings | None = None
     base_dir: Path | None = field(default=None, compare=False, repr=False)
     path: Path | None = field(default=None, compare=False, repr=False)
+    root: Path | None = field(default=None, compare=False, repr=False)
+    """Where given, the folder a robot's ``package://`` URIs resolve inside (the service's scene
+    root); None: the search path of ``dejaview.geometry.packages.resolve_package``."""
 
     # -- construction and output (implemented in dejaview.scene.xml) --------
     @classmethod

@@ -116,7 +116,8 @@ def read_scene_file(path: str | Path, max_bytes: int = DEFAULT_MAX_BYTES,
 
 def read_scene_string(text: str | bytes, base_dir: str | Path | None = None,
                       filename: str = "<string>", max_bytes: int = DEFAULT_MAX_BYTES,
-                      check_files: bool = True, max_steps: int | None = None) -> Scene:
+                      check_files: bool = True, max_steps: int | None = None,
+                      root: str | Path | None = None) -> Scene:
     """Parse, check and return scene XML given as text or bytes.
 
     Args:
@@ -128,19 +129,20 @@ def read_scene_string(text: str | bytes, base_dir: str | Path | None = None,
         check_files: check that mesh and sphere files exist.
         max_steps: step budget of a simulation of the scene (default
             ``dejaview.scene.bounds.max_steps()``).
+        root: the folder robots' ``package://`` URIs must resolve inside (``Scene.root``).
     Returns:
-        The :class:`Scene` (``path`` unset, ``base_dir`` as given).
+        The :class:`Scene` (``path`` unset, ``base_dir`` and ``root`` as given).
     Raises:
         SceneError: naming file, line and element of the first problem.
     """
     from dejaview.scene.validate import validate_scene
 
-    root = parse_xml(text, filename=filename, max_bytes=max_bytes)
-    check_structure(root, filename=filename)
+    element = parse_xml(text, filename=filename, max_bytes=max_bytes)
+    check_structure(element, filename=filename)
     lines: dict[tuple, int | None] = {}
-    scene = _SceneReader(filename, lines).read_scene(root)
+    scene = _SceneReader(filename, lines).read_scene(element)
     base = Path(base_dir) if base_dir is not None else None
-    scene = scene.replace(base_dir=base)
+    scene = scene.replace(base_dir=base, root=Path(root) if root is not None else None)
     validate_scene(scene, check_files=check_files, lines=lines, file=filename, max_steps=max_steps)
     return scene
 

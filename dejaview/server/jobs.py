@@ -80,7 +80,8 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
     """Run one job and write its artefacts into ``out_dir``.
 
     Args:
-        spec: ``{"kind", "text", "base_dir", "filename", "overrides"}``.
+        spec: ``{"kind", "text", "base_dir", "root", "filename", "overrides"}`` (``root``: the scene
+            root, inside which robots' ``package://`` URIs resolve).
         out_dir: the job's folder (exists).
         emit: called with a progress dict (fields of ``messages.Progress``), throttled here.
         stop: polled every iteration / step.
@@ -97,7 +98,8 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
 
     torch.set_num_threads(1)  # see dejaview.cli.options.configure_torch: one thread per worker
     scene = read_scene_string(spec["text"], base_dir=spec["base_dir"], filename=spec["filename"],
-                              check_files=True, max_bytes=max(len(spec["text"].encode()), 1))
+                              check_files=True, max_bytes=max(len(spec["text"].encode()), 1),
+                              root=spec.get("root"))
     overrides = dict(spec.get("overrides") or {})
     progress = Throttle(emit, progress_interval)
     stop.raise_if_stopped()

@@ -261,7 +261,7 @@ class JobRunner:
         status = JobStatus(job_id=job_id, kind=kind, state="queued", created_at=time.time(),
                            scene=scene_input.source, overrides=overrides)
         spec = {"kind": kind, "text": scene_input.text, "base_dir": str(scene_input.base_dir),
-                "filename": scene_input.filename, "overrides": overrides}
+                "root": str(self.config.scene_root), "filename": scene_input.filename, "overrides": overrides}
         job = Job(status, spec)
         try:
             self._save(job, strict=True)  # on disk before anyone hears "accepted"

@@ -165,7 +165,7 @@ def read_scene_input(root: Path, *, scene_xml: str | None = None, scene_path: st
     try:
         # files are checked here, after the root check, so no file outside the root is ever looked at
         scene = read_scene_string(data, base_dir=base_dir, filename=filename, max_bytes=max_bytes,
-                                  check_files=False)
+                                  check_files=False, root=root)
         check_files(scene, root, filename)
         text = data.decode("utf-8")
     except SceneError as exc:

@@ -118,7 +118,8 @@ def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:
 def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShape]:
     """Static shapes of a fixed robot object (``urdf``/``mjcf``): one per link collision geometry,
     posed by forward kinematics (``dejaview.geometry.robot``) and named ``robot-id/link``; meshes
-    as signed distance grids (a uniform ``scale`` scales the grid)."""
+    as signed distance grids of their solids (``RobotPiece.solid``: the convex hull of a mesh with
+    holes), a uniform ``scale`` scaling the grid."""
     from dejaview.geometry.robot import robot_pieces
 
     sim = scene.simulation
@@ -140,7 +141,9 @@ def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShap
             from dejaview.geometry.sdf import load_or_build_sdf
 
             try:  # the grid is built in the mesh's units at spacing / scale, then scaled
-                grid = load_or_build_sdf(p.mesh, spacing=sdf_spacing / p.scale, padding=0.1 / p.scale)
+                hull = p.solid()[1]
+                grid = load_or_build_sdf(p.mesh, spacing=sdf_spacing / p.scale, padding=0.1 / p.scale,
+                                         convex_hull=hull)
             except GeometryError as exc:
                 raise SceneError(f"object {obj.id!r}: link {p.link!r}: {exc}", **_where(scene, obj)) from exc
             statics.append(StaticShape.make(p.name, "grid", grid=p.scale * np.asarray(grid.values),

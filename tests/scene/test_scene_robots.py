@@ -68,7 +68,9 @@ def test_robot_problems_are_one_line_errors_with_file_and_line(tmp_path, attrs, 
     ("notrobot.urdf", "<mujoco/>", "the root element is <mujoco>, a URDF's is <robot>"),
     ("broken.urdf", "<robot><link name='a'>", "not well-formed XML"),
     ("package.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="package://x/a.stl"/>'
-                     "</geometry></collision></link></robot>", "URIs (package://, file://) are not resolved"),
+                     "</geometry></collision></link></robot>", "package 'x' not found: looked for x/a.stl in"),
+    ("file.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="file:///tmp/a.stl"/>'
+                  "</geometry></collision></link></robot>", "URIs other than package:// are not resolved"),
     ("floating.urdf", '<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="floating">'
                       '<parent link="a"/><child link="b"/></joint></robot>', "joint 'j' is floating"),
     ("nomesh.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="gone.obj"/>'
@@ -114,3 +116,80 @@ def test_a_penalty_names_a_link_of_a_robot_not_the_robot(tmp_path):
     assert scene.inference.penalties[0].between == ("ball", "arm/forearm")
     with pytest.raises(SceneError, match="'between' names robot 'arm': name one of its links"):
         read(tmp_path, base.replace("</scene>", inference.format("arm")))
+
+
+# -- package:// URIs (spec: "Robots as users have them") ----------------------------------------------
+BOX_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+PACKAGE_URDF = ('<robot name="r"><link name="a"><collision><geometry><mesh filename="package://{name}/meshes/a.obj" '
+                'scale="0.1 0.1 0.1"/></geometry></collision></link></robot>')
+
+
+def package_tree(tmp_path, name: str = "my_robot") -> Path:
+    """A ROS package as checked out: NAME/urdf/r.urdf naming package://NAME/meshes/a.obj; the
+    robot's folder is NAME/urdf, so the package is found above it, as a folder called NAME."""
+    pkg = tmp_path / "ws" / "src" / name
+    (pkg / "meshes").mkdir(parents=True)
+    (pkg / "urdf").mkdir()
+    (pkg / "meshes" / "a.obj").write_text(BOX_OBJ)
+    (pkg / "urdf" / "r.urdf").write_text(PACKAGE_URDF.format(name=name))
+    return pkg
+
+
+def test_package_uris_resolve_in_the_folders_above_the_robot_file(tmp_path):
+    from dejaview.geometry.robot import read_robot
+
+    pkg = package_tree(tmp_path)
+    model = read_robot(pkg / "urdf" / "r.urdf", "urdf")
+    assert model.files == (pkg / "meshes" / "a.obj",) and model.geometry[0].scale == 0.1
+    # "the path as it stands": package://meshes/... beside the robot file (pybullet_data's Panda)
+    (pkg / "urdf" / "flat.urdf").write_text(PACKAGE_URDF.format(name="meshes").replace("meshes/a.obj", "a.obj"))
+    (pkg / "urdf" / "meshes").mkdir()
+    (pkg / "urdf" / "meshes" / "a.obj").write_text(BOX_OBJ)
+    assert read_robot(pkg / "urdf" / "flat.urdf", "urdf").files == (pkg / "urdf" / "meshes" / "a.obj",)
+
+
+def test_package_uris_resolve_on_the_package_path_variables_and_the_cli_option(tmp_path, monkeypatch):
+    from dejaview.geometry.robot import read_robot
+
+    pkg = package_tree(tmp_path / "elsewhere")
+    robot = tmp_path / "robots" / "r.urdf"  # the robot file moved away from its package
+    robot.parent.mkdir()
+    robot.write_text(PACKAGE_URDF.format(name="my_robot"))
+    monkeypatch.delenv("DEJAVIEW_PACKAGE_PATH", raising=False)
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(pkg.parent))
+    assert read_robot(robot, "urdf").files == (pkg / "meshes" / "a.obj",)
+    # DEJAVIEW_PACKAGE_PATH comes before ROS_PACKAGE_PATH
+    other = package_tree(tmp_path / "other")
+    monkeypatch.setenv("DEJAVIEW_PACKAGE_PATH", str(other.parent))
+    assert read_robot(robot, "urdf").files == (other / "meshes" / "a.obj",)
+    monkeypatch.delenv("DEJAVIEW_PACKAGE_PATH")
+    monkeypatch.delenv("ROS_PACKAGE_PATH")
+    path = tmp_path / "scene.xml"
+    path.write_text(scene_text(f'urdf="{robot}" fixed="true"'))
+    result = CliRunner().invoke(cli, ["validate", str(path)])
+    assert result.exit_code == 2 and "package 'my_robot' not found" in result.output
+    assert len(result.output.strip().splitlines()) == 1 and f"in {robot.parent} and the" in result.output
+    assert "DEJAVIEW_PACKAGE_PATH: (none); ROS_PACKAGE_PATH: (none)" in result.output
+    result = CliRunner().invoke(cli, ["validate", str(path), "--package-path", str(pkg.parent)])
+    assert result.exit_code == 0, result.output
+
+
+def test_the_service_resolves_package_uris_only_inside_its_scene_root(tmp_path, monkeypatch):
+    from dejaview.geometry.robot import read_robot
+
+    pkg = package_tree(tmp_path / "outside")
+    root = tmp_path / "root"
+    (root / "robots").mkdir(parents=True)
+    robot = root / "robots" / "r.urdf"
+    robot.write_text(PACKAGE_URDF.format(name="my_robot"))
+    monkeypatch.setenv("DEJAVIEW_PACKAGE_PATH", str(pkg.parent))
+    assert read_robot(robot, "urdf").files == (pkg / "meshes" / "a.obj",)
+    with pytest.raises(SceneError, match="package 'my_robot' not found: looked for my_robot/meshes/a.obj inside "
+                                         "the scene root in .*DEJAVIEW_PACKAGE_PATH: \\(none\\)"):
+        read_robot(robot, "urdf", root=root)
+    (root / "robots" / "my_robot").symlink_to(pkg)  # a link out of the root is outside it too
+    with pytest.raises(SceneError, match="package 'my_robot' not found"):
+        read_robot(robot, "urdf", root=root)
+    scene = Scene.from_string(scene_text(f'urdf="robots/r.urdf" fixed="true"'), base_dir=root, check_files=False,
+                              root=root)
+    assert scene.root == root

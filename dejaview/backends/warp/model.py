@@ -179,12 +179,13 @@ class _Static:
     orientation: np.ndarray
 
 
-def _shape_of(scene, obj) -> tuple:
-    """("mesh", (vertices, faces)) | ("box", half) | ("sphere", r) | ("plane", None)."""
+def _shape_of(scene, obj, solid=None) -> tuple:
+    """("mesh", (vertices, faces)) | ("box", half) | ("sphere", r) | ("plane", None); ``solid``: the
+    mesh a robot link collides as (``LinkPart.solid``), instead of the file's."""
     from dejaview.geometry.mesh import load_mesh, primitive_mesh
 
     if obj.mesh is not None:
-        mesh = load_mesh(scene.resolve(obj.mesh))
+        mesh = solid if solid is not None else load_mesh(scene.resolve(obj.mesh))
         return "mesh", (np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64))
     if obj.shape == "plane":
         return "plane", None
@@ -249,11 +250,11 @@ class WarpSimulator:
             restitution = sim.restitution if obj.restitution is None else obj.restitution
             try:
                 if obj.fixed and obj.robot is not None:  # a robot: one static per link geometry
-                    from dejaview.geometry.robot import link_objects
+                    from dejaview.geometry.robot_links import link_objects
 
-                    statics.extend(_Static(p.id, _shape_of(scene, p), friction, restitution,
-                                           np.asarray(p.pose.position, dtype=np.float64),
-                                           np.asarray(p.pose.orientation, dtype=np.float64))
+                    statics.extend(_Static(p.object.id, _shape_of(scene, p.object, p.solid), friction,
+                                           restitution, np.asarray(p.object.pose.position, dtype=np.float64),
+                                           np.asarray(p.object.pose.orientation, dtype=np.float64))
                                    for p in link_objects(scene, obj))
                     continue
                 shape = _shape_of(scene, obj)
