@@ -7,7 +7,7 @@ interpenetration query (python-fcl) per candidate pose.
   B = 1) plainly, and under ``torch.func.jvp`` with a constant operand (``x * c``: the constant
   gets an "efficient zero" tangent whose kernels size their output through Python meta
   functions) and with both operands carrying tangents (``x * x``). This is why eager forward
-  mode loses to reverse mode on the torch engine (``dejaview.inference.solve.default_gradient``).
+  mode loses to reverse mode on the torch engine (``dejaview.inference.local.default_gradient``).
 - ``collision``: ``SceneCollision.penetration`` of each bundled scene's source at random poses
   around its scene pose (within 10 cm, any orientation), one pose per call, median and 90th
   percentile, and how many of the poses overlap something.

@@ -71,7 +71,7 @@ def end_sensitivity(scene, truth: dict, distances=DISTANCES, trials: int = TRIAL
     """Rows (distance_m, end_moved_mm min/max, end_turned_deg min/max) for moved starts."""
     import torch
 
-    from dejaview.inference.params import layout_from_scene
+    from dejaview.backends.params import layout_from_scene
     from dejaview.sim import World
     from dejaview.sim.rotation import geodesic_angle
 

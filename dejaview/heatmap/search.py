@@ -272,7 +272,7 @@ def _with_problem(run: _Run, problem, options, gradient: str | None, lr: float |
     """``run`` with its problem (``problem`` reused, or built from ``BackendOptions`` ``options``),
     gradient mode and learning rate, checked."""
     from dejaview.backends import as_problem
-    from dejaview.inference.solve import default_gradient
+    from dejaview.inference.local import default_gradient
 
     problem = (as_problem(problem) if problem is not None
                else options.make_problem(run.scene))

@@ -227,11 +227,10 @@ def explains_end(post, mode) -> bool:
     return mode.heldout_mean_chi2 <= float(chi2.ppf(1.0 - UNEXPLAINED_P, max(1, post.num_observed)))
 
 
-def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callback=None,
-                          should_stop=None, budget: int = 0):
+def refine_under_variants(post, found, *, params=None, callback=None, should_stop=None):
     """The search's answer under model uncertainty: its modes refined and re-ranked on ``post``.
 
-    The global stage (``map_search``) runs on the scene's own physics: one rollout per candidate,
+    The global stage (``MapSearch``) runs on the scene's own physics: one rollout per candidate,
     and it stops once a candidate explains the end, which under model uncertainty none does (the
     variants' spread is a floor), so a global search on the averaged likelihood ran to its
     patience (``docs/physics-fidelity.md`` has the measured cost). Its distinct modes (``found.modes``, best first,
@@ -241,24 +240,30 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
     does, loses to one whose end holds, also where it happened to fit the variants it was
     refined on. Where the first of them does not explain the end under the held-out variants
     (``explains_end``: every past fitted on the scene's own physics was a needle), the search's
-    other modes, up to ``CANDIDATES`` of those with the lowest cost on ``post`` (unrefined, no
+    other modes, up to ``params.candidates`` of those with the lowest cost on ``post`` (unrefined, no
     Jacobians), are refined too and all are ranked again.
 
     Args:
         post: ``Posterior`` with ``model`` set.
         found: ``SearchResult`` of the search on the scene's physics.
-        iterations: most LM iterations.
+        params: the search's ``SearchParams`` (``lm_final_iterations``: most LM iterations of each
+            refinement; ``seed`` draws the held-out variants; ``candidates``).
     Returns:
         ``SearchResult`` on ``post`` (cost, chi2 and modes under model uncertainty, ranked on the
         held-out variants), history appended to ``found``'s.
     """
-    from dejaview.inference.search import CANDIDATES, SearchResult, _Search
+    from dataclasses import replace
 
-    s = _Search(post, iterations + len(found.history), seed, callback, should_stop, None,
-                budget or 10 ** 12)
+    from dejaview.inference.params import SearchParams
+    from dejaview.inference.search import SearchResult, _Search
+
+    params = SearchParams() if params is None else params
+    iterations, seed, candidates = params.lm_final_iterations, params.seed, params.candidates
+    s = _Search(post, replace(params, iterations=max(1, iterations + len(found.history)), budget=10 ** 12,
+                              tolerance=None), callback, should_stop)
     s.history = list(found.history)
     s.n_obs = max(1, post.num_observed)
-    starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:CANDIDATES - 1]
+    starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:candidates - 1]
     s.add_modes(s.refine(torch.stack(starts).to(torch.float64), iterations))
     heldout_rollouts = 0
     if not s.stopped:  # a cancelled solve returns at once, its modes as the refinement ranked them
@@ -269,7 +274,7 @@ def refine_under_variants(post, found, *, iterations: int, seed: int = 0, callba
         order = [i for i in torch.argsort(cost, stable=True).tolist() if math.isfinite(float(cost[i]))]
         if order:
             s.iterations = len(s.history) + iterations  # the second refinement's own iterations
-            s.add_modes(s.refine(torch.stack([others[i] for i in order[:CANDIDATES]]).to(torch.float64),
+            s.add_modes(s.refine(torch.stack([others[i] for i in order[:candidates]]).to(torch.float64),
                                  iterations))
             if not s.stopped:
                 s.modes, spent = rank_on_heldout(post, s.modes, seed)

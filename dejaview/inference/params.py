@@ -1,6 +1,165 @@
-"""Re-exports ``dejaview.backends.params``: the parameter layout is shared by every backend, so it
-sits below ``dejaview.inference``; this module keeps ``dejaview.inference.params`` imports working."""
+"""What the inference runs with: frozen, checked parameter objects, one per piece.
 
-from dejaview.backends.params import BLOCKS, DEFAULT_SCALE, ParameterLayout, layout_from_scene
+``SearchParams`` (``dejaview.inference.search.MapSearch``: the most probable past),
+``SamplerParams`` (``dejaview.inference.sampling.Sampler``: the posterior's samples) and
+``LocalParams`` (``dejaview.inference.local.fit_locally``: the seed's local optimisers with
+restarts). Their defaults are the tool's; a researcher changes one with
+``dataclasses.replace(SearchParams(), budget=20000)`` and passes it to the object that runs. Each
+is checked when it is made: a value out of range is a one-line ``InferenceError`` naming it.
+"""
 
-__all__ = ["BLOCKS", "DEFAULT_SCALE", "ParameterLayout", "layout_from_scene"]
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from dejaview.errors import InferenceError
+
+
+def check_params(params, *, counts=(), naturals=(), nonnegative=(), positive=(), fractions=(),
+                 choices=None) -> None:
+    """Raise ``InferenceError`` naming the first field of ``params`` out of its range.
+
+    Args:
+        counts: integer fields at least 1; naturals: integers at least 0; nonnegative: numbers >= 0 (None allowed);
+            positive: numbers > 0; fractions: numbers in [0, 1]; choices: {field: allowed values}.
+    """
+    name = type(params).__name__
+    for f in fields(params):
+        v = getattr(params, f.name)
+        if f.name in counts and not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+            raise InferenceError(f"{name}.{f.name} must be a positive integer, got {v!r}")
+        if f.name in naturals and not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+            raise InferenceError(f"{name}.{f.name} must be a non-negative integer, got {v!r}")
+        if f.name in nonnegative and v is not None and not (
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
+            raise InferenceError(f"{name}.{f.name} must be a non-negative number, got {v!r}")
+        if f.name in positive and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                       and math.isfinite(v) and v > 0):
+            raise InferenceError(f"{name}.{f.name} must be a positive number, got {v!r}")
+        if f.name in fractions and not (isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1):
+            raise InferenceError(f"{name}.{f.name} must be a fraction in [0, 1], got {v!r}")
+        if choices and f.name in choices and v not in choices[f.name]:
+            raise InferenceError(f"{name}.{f.name} must be one of {', '.join(map(str, choices[f.name]))}, "
+                                 f"got {v!r}")
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """How the search for the most probable past runs (``MapSearch``); frozen, checked on creation.
+
+    Attributes:
+        iterations: most global iterations (a screening or a CMA-ES generation each; the LM
+            iterations of a refinement are bounded by their own count).
+        seed: seeds the prior draws and CMA-ES.
+        budget: most rollouts per solve (a Jacobian counts ``jacobian_cost``): more than the searches
+            of the bundled scenes need (docs/benchmarks.md, the recovery suite's table); a search
+            that has not explained the observations within their noise goes on to it.
+        tolerance: end once the best candidate's scene loss (metres) is at or below this (None: no).
+        candidates: CMA-ES instances run side by side, each in its own basin, and candidates
+            refined by LM.
+        sigma0: initial CMA-ES step size in scaled parameters (5 cm, 0.25 rad, 0.5 m/s, 2.5 rad/s).
+        seed_spacing: least distance between the screened starts of two instances (scaled).
+        polish_every: generations between LM refinements of the instances' best points.
+        lm_iterations: most LM iterations of one refinement.
+        lm_final_iterations: most LM iterations of the final refinement of the best candidates
+            (it stops once converged).
+        stall_generations: an instance whose best cost fell by less than ``stall_ratio`` over this
+            many generations stops.
+        stall_ratio: relative gain that counts as progress.
+        chi2_explained: observation chi-square per observed residual at or below which the end
+            counts as explained and the search stops (a mean misfit of a tenth of the noise's
+            standard deviation: a flat prior's maximum explains the end exactly).
+        max_population_factor: a fresh instance doubles the population of the one it replaces
+            (IPOP), up to this factor.
+        global_patience: generations without a gain of ``stall_ratio`` in the best cost after which
+            the search stops (where a prior keeps the maximum's misfit above ``chi2_explained``),
+            once the best explains the observations within their noise; until then it goes on.
+        noise_quantile: quantile of the chi-square law (a degree per observed residual) up to which
+            a misfit is the observations' noise.
+        jacobian_cost: budget units of one candidate's residual Jacobian (~3 rollouts).
+        stage_share: share of the budget and iterations each earlier stage of a tracked source's
+            search may spend (``MapSearch.run``).
+    """
+
+    iterations: int = 200
+    seed: int = 0
+    budget: int = 40000
+    tolerance: float | None = None
+    candidates: int = 4
+    sigma0: float = 0.5
+    seed_spacing: float = 1.0
+    polish_every: int = 10
+    lm_iterations: int = 8
+    lm_final_iterations: int = 30
+    stall_generations: int = 15
+    stall_ratio: float = 1e-3
+    chi2_explained: float = 0.01
+    max_population_factor: int = 4
+    global_patience: int = 40
+    noise_quantile: float = 0.999
+    jacobian_cost: int = 3
+    stage_share: float = 0.25
+
+    def __post_init__(self):
+        check_params(self, counts=("iterations", "budget", "candidates", "polish_every", "stall_generations",
+                                   "max_population_factor", "global_patience", "jacobian_cost"),
+                     naturals=("lm_iterations", "lm_final_iterations"),
+                     nonnegative=("seed", "tolerance", "chi2_explained"), positive=("sigma0", "seed_spacing"),
+                     fractions=("stall_ratio", "noise_quantile", "stage_share"))
+
+
+@dataclass(frozen=True)
+class SamplerParams:
+    """How the posterior sampler runs (``dejaview.inference.sampling.Sampler``); frozen, checked.
+
+    Attributes:
+        seed: seeds the sampler (each run ``seed + 7919 i``).
+        ess_fraction: effective sample size kept by each tempering step, a fraction of the particles.
+        rw_moves: random-walk Metropolis moves per tempering step (after one independence move),
+            every other one a differential-evolution step.
+        final_moves: moves run at beta = 1 before the samples are returned.
+        target_acceptance: random-walk acceptance rate the step scale adapts towards.
+        max_stages: most tempering steps (a safety net; each needs a 1e-6 increase of beta).
+        prior_share: weight of the prior itself in the reference mixture (defensive importance
+            sampling): branches the search did not find are reached by tempering from the prior.
+        distinct_fraction: a tempering step's moves go on until this fraction of the particles are
+            distinct ...
+        max_moves: ... or this many moves have run.
+        population_moves: the first random-walk move of each step is a population move
+            (docs/benchmarks.md, "Posterior: calibration and speed").
+        runs: independent runs that share the particles and the samples equally: their agreement
+            (``posterior_report.rhat``) says whether the samples can be trusted.
+        min_run_size: fewer particles than ``runs`` times this: one run.
+        particles: fewer samples than this are a random subset of twice as many particles, up to
+            this many (all runs together; docs/benchmarks.md, "More particles").
+        symmetry_moves: each tempering step moves the particles along the scene's symmetry
+            (``dejaview.inference.symmetry``), where it has one.
+        difference_moves: every other random-walk move is a differential-evolution step.
+    """
+
+    seed: int = 0
+    ess_fraction: float = 0.7
+    rw_moves: int = 4
+    final_moves: int = 8
+    target_acceptance: float = 0.3
+    max_stages: int = 200
+    prior_share: float = 0.3
+    distinct_fraction: float = 0.9
+    max_moves: int = 7
+    population_moves: bool = True
+    runs: int = 2
+    min_run_size: int = 20
+    particles: int = 600
+    symmetry_moves: bool = True
+    difference_moves: bool = True
+
+    def __post_init__(self):
+        check_params(self, counts=("max_stages", "max_moves", "runs", "min_run_size", "particles"),
+                     naturals=("seed", "rw_moves", "final_moves"),
+                     fractions=("ess_fraction", "target_acceptance", "prior_share", "distinct_fraction"),
+                     choices={"population_moves": (True, False), "symmetry_moves": (True, False),
+                              "difference_moves": (True, False)})
+        if not 0.0 < self.ess_fraction < 1.0:
+            raise InferenceError(f"SamplerParams.ess_fraction must lie strictly between 0 and 1, "
+                                 f"got {self.ess_fraction!r}")

@@ -180,6 +180,41 @@ class Posterior:
         if self._target_q is None:
             self._target_com = None
 
+    @classmethod
+    def from_scene(cls, scene, *, problem=None, backend=None, world=None, collision=None) -> "Posterior":
+        """The posterior of a scene's source: its observations (``<target>``s and ``<observation>``
+        noise), ``<prior>``, the start area's feasibility and ``<model-uncertainty>``'s variants.
+
+        Args:
+            scene: a Scene with an ``<inference>`` section.
+            problem: the spheres backend's problem, if built already (else built from ``backend``,
+                a name or ``BackendOptions`` of the spheres backend, and ``world``).
+            collision: the scene's ``SceneCollision``, if built already (``start_area``).
+        Raises:
+            InferenceError: a backend without residual Jacobians (the posterior needs the spheres
+                backend's), or a scene the inference cannot take (``check_inference``).
+        """
+        from dejaview.backends import BackendOptions, as_problem
+        from dejaview.backends.base import check_inference
+        from dejaview.inference.model_uncertainty import ModelVariants
+
+        check_inference(scene)
+        if problem is None:
+            options = BackendOptions.of(backend)
+            problem = options.make_problem(scene, **({} if world is None else {"world": world}))
+        problem = as_problem(problem)
+        if problem.backend != "spheres":
+            raise InferenceError(f"the posterior needs the spheres backend's residual Jacobians, not the "
+                                 f"{problem.backend} backend's")
+        feasible = feasibility_check(scene, problem, collision=collision)
+        return cls(problem, PosteriorSettings.from_scene(scene), feasible=feasible,
+                   model=ModelVariants.from_scene(scene, problem.world))
+
+    def without_model(self) -> "Posterior":
+        """The same posterior on the scene's own physics alone (no model variants), counting its own
+        rollouts."""
+        return Posterior(self.problem, self.settings, feasible=self.feasible_fn)
+
     # ---------------------------------------------------------------- residuals
     @property
     def layout(self):

@@ -1,6 +1,6 @@
 """Posterior samples: every past that explains the end, weighted by its probability.
 
-``sample_posterior(post, modes, n)`` draws ``n`` samples of the free parameters
+``Sampler(SamplerParams()).sample(post, modes, n)`` draws ``n`` samples of the free parameters
 x from the posterior of ``dejaview.inference.posterior`` (likelihood of the
 observed end times the prior), starting from the modes that the most-probable-
 past search (``dejaview.inference.search``) found.
@@ -16,7 +16,7 @@ carried to the posterior through ``pi_beta(x) ~ prior(x) L(x)^beta``, beta from
 bridge starts from the mixture q below instead of the prior).
 
 - beta advances as far as keeps the effective sample size of the incremental
-  weights at ``ESS_FRACTION`` of the particles (bisection), then the particles
+  weights at ``ess_fraction`` of the particles (bisection), then the particles
   are resampled (systematic) and moved by Metropolis-Hastings kernels that
   leave pi_beta invariant:
   - one independence move proposing from q, a mixture of multivariate
@@ -24,32 +24,32 @@ bridge starts from the mixture q below instead of the prior).
     search's distinct modes with the Laplace covariance of each
     (``(J^T J + C)^-1`` from the exact residual Jacobian J and the curvature C
     of the base measure and flat priors), weighted by its Laplace evidence
-    ``p(m) sqrt(det Sigma)``, plus the prior itself (``PRIOR_SHARE``): the
+    ``p(m) sqrt(det Sigma)``, plus the prior itself (``prior_share``): the
     particles jump into every mode the search found, in proportion to its mass;
-  - ``RW_MOVES`` random-walk moves whose step covariance is that of the
+  - ``rw_moves`` random-walk moves whose step covariance is that of the
     population in the particle's mode (the particles the same reference
     component is most responsible for; the step scale adapts towards
-    ``TARGET_ACCEPTANCE``), every other one a differential-evolution step
+    ``target_acceptance``), every other one a differential-evolution step
     ``x + g (x_a - x_b)`` between two other particles, whose length follows the
     population's extent (long along a ridge the end leaves free). Both walk a
     start-area position as its fraction of the area (``_SMC.to_walk``), and
     the particles move in two halves, each guided by the other half's current
     values (``_SMC.halves``): a kernel built from the particles that move with
     it is not exact. The first of them each step is a population move
-    (``POPULATION_MOVES``): an independence proposal from a kernel density
+    (``population_moves``): an independence proposal from a kernel density
     estimate of the other half, so particles jump between the basins the
     population holds and the basins' shares follow their mass, where the walks
     stay in their basin.
   - Where the scene has a symmetry (``dejaview.inference.symmetry``: a floor and nothing else
-    static, the source alone, its end compared at one record; ``SYMMETRY_MOVES``), each step
+    static, the source alone, its end compared at one record; ``symmetry_moves``), each step
     also moves every particle along its orbit (the start moved and turned so that its end lands
     on the observed one, drawn by conditional importance sampling over such motions), and the
     random-walk and differential-evolution steps act on the coordinates the motions leave alone,
     accepted by the orbits' integrals (pseudo-marginal), so a walk is not undone by an end that
     lands a few centimetres or degrees off.
-- At beta = 1 the moves go on until ``FINAL_MOVES`` have run there.
-- The n samples are those of ``RUNS`` independent runs (n / RUNS particles
-  each, seeds apart; below ``PARTICLES`` samples a random n / RUNS of each
+- At beta = 1 the moves go on until ``final_moves`` have run there.
+- The n samples are those of ``runs`` independent runs (n / runs particles
+  each, seeds apart; below ``particles`` samples a random n / runs of each
   run's twice as many): where they disagree (``posterior_report.rhat``) the
   posterior is rugged, each run holds other branches of it, and the report
   says so (measured on the calibration bench: docs/inference.md).
@@ -70,46 +70,10 @@ from dataclasses import dataclass, field
 import torch
 
 from dejaview.errors import InferenceError
+from dejaview.inference.params import SamplerParams
 from dejaview.inference.population import adapted, chol_of, difference_steps, ess, systematic
 from dejaview.inference.reference import Mixture, laplace_mixture, log_density, log_prior_density, prior_draws
 from dejaview.inference.symmetry import FloorSymmetry, assign, orbit_walk
-
-ESS_FRACTION = 0.7
-"""Effective sample size kept by each tempering step, as a fraction of the particles."""
-RW_MOVES = 4
-"""Random-walk Metropolis moves per tempering step (after one independence move), every other one
-a differential-evolution step."""
-FINAL_MOVES = 8
-"""Moves (independence and random walk) run at beta = 1 before the samples are returned."""
-TARGET_ACCEPTANCE = 0.3
-"""Random-walk acceptance rate the step scale adapts towards."""
-MAX_STAGES = 200
-"""Most tempering steps (a safety net; each needs at least a 1e-6 increase of beta)."""
-PRIOR_SHARE = 0.3
-"""Weight of the prior itself in the reference mixture (defensive importance sampling): branches
-of the posterior that the search did not find are reached by tempering from the prior."""
-DISTINCT_FRACTION = 0.9
-"""A tempering step's moves go on until this fraction of the particles are distinct ..."""
-MAX_MOVES = 7
-"""... or this many moves have run."""
-POPULATION_MOVES = True
-"""The first random-walk move of each step is ``_SMC.population_move`` (measured on the calibration
-bench: ``docs/benchmarks.md``, "Posterior: calibration and speed")."""
-RUNS = 2
-"""Independent SMC runs that share the particles and the samples equally: their agreement
-(``posterior_report.rhat``) says whether the samples can be trusted."""
-MIN_RUN_SIZE = 20
-"""Fewer particles than ``RUNS`` times this: one run."""
-PARTICLES = 600
-"""Fewer samples than this are a random subset of twice as many particles, up to this many
-(all runs together); measured on box_thrown: docs/benchmarks.md, "More particles"."""
-SYMMETRY_MOVES = True
-"""Each tempering step moves the particles along the scene's symmetry (``dejaview.inference.symmetry``:
-a floor's horizontal translations and turns), where it has one."""
-DIFFERENCE_MOVES = True
-"""Every other random-walk move is a differential-evolution step (``_SMC.difference_move``);
-measured on the calibration bench: ``docs/benchmarks.md``, "Posterior: calibration and speed"."""
-
 
 @dataclass
 class PosteriorSamples:
@@ -120,7 +84,7 @@ class PosteriorSamples:
         component: (N,) the mode each sample belongs to: the nearest of the search's distinct
             modes (the reference components' centres), in scaled parameters.
         mode_index: per component, the index of the search mode it is centred on.
-        run: (N,) which of the sampler's independent runs (``RUNS``) drew each sample.
+        run: (N,) which of the sampler's independent runs (``runs``) drew each sample.
         stats: what the sampler did (stages, betas, acceptance, ESS, rollouts, seconds).
     """
 
@@ -139,9 +103,11 @@ def _shares(total: int, parts: int) -> list[int]:
 
 
 class _SMC:
-    """State of one run of ``sample_posterior``; its methods are the named steps."""
+    """State of one run of ``Sampler.sample``; its methods are the named steps."""
 
-    def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop, from_prior: bool):
+    def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop, from_prior: bool,
+                 params: SamplerParams):
+        self.p = params
         self.post, self.q, self.n = post, q, n
         self.from_prior = from_prior
         self.gen = torch.Generator().manual_seed(int(seed) * 104729 + 17)
@@ -153,7 +119,7 @@ class _SMC:
         self.acceptance: list[float] = []
         self.ess_steps: list[float] = []
         self.t0 = time.perf_counter()
-        self.symmetry = FloorSymmetry.of(post) if SYMMETRY_MOVES else None
+        self.symmetry = FloorSymmetry.of(post) if params.symmetry_moves else None
         self.orbit_scale = self.scale
         self.ends, self.ends_known = None, None
         """The compared records of the particles' rollouts, and which of them hold (``orbit_walk``)."""
@@ -183,9 +149,9 @@ class _SMC:
                            "elapsed_s": time.perf_counter() - self.t0})
 
     def temper(self) -> None:
-        """Advance beta as far as keeps ``ESS_FRACTION`` of the particles; resample."""
+        """Advance beta as far as keeps ``ess_fraction`` of the particles; resample."""
         d = torch.where(torch.isfinite(self.lp), self.lp - self.lr, torch.full_like(self.lp, -math.inf))
-        target = ESS_FRACTION * self.n
+        target = self.p.ess_fraction * self.n
         if ess((1.0 - self.beta) * d) >= target:
             new = 1.0
         else:
@@ -303,7 +269,7 @@ class _SMC:
         self.moves += 1
         acc = accepted / self.n
         if not difference:
-            self.orbit_scale = adapted(self.orbit_scale, acc, TARGET_ACCEPTANCE)
+            self.orbit_scale = adapted(self.orbit_scale, acc, self.p.target_acceptance)
         return acc
 
     def halves(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -414,7 +380,7 @@ class _SMC:
             accepted += self.walk_metropolis(rows, w_y, log_q_ratio) * rows.shape[0]
         self.moves += 1
         acc = accepted / self.n
-        self.scale = adapted(self.scale, acc, TARGET_ACCEPTANCE)
+        self.scale = adapted(self.scale, acc, self.p.target_acceptance)
         return acc
 
     def population_move(self) -> float:
@@ -488,84 +454,93 @@ class _SMC:
         if self.symmetry is not None:
             self.acceptance.append(self.orbit_move())
         done = 1
-        while done < count or (done < MAX_MOVES and self.distinct() < DISTINCT_FRACTION):
+        while done < count or (done < self.p.max_moves and self.distinct() < self.p.distinct_fraction):
             if self.stopped():
                 return
-            if POPULATION_MOVES and done == 1:
+            if self.p.population_moves and done == 1:
                 self.acceptance.append(self.population_move())
             elif self.symmetry is not None:
-                self.acceptance.append(self.orbit_walk_move(difference=DIFFERENCE_MOVES and done % 2 == 0))
+                self.acceptance.append(self.orbit_walk_move(difference=self.p.difference_moves and done % 2 == 0))
             else:
-                self.acceptance.append(self.difference_move() if DIFFERENCE_MOVES and done % 2 == 0
+                self.acceptance.append(self.difference_move() if self.p.difference_moves and done % 2 == 0
                                        else self.random_walk_move())
             done += 1
 
     def run(self) -> None:
         self.start()
         self.report()
-        while self.beta < 1.0 and self.stages < MAX_STAGES:
+        while self.beta < 1.0 and self.stages < self.p.max_stages:
             if self.stopped():
                 raise InferenceError("stopped while sampling the posterior")
             self.temper()
-            self.move(1 + RW_MOVES if self.beta < 1.0 else FINAL_MOVES)
+            self.move(1 + self.p.rw_moves if self.beta < 1.0 else self.p.final_moves)
             self.report()
         if self.beta < 1.0:
-            raise InferenceError(f"the posterior sampler did not reach the posterior in {MAX_STAGES} steps")
+            raise InferenceError(f"the posterior sampler did not reach the posterior in {self.p.max_stages} steps")
 
 
-def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
-                     should_stop=None) -> PosteriorSamples:
-    """Draw n weighted samples from the posterior ``post`` (module docstring).
+class Sampler:
+    """The posterior sampler (module docstring), with its ``SamplerParams``.
 
-    Args:
-        post: a ``dejaview.inference.posterior.Posterior``.
-        modes: the search's modes (``SearchResult.modes``: ``Mode`` with x (P,) and cost), best first.
-        n: number of samples (>= 1).
-        seed: seeds the sampler.
-        callback: called with a dict (``beta``, ``stage``, ``moves`` of the current run, ``run``
-            (its index), ``fraction`` (0 to 1: how far the sampler is over all runs),
-            ``elapsed_s``) after each run's start and every tempering step.
-        should_stop: polled between moves; True raises InferenceError (nothing half-sampled is
-            returned).
-    Returns:
-        PosteriorSamples; equal weights 1/n after the final moves.
+    ``Sampler(SamplerParams(seed=1)).sample(posterior, modes, n)`` -> ``PosteriorSamples``.
     """
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise InferenceError(f"samples must be a positive integer, got {n!r}")
-    if post.layout.size == 0:
-        raise InferenceError("the posterior has no free parameter to sample: free one in <optimize>")
-    rollouts0 = post.rollouts
-    q, mode_index = laplace_mixture(post, modes)
-    proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
-    if proper:  # the prior is a proper distribution: temper from it, propose from it too
-        q.prior, q.prior_share = post, PRIOR_SHARE
-    m = max(n, min(PARTICLES, 2 * n))  # particles
-    runs_wanted = RUNS if m >= RUNS * MIN_RUN_SIZE else 1
-    sizes, keep = _shares(m, runs_wanted), _shares(n, runs_wanted)
-    t0 = time.perf_counter()
-    runs = []
-    for i, size in enumerate(sizes):
-        def report(info, i=i):
-            if callback is not None:
-                callback({**info, "fraction": (i + info["fraction"]) / len(sizes), "run": i,
-                          "elapsed_s": time.perf_counter() - t0})
-        smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper)
-        smc.run()
-        runs.append(smc)
-    pick = torch.Generator().manual_seed(int(seed) * 7 + 3)
-    rows = [torch.randperm(r.n, generator=pick)[:k].sort().values for r, k in zip(runs, keep)]
-    x = torch.cat([r.x[i] for r, i in zip(runs, rows)])
-    lp = torch.cat([r.lp[i] for r, i in zip(runs, rows)])
-    run = torch.cat([torch.full((k,), i, dtype=torch.long) for i, k in enumerate(keep)])
-    weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
-    acceptance = [a for r in runs for a in r.acceptance]
-    stats = {"method": "smc", "runs": len(runs), "particles": m, "reference_components": int(q.means.shape[0]),
-             "stages": max(r.stages for r in runs), "moves": sum(r.moves for r in runs),
-             "mean_acceptance": sum(acceptance) / max(len(acceptance), 1),
-             "final_acceptance": runs[-1].acceptance[-1] if runs[-1].acceptance else None,
-             "first_step_ess": runs[0].ess_steps[0] if runs[0].ess_steps else None,
-             "unique_samples": int(torch.unique(x, dim=0).shape[0]),
-             "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - t0}
-    nearest_mode = torch.cdist(x, q.means).argmin(-1)  # in scaled parameters
-    return PosteriorSamples(x=x, weights=weights, log_density=lp, component=nearest_mode, run=run,
-                            mode_index=mode_index, stats=stats)
+
+    def __init__(self, params: SamplerParams | None = None):
+        self.params = SamplerParams() if params is None else params
+
+    def sample(self, post, modes: list, n: int, *, callback=None, should_stop=None) -> PosteriorSamples:
+        """Draw n weighted samples from the posterior ``post`` (module docstring).
+
+        Args:
+            post: a ``dejaview.inference.posterior.Posterior``.
+            modes: the search's modes (``SearchResult.modes``: ``Mode`` with x (P,) and cost), best first.
+            n: number of samples (>= 1).
+            callback: called with a dict (``beta``, ``stage``, ``moves`` of the current run, ``run``
+                (its index), ``fraction`` (0 to 1: how far the sampler is over all runs),
+                ``elapsed_s``) after each run's start and every tempering step.
+            should_stop: polled between moves; True raises InferenceError (nothing half-sampled is
+                returned).
+        Returns:
+            PosteriorSamples; equal weights 1/n after the final moves.
+        """
+        p = self.params
+        seed = p.seed
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise InferenceError(f"samples must be a positive integer, got {n!r}")
+        if post.layout.size == 0:
+            raise InferenceError("the posterior has no free parameter to sample: free one in <optimize>")
+        rollouts0 = post.rollouts
+        q, mode_index = laplace_mixture(post, modes)
+        proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
+        if proper:  # the prior is a proper distribution: temper from it, propose from it too
+            q.prior, q.prior_share = post, p.prior_share
+        m = max(n, min(p.particles, 2 * n))  # particles
+        runs_wanted = p.runs if m >= p.runs * p.min_run_size else 1
+        sizes, keep = _shares(m, runs_wanted), _shares(n, runs_wanted)
+        t0 = time.perf_counter()
+        runs = []
+        for i, size in enumerate(sizes):
+            def report(info, i=i):
+                if callback is not None:
+                    callback({**info, "fraction": (i + info["fraction"]) / len(sizes), "run": i,
+                              "elapsed_s": time.perf_counter() - t0})
+            smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper, params=p)
+            smc.run()
+            runs.append(smc)
+        pick = torch.Generator().manual_seed(int(seed) * 7 + 3)
+        rows = [torch.randperm(r.n, generator=pick)[:k].sort().values for r, k in zip(runs, keep)]
+        x = torch.cat([r.x[i] for r, i in zip(runs, rows)])
+        lp = torch.cat([r.lp[i] for r, i in zip(runs, rows)])
+        run = torch.cat([torch.full((k,), i, dtype=torch.long) for i, k in enumerate(keep)])
+        weights = torch.full((n,), 1.0 / n, dtype=torch.float64)
+        acceptance = [a for r in runs for a in r.acceptance]
+        stats = {"method": "smc", "runs": len(runs), "particles": m, "reference_components": int(q.means.shape[0]),
+                 "stages": max(r.stages for r in runs), "moves": sum(r.moves for r in runs),
+                 "mean_acceptance": sum(acceptance) / max(len(acceptance), 1),
+                 "final_acceptance": runs[-1].acceptance[-1] if runs[-1].acceptance else None,
+                 "first_step_ess": runs[0].ess_steps[0] if runs[0].ess_steps else None,
+                 "unique_samples": int(torch.unique(x, dim=0).shape[0]),
+                 "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - t0}
+        nearest_mode = torch.cdist(x, q.means).argmin(-1)  # in scaled parameters
+        return PosteriorSamples(x=x, weights=weights, log_density=lp, component=nearest_mode, run=run,
+                                mode_index=mode_index, stats=stats)

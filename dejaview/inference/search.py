@@ -9,13 +9,13 @@ handle here or there). So the search has a global and a local stage:
 1. **screen**: ``screen_size(P)`` starts drawn from the prior (and the scene's
    own guess) are simulated as one batch without gradients; infeasible starts
    (interpenetrating, ``Posterior.feasible``) cost nothing and count as inf.
-2. **global**: ``CANDIDATES`` CMA-ES instances (the ``cma`` package: the
+2. **global**: ``candidates`` CMA-ES instances (the ``cma`` package: the
    reference implementation by N. Hansen, with its step-size and covariance
    adaptation), each started at one of the best screened starts that lie at
-   least ``SEED_SPACING`` apart (scaled parameters), so they explore distinct
+   least ``seed_spacing`` apart (scaled parameters), so they explore distinct
    basins. Their populations are evaluated together as one native batch, one
    generation per iteration.
-3. **local**: every ``POLISH_EVERY`` generations, and when an instance stops,
+3. **local**: every ``polish_every`` generations, and when an instance stops,
    the best point of each instance is refined by Levenberg-Marquardt on the
    exact residual Jacobian (``Posterior.jacobian``), all candidates as one
    batch, each with its own damping. Near a solution LM converges in a handful
@@ -23,11 +23,11 @@ handle here or there). So the search has a global and a local stage:
    convergence on a small-residual problem).
 
 The search ends when the best candidate explains the observation (its
-observation chi-square is at most ``CHI2_EXPLAINED`` per observed residual)
-after a refinement and the prior is flat, when the best cost has not improved for ``GLOBAL_PATIENCE``
+observation chi-square is at most ``chi2_explained`` per observed residual)
+after a refinement and the prior is flat, when the best cost has not improved for ``global_patience``
 generations, when every instance has stopped and no fresh start is left to
 try, or when the budget (``iterations``: screenings + generations;
-``budget``: rollouts, a Jacobian counting ``JACOBIAN_COST``) runs out. Stopped
+``budget``: rollouts, a Jacobian counting ``jacobian_cost``) runs out. Stopped
 instances are replaced by fresh ones (from the next distinct screened starts,
 with twice the population: IPOP) while the budget lasts.
 
@@ -44,45 +44,7 @@ import numpy as np
 import torch
 
 from dejaview.inference.optimize import OptimizationResult, Progress
-
-CANDIDATES = 4
-"""CMA-ES instances run side by side, each in its own basin, and candidates refined by LM."""
-SIGMA0 = 0.5
-"""Initial CMA-ES step size in scaled parameters (5 cm, 0.25 rad, 0.5 m/s, 2.5 rad/s)."""
-SEED_SPACING = 1.0
-"""Least distance between the screened starts of two instances (scaled parameters)."""
-POLISH_EVERY = 10
-"""Generations between LM refinements of the instances' best points."""
-LM_ITERATIONS = 8
-"""Most LM iterations of one refinement."""
-LM_FINAL_ITERATIONS = 30
-"""Most LM iterations of the final refinement of the best candidate (it stops once converged)."""
-STALL_GENERATIONS = 15
-"""An instance whose best cost fell by less than ``STALL_RATIO`` over this many generations stops."""
-STALL_RATIO = 1e-3
-CHI2_EXPLAINED = 0.01
-"""Observation chi-square per observed residual at or below which the end counts as explained and
-the search stops: a mean misfit of a tenth of the observation noise's standard deviation (a flat
-prior's maximum explains the end exactly; this stops the global search once a candidate does)."""
-MAX_POPULATION_FACTOR = 4
-"""A fresh instance doubles the population of the one it replaces (IPOP), up to this factor."""
-GLOBAL_PATIENCE = 40
-"""Generations without a gain of ``STALL_RATIO`` in the best cost after which the search stops
-(where a prior keeps the maximum's misfit above ``CHI2_EXPLAINED``), once the best explains the
-observations within their noise (``NOISE_QUANTILE``); until then it goes on to the budget."""
-NOISE_QUANTILE = 0.999
-"""Quantile of the chi-square law (a degree per observed residual) up to which a misfit is the
-observations' noise: a search whose best lies above it has not found a past that explains them."""
-JACOBIAN_COST = 3
-"""Budget units of one candidate's residual Jacobian (a rollout with gradients ~3 rollouts)."""
-DEFAULT_BUDGET = 40000
-"""Rollouts per solve: more than the searches of the bundled scenes need (the recovery suite's
-table in ``docs/benchmarks.md`` lists what each used); a search that has not explained the
-observations within their noise goes on to it (the stories bench's mug slid off a desk: 13.6 mm
-at 20,000, 3.2 mm at 35,000)."""
-STAGE_SHARE = 0.25
-"""Share of the budget (and of the iterations) each earlier stage of ``staged_search`` may spend."""
-
+from dejaview.inference.params import SearchParams
 
 def screen_size(num_params: int) -> int:
     """Starts screened from the prior: 64 for a 2-parameter problem, 256 for 12."""
@@ -129,19 +91,20 @@ class SearchResult(OptimizationResult):
 
 
 class _Search:
-    """State of one search (``map_search``); its methods are the named steps."""
+    """State of one search stage (``MapSearch``); its methods are the named steps."""
 
-    def __init__(self, post, iterations, seed, callback, should_stop, tolerance, budget, seeds=None):
+    def __init__(self, post, params: SearchParams, callback, should_stop, seeds=None):
         self.post = post
+        self.p = params
         self.seeds = seeds
         self.lay = post.layout
         self.P = self.lay.size
-        self.iterations = iterations
-        self.seed = int(seed)
+        self.iterations = params.iterations
+        self.seed = int(params.seed)
         self.gen = torch.Generator().manual_seed(self.seed)
         self.callback, self.should_stop = callback, should_stop
-        self.tolerance = tolerance
-        self.budget = budget
+        self.tolerance = params.tolerance
+        self.budget = params.budget
         self.t0 = time.perf_counter()
         self.last = self.t0
         self.history: list[Progress] = []
@@ -157,7 +120,7 @@ class _Search:
 
     # -------------------------------------------------------------- bookkeeping
     def spent(self) -> int:
-        return self.post.rollouts + JACOBIAN_COST * self.post.jacobians
+        return self.post.rollouts + self.p.jacobian_cost * self.post.jacobians
 
     def out_of_budget(self) -> bool:
         """The budget is spent: ``iterations`` global iterations (screenings and CMA-ES generations;
@@ -167,7 +130,7 @@ class _Search:
     def consider(self, x: torch.Tensor, cost: torch.Tensor, chi2: torch.Tensor, loss: torch.Tensor) -> float:
         """Keep the best of a batch; returns the batch's best cost."""
         i = int(torch.argmin(cost))
-        if float(cost[i]) < self.best.cost * (1 - STALL_RATIO):
+        if float(cost[i]) < self.best.cost * (1 - self.p.stall_ratio):
             self.improved_at = self.generations
         if float(cost[i]) < self.best.cost:
             self.best = Mode(x[i].detach().clone(), float(cost[i]), float(chi2[i]), float(loss[i]))
@@ -191,17 +154,17 @@ class _Search:
 
     def explained(self, mode: Mode) -> bool:
         """A flat prior's maximum explains the end exactly: a candidate that comes within
-        ``CHI2_EXPLAINED`` ends the search. Under an informative prior the first past that explains
-        the end need not be the most probable one, so the search goes on (``GLOBAL_PATIENCE``)."""
-        return self.post.prior_is_flat and mode.chi2 <= CHI2_EXPLAINED * self.n_obs
+        ``chi2_explained`` ends the search. Under an informative prior the first past that explains
+        the end need not be the most probable one, so the search goes on (``global_patience``)."""
+        return self.post.prior_is_flat and mode.chi2 <= self.p.chi2_explained * self.n_obs
 
     def within_noise(self) -> bool:
         """Whether the best candidate explains the observations as well as their noise allows:
-        its observation chi-square at most the ``NOISE_QUANTILE`` quantile of the chi-square law
+        its observation chi-square at most the ``noise_quantile`` quantile of the chi-square law
         with one degree per observed residual. Until then patience does not end the search."""
         from scipy.stats import chi2
 
-        return self.best.chi2 <= float(chi2.ppf(NOISE_QUANTILE, self.n_obs))
+        return self.best.chi2 <= float(chi2.ppf(self.p.noise_quantile, self.n_obs))
 
     def rescreen(self) -> None:
         """Fresh draws from the prior for the pool, where it has run dry and the observations are
@@ -236,10 +199,10 @@ class _Search:
         self.tick(float(cost.min()))
 
     def take_seeds(self, k: int, avoid: list[torch.Tensor]) -> list[torch.Tensor]:
-        """Up to k pool entries, best first, ``SEED_SPACING`` apart from each other and ``avoid``."""
+        """Up to k pool entries, best first, ``seed_spacing`` apart from each other and ``avoid``."""
         out, rest = [], []
         for x in self.pool:
-            if len(out) < k and all(float((x - y).norm()) >= SEED_SPACING for y in out + avoid):
+            if len(out) < k and all(float((x - y).norm()) >= self.p.seed_spacing for y in out + avoid):
                 out.append(x)
             else:
                 rest.append(x)
@@ -251,7 +214,7 @@ class _Search:
 
         opts = {"popsize": popsize, "seed": self.seed * 7919 + len(self.history) + 1, "verbose": -9,
                 "tolfun": 1e-12, "tolx": 1e-9}
-        es = cma.CMAEvolutionStrategy(x0.numpy(), SIGMA0, opts)
+        es = cma.CMAEvolutionStrategy(x0.numpy(), self.p.sigma0, opts)
         es.dejaview_best = (math.inf, 0)  # (best cost, generation it was reached)
         return es
 
@@ -268,16 +231,17 @@ class _Search:
             f = ranked[start:start + len(a)]
             start += len(a)
             es.tell(a, f.tolist())
-            if f.min() < es.dejaview_best[0] * (1 - STALL_RATIO):
+            if f.min() < es.dejaview_best[0] * (1 - self.p.stall_ratio):
                 es.dejaview_best = (float(f.min()), es.countiter)
         self.tick(value)
 
     def stalled(self, es) -> bool:
-        return bool(es.stop()) or es.countiter - es.dejaview_best[1] >= STALL_GENERATIONS
+        return bool(es.stop()) or es.countiter - es.dejaview_best[1] >= self.p.stall_generations
 
-    def refine(self, x: torch.Tensor, iterations: int = LM_ITERATIONS) -> list[Mode]:
+    def refine(self, x: torch.Tensor, iterations: int | None = None) -> list[Mode]:
         """Levenberg-Marquardt from each row of x (K, P), as one batch; the refined modes."""
         post = self.post
+        iterations = self.p.lm_iterations if iterations is None else iterations
         cost, chi2, loss = post.cost(x)
         ok = torch.isfinite(cost)
         if not bool(ok.any()):
@@ -319,10 +283,10 @@ class _Search:
         return [Mode(x[i].clone(), float(cost[i]), float(chi2[i]), float(loss[i])) for i in range(k)]
 
     def add_modes(self, found: list[Mode]) -> None:
-        """Keep refined candidates; one within ``0.1 * SEED_SPACING`` of a kept one replaces it
+        """Keep refined candidates; one within ``0.1 * seed_spacing`` of a kept one replaces it
         when better."""
         for m in found:
-            near = [i for i, o in enumerate(self.modes) if float((m.x - o.x).norm()) < SEED_SPACING * 0.1]
+            near = [i for i, o in enumerate(self.modes) if float((m.x - o.x).norm()) < self.p.seed_spacing * 0.1]
             if not near:
                 self.modes.append(m)
             elif m.cost < self.modes[near[0]].cost:
@@ -333,13 +297,13 @@ class _Search:
         self.screen()
         self.n_obs = max(1, self.post.num_observed)
         popsize = population(self.P)
-        instances = [self.new_instance(x, popsize) for x in self.take_seeds(CANDIDATES, [])]
+        instances = [self.new_instance(x, popsize) for x in self.take_seeds(self.p.candidates, [])]
         while instances and not self.finished():
             self.generation(instances)
-            if self.generations - self.improved_at >= GLOBAL_PATIENCE and self.within_noise():
+            if self.generations - self.improved_at >= self.p.global_patience and self.within_noise():
                 break
             ended = [es for es in instances if self.stalled(es)]
-            polish = ended or instances[0].countiter % POLISH_EVERY == 0
+            polish = ended or instances[0].countiter % self.p.polish_every == 0
             if polish and not self.finished():
                 pick = ended if ended else instances
                 found = self.refine(torch.as_tensor(np.stack([es.result.xbest for es in pick]),
@@ -349,7 +313,7 @@ class _Search:
                     break
             if ended:
                 instances = [es for es in instances if es not in ended]
-                popsize = min(popsize * 2, MAX_POPULATION_FACTOR * population(self.P))
+                popsize = min(popsize * 2, self.p.max_population_factor * population(self.P))
                 taken = [torch.as_tensor(es.result.xbest, dtype=torch.float64) for es in instances]
                 fresh = self.take_seeds(len(ended), taken + [m.x for m in self.modes])
                 if len(fresh) < len(ended) and not self.within_noise() and not self.finished():
@@ -361,8 +325,8 @@ class _Search:
         # converge the best candidates fully (the best so far and the best refined modes: under
         # an informative prior a mode behind the best one may refine to a more probable past)
         if not self.stopped and math.isfinite(self.best.cost):
-            starts = [self.best.x] + [m.x for m in self.modes[:CANDIDATES - 1]]
-            self.add_modes(self.refine(torch.stack(starts), LM_FINAL_ITERATIONS))
+            starts = [self.best.x] + [m.x for m in self.modes[:self.p.candidates - 1]]
+            self.add_modes(self.refine(torch.stack(starts), self.p.lm_final_iterations))
 
 
 def _spd_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -379,41 +343,8 @@ def _spd_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return x
 
 
-def map_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,
-               tolerance: float | None = None, budget: int = DEFAULT_BUDGET,
-               seeds: torch.Tensor | None = None) -> SearchResult:
-    """Find the most probable start (maximum of the posterior ``post``; module docstring).
-
-    Args:
-        post: a ``dejaview.inference.posterior.Posterior``.
-        iterations: most global iterations (a screening or a CMA-ES generation each; every iteration,
-            LM ones too, is reported to ``callback``).
-        seed: seeds the prior draws and CMA-ES.
-        callback: called with a ``Progress`` after every iteration (``loss``: the iteration's
-            best negative log posterior, ``best_loss`` the best so far, ``evaluations`` budget
-            units spent).
-        should_stop: polled after every iteration; True ends the search with its best so far.
-        tolerance: end once the best candidate's scene loss (metres) is at or below this.
-        budget: most rollouts (a Jacobian counts ``JACOBIAN_COST``).
-        seeds: (K, P) starts the instances take first (an earlier stage's modes, ``staged_search``).
-    Returns:
-        SearchResult; ``x`` the best parameters (P,), ``loss`` the scene's loss there (metres).
-    """
-    s = _Search(post, iterations, seed, callback, should_stop, tolerance, budget, seeds)
-    s.run()
-    best = s.best
-    if s.modes and s.modes[0].cost <= best.cost:
-        best = s.modes[0]
-    modes = s.modes or [best]
-    return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
-                        candidate_x=torch.stack([m.x for m in modes]),
-                        candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
-                        cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts,
-                        jacobians=post.jacobians)
-
-
 def stages(post) -> list[tuple]:
-    """The earlier stages of a tracked source's search (``staged_search``): the sightings up to each
+    """The earlier stages of a tracked source's search (``MapSearch.run``): the sightings up to each
     observed moment but the last, in time order; none where fewer than two moments were observed
     or a sighting takes the best record of all."""
     steps = sorted({sg.step for sg in post.sightings if sg.step is not None})
@@ -422,53 +353,92 @@ def stages(post) -> list[tuple]:
     return [tuple(sg for sg in post.sightings if sg.step <= k) for k in steps[:-1]]
 
 
-def staged_search(post, *, iterations: int = 200, seed: int = 0, callback=None, should_stop=None,
-                  tolerance: float | None = None, budget: int = DEFAULT_BUDGET) -> SearchResult:
-    """``map_search`` over a tracked source's observations in time order (continuation in the horizon).
+class MapSearch:
+    """The search for the most probable past (module docstring), with its ``SearchParams``.
 
-    A source seen at several moments: the likelihood of its first observations alone reads short
-    rollouts, before most contacts (a toss's first two positions fix its throw), and is far
-    smoother than that of all of them, whose end follows a tumble and a rest. So the search first
-    explains the observations up to the first moment, then up to the next, each stage starting its
-    instances from the previous stage's modes (``seeds``) beside fresh draws from the prior, and
-    last all of them. Earlier stages may spend ``STAGE_SHARE`` of the budget and iterations each
-    (their rollouts are shorter: they stop at their last moment). One observed moment: ``map_search``.
-
-    Arguments and return value as ``map_search`` (``rollouts`` and ``history`` over all stages).
+    ``MapSearch(SearchParams(budget=20000)).run(posterior)`` -> ``SearchResult``.
     """
-    from dataclasses import replace
 
-    from dejaview.inference.posterior import Posterior
-    from dejaview.losses.targets import record_interval
+    def __init__(self, params: SearchParams | None = None):
+        self.params = SearchParams() if params is None else params
 
-    history, seeds, spent, rollouts, jacobians = [], None, 0, 0, 0
-    offset = used = 0
+    def run(self, post, *, callback=None, should_stop=None) -> SearchResult:
+        """The most probable start under ``post`` (a ``dejaview.inference.posterior.Posterior``).
 
-    def report(p):
-        if callback is not None:
-            callback(replace(p, iteration=p.iteration + offset))
+        A tracked source (several observed moments, ``stages``) is searched in time order: the
+        likelihood of its first observations alone reads short rollouts, before most contacts (a
+        toss's first two positions fix its throw), and is far smoother than that of all of them,
+        whose end follows a tumble and a rest. So each earlier stage explains the observations up
+        to its moment (``stage_share`` of the budget and iterations each; their rollouts stop
+        there) and seeds the next stage's instances with its modes, beside fresh prior draws.
+        Under model uncertainty (``post.model``) the global search runs on the scene's own
+        physics and its modes are refined and ranked under the variants
+        (``model_uncertainty.refine_under_variants``).
 
-    for prefix in stages(post):
-        steps = max(sg.step for sg in prefix)
-        problem = replace(post.problem, sightings=prefix, steps=steps,
-                          record_every=record_interval(prefix, steps, penalties=bool(post.problem.penalties)))
-        sub = Posterior(problem, post.settings, feasible=post.feasible_fn)
-        found = map_search(sub, iterations=max(1, int(STAGE_SHARE * iterations)), seed=seed, callback=report,
-                           should_stop=should_stop, budget=max(1, int(STAGE_SHARE * budget)), seeds=seeds)
-        spent += found.rollouts + JACOBIAN_COST * found.jacobians
-        rollouts, jacobians = rollouts + found.rollouts, jacobians + found.jacobians
-        history += found.history
-        offset = len(history)
-        used = sum(p.phase != "refine" for p in history)
-        if found.stopped:
-            break
-        seeds = torch.stack([m.x for m in found.modes])
-    final = map_search(post, iterations=max(1, iterations - used), seed=seed, callback=report,
-                       should_stop=should_stop, tolerance=tolerance, budget=max(1, budget - spent), seeds=seeds)
-    for p in final.history:
-        p.iteration += offset
-    final.history = history + final.history
-    final.rollouts += rollouts
-    final.jacobians += jacobians
-    return final
+        Args:
+            callback: called with a ``Progress`` after every iteration (``loss``: the iteration's
+                best negative log posterior, ``best_loss`` the best so far, ``evaluations`` budget
+                units spent; iterations numbered over all stages).
+            should_stop: polled after every iteration; True ends the search with its best so far.
+        Returns:
+            SearchResult; ``x`` the best parameters (P,), ``loss`` the scene's loss there (metres),
+            ``rollouts`` and ``history`` over all stages.
+        """
+        from dataclasses import replace
 
+        from dejaview.inference.posterior import Posterior
+        from dejaview.losses.targets import record_interval
+
+        p = self.params
+        plain = post.without_model() if post.model is not None else post
+        history, seeds, spent, rollouts, jacobians = [], None, 0, 0, 0
+        offset = used = 0
+
+        def report(progress):
+            if callback is not None:
+                callback(replace(progress, iteration=progress.iteration + offset))
+
+        for prefix in stages(plain):
+            steps = max(sg.step for sg in prefix)
+            problem = replace(plain.problem, sightings=prefix, steps=steps,
+                              record_every=record_interval(prefix, steps, penalties=bool(plain.problem.penalties)))
+            sub = Posterior(problem, plain.settings, feasible=plain.feasible_fn)
+            found = self._stage(sub, replace(p, iterations=max(1, int(p.stage_share * p.iterations)),
+                                             budget=max(1, int(p.stage_share * p.budget)), tolerance=None),
+                                report, should_stop, seeds)
+            spent += found.rollouts + p.jacobian_cost * found.jacobians
+            rollouts, jacobians = rollouts + found.rollouts, jacobians + found.jacobians
+            history += found.history
+            offset = len(history)
+            used = sum(q.phase != "refine" for q in history)
+            if found.stopped:
+                break
+            seeds = torch.stack([m.x for m in found.modes])
+        final = self._stage(plain, replace(p, iterations=max(1, p.iterations - used),
+                                           budget=max(1, p.budget - spent)), report, should_stop, seeds)
+        for q in final.history:
+            q.iteration += offset
+        final.history = history + final.history
+        final.rollouts += rollouts
+        final.jacobians += jacobians
+        if post.model is not None and not final.stopped:
+            from dejaview.inference.model_uncertainty import refine_under_variants
+
+            final = refine_under_variants(post, final, params=p, callback=callback, should_stop=should_stop)
+        return final
+
+    @staticmethod
+    def _stage(post, params: SearchParams, callback, should_stop, seeds) -> SearchResult:
+        """One search over all of ``post``'s sightings; ``seeds`` (K, P): starts the instances take
+        first (an earlier stage's modes)."""
+        s = _Search(post, params, callback, should_stop, seeds)
+        s.run()
+        best = s.best
+        if s.modes and s.modes[0].cost <= best.cost:
+            best = s.modes[0]
+        modes = s.modes or [best]
+        return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
+                            candidate_x=torch.stack([m.x for m in modes]),
+                            candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
+                            cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts,
+                            jacobians=post.jacobians)

@@ -8,152 +8,13 @@ from dataclasses import dataclass
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.inference.optimize import OPTIMIZERS, Progress, optimize
-from dejaview.inference.problem import objective_to_loss
+from dejaview.inference.local import LocalParams, _check_count, fit_locally
+from dejaview.inference.optimize import Progress
+from dejaview.inference.params import SamplerParams, SearchParams
+from dejaview.inference.posterior import Posterior
 from dejaview.inference.result import SolveResult
-
-SCREEN_BATCH = 64
-"""Candidates per batch while screening (bounds memory; batching amortises the per-op overhead)."""
-SCREEN_NEAR = 0.0
-"""Default fraction of the first screening round drawn near the scene's own guess
-(``screen_guesses``). 0: near draws rank high together, so the best start and the restarts
-after it all tell one story, and the search loses the diversity of the prior."""
-SCREEN_SIGMA = 1.0
-"""Standard deviation of those draws in scaled parameters (0.1 m / 0.5 rad / 1 m/s / 5 rad/s by
-default; positions in the start area's logit coordinates)."""
-
-
-def _check_count(value, what: str, minimum: int) -> None:
-    """One-line error unless ``value`` is an int (not a bool) of at least ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        kind = "positive" if minimum == 1 else "non-negative"
-        raise InferenceError(f"{what} must be a {kind} integer, got {value!r}")
-
-
-def screen_guesses(problem, first: torch.Tensor, count: int, generator: torch.Generator,
-                   should_stop=None, batch: int = SCREEN_BATCH, rounds: int = 1,
-                   elite: int | None = None, near: float = SCREEN_NEAR,
-                   sigma: float = SCREEN_SIGMA) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rank initial guesses by their loss, without gradients (a cheap global step).
-
-    The guesses and losses of ``screen_rounds_ranked`` (same arguments), without the round
-    each guess came from.
-    """
-    x, loss, _ = screen_rounds_ranked(problem, first, count, generator, should_stop=should_stop,
-                                      batch=batch, rounds=rounds, elite=elite, near=near,
-                                      sigma=sigma)
-    return x, loss
-
-
-def screen_rounds_ranked(problem, first: torch.Tensor, count: int, generator: torch.Generator,
-                         should_stop=None, batch: int = SCREEN_BATCH, rounds: int = 1,
-                         elite: int | None = None, near: float = SCREEN_NEAR,
-                         sigma: float = SCREEN_SIGMA
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rank initial guesses by their loss, without gradients, and say which round drew each.
-
-    The guesses are ``first`` plus ``count`` random draws: a fraction ``1 - near``
-    from the whole prior (``problem.layout.sample``: start area, any orientation,
-    velocities in the layout's bounds) and a fraction ``near`` around the scene's
-    own guess ``first[0]`` (normal, standard deviation ``sigma`` in the scaled
-    parameters). The scene's guess is the user's prior (a mug upright on the
-    counter), and the prior alone almost never comes near it: its rotation
-    vectors fill the ball of radius pi uniformly, so one lies within 30 degrees
-    of the given orientation with probability (1/6)^3 = 0.5 %, and 64 draws hold
-    a third of a guess that starts upright; the solver would then only try pasts
-    that start tumbling. The guesses are simulated in batches of ``batch``
-    without autograd, which costs a fraction of a loss + gradient per candidate
-    (docs/benchmarks.md, "Simulator"), so screening a few hundred draws costs a
-    handful of gradient evaluations and
-    moves the start into the right basin where the scene's guess tells a
-    different story.
-
-    ``rounds > 1`` refines the ranking by the cross-entropy method: each further
-    round draws ``count`` guesses from a normal distribution (diagonal, in the
-    scaled parameters) fitted to the ``elite`` best guesses so far (default
-    ``max(4, count // 8)``), so the search narrows onto the most promising basin
-    where the loss is flat or kinked and a gradient step would not get far.
-
-    Args:
-        problem: a backend problem (``loss(x) -> (K,)``).
-        first: (F, P) guesses that always take part (the scene's own).
-        count: number of random draws per round.
-        generator: seeds the draws.
-        should_stop: polled between batches; True ends screening with what was ranked.
-        rounds: 1 + the number of cross-entropy refinements.
-        elite: guesses the refinements fit their distribution to.
-        near: fraction of the first round's draws around ``first[0]`` (0: all from the prior).
-        sigma: their standard deviation (scaled parameters).
-    Returns:
-        guesses (M, P) sorted by loss (best first; non-finite losses last), their losses (M,)
-        and the round that drew each (M,) (0: the first round, with ``first``).
-    """
-    _check_count(rounds, "screen rounds", 1)
-    elite = max(4, count // 8) if elite is None else int(elite)
-    guesses, losses, drawn_in = [], [], []
-    stopped = False
-    for r in range(rounds):
-        if r == 0:
-            n_near = int(round(count * near))
-            x = torch.cat([first, problem.layout.sample(count - n_near, generator).to(first.dtype),
-                           first[:1] + sigma * torch.randn(n_near, first.shape[1], generator=generator,
-                                                           dtype=first.dtype)], 0)
-        else:
-            loss = torch.cat(losses)
-            keep = torch.argsort(loss, stable=True)[:elite]
-            best = torch.cat(guesses)[keep[torch.isfinite(loss[keep])]]
-            if best.shape[0] < 2:
-                break
-            mean, std = best.mean(0), best.std(0).clamp_min(1e-3)
-            x = mean + std * torch.randn(count, first.shape[1], generator=generator, dtype=first.dtype)
-        with torch.no_grad():
-            for chunk in x.split(batch):
-                if guesses and should_stop is not None and should_stop():
-                    stopped = True
-                    break
-                value = problem.loss(chunk).detach().to(first.dtype)
-                guesses.append(chunk)
-                drawn_in.append(torch.full((chunk.shape[0],), r, dtype=torch.long))
-                losses.append(torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf)))
-        if stopped:
-            break
-    x, loss, drawn = torch.cat(guesses), torch.cat(losses), torch.cat(drawn_in)
-    order = torch.argsort(loss, stable=True)
-    return x[order], loss[order], drawn[order]
-
-
-def restart_pool(ranked: torch.Tensor, drawn: torch.Tensor) -> list[torch.Tensor]:
-    """The order in which restarts take screened guesses that were not used as starts.
-
-    Restarts explore, so the first round's guesses (drawn over the whole prior) come first,
-    best first; the refinement rounds' guesses follow. Those crowd around the best guess,
-    i.e. around the start, where the optimiser's own hops (``optimize``) already search.
-
-    Args:
-        ranked: (M, P) guesses sorted by loss (``screen_rounds_ranked``).
-        drawn: (M,) the round that drew each.
-    Returns:
-        M guesses (P,), in the order restarts take them.
-    """
-    return list(ranked[drawn == 0]) + list(ranked[drawn > 0])
-
-
-def default_gradient(num_params: int) -> str:
-    """The faster gradient mode for a problem (scene format: ``gradient`` defaults to it).
-
-    In principle forward mode wins for the ~12 parameters of one object (no
-    graph to store, P tangents in one batched pass). On the torch engine, eager
-    forward-mode AD pays Python decompositions for every op with a constant
-    operand (a World tensor, a Python number: its zero tangent is sized through
-    ``torch._refs``), so reverse mode is faster there, and on the native engine
-    the adjoint reverse pass is (numbers: ``docs/benchmarks.md``, "Forward-mode
-    cost on the torch engine" and the engine benchmarks). Reverse mode is
-    therefore the default for every size; forward mode stays available
-    (``gradient="forward"``) and gives the same gradients.
-    """
-    del num_params
-    return "reverse"
-
+from dejaview.inference.sampling import Sampler
+from dejaview.inference.search import MapSearch
 
 LOCAL_ONLY = ("multistart", "screen", "screen_rounds", "screen_near", "epsilon", "patience", "lr", "gradient",
               "x0")
@@ -171,7 +32,7 @@ class SolveSettings:
     Attributes:
         optimizer: ``auto`` (the search of ``dejaview.inference.search``) or a local optimiser.
         iterations, seed, tolerance: budget, seed, early stop (scene loss in metres).
-        budget: rollouts of the ``auto`` search (``search.DEFAULT_BUDGET``).
+        budget: rollouts of the ``auto`` search (None: ``SearchParams.budget``).
         gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
             optimisers' settings (``optimize``).
         posterior: ``PosteriorSettings`` (prior and observation noise).
@@ -188,11 +49,27 @@ class SolveSettings:
     multistart: int = 1
     screen: int = 0
     screen_rounds: int = 1
-    screen_near: float = SCREEN_NEAR
+    screen_near: float = LocalParams.screen_near
     epsilon: float = 0.0
     patience: int = 25
     posterior: object = None
     samples: int = 0
+
+    def search_params(self) -> SearchParams:
+        """The ``auto`` search's parameters."""
+        budget = {} if self.budget is None else {"budget": self.budget}
+        return SearchParams(iterations=self.iterations, seed=self.seed, tolerance=self.tolerance, **budget)
+
+    def sampler_params(self) -> SamplerParams:
+        """The posterior sampler's parameters."""
+        return SamplerParams(seed=self.seed)
+
+    def local_params(self) -> LocalParams:
+        """The local pipeline's parameters (``gd|adam|lbfgs|bfgs``)."""
+        return LocalParams(optimizer=self.optimizer, iterations=self.iterations, seed=self.seed,
+                           tolerance=self.tolerance, gradient=self.gradient, lr=self.lr,
+                           multistart=self.multistart, screen=self.screen, screen_rounds=self.screen_rounds,
+                           screen_near=self.screen_near, epsilon=self.epsilon, patience=self.patience)
 
     @staticmethod
     def resolve(scene, *, optimizer: str | None = None, iterations: int | None = None,
@@ -253,7 +130,7 @@ class SolveSettings:
         _check_count(screen, "screen", 0)
         screen_rounds = given.get("screen_rounds", 1)
         _check_count(screen_rounds, "screen rounds", 1)
-        screen_near = given.get("screen_near", SCREEN_NEAR)
+        screen_near = given.get("screen_near", LocalParams.screen_near)
         if not 0.0 <= screen_near <= 1.0:
             raise InferenceError(f"screen_near must be a fraction in [0, 1], got {screen_near!r}")
         gradient = given.get("gradient", inf.gradient)
@@ -335,7 +212,10 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn = None
     if settings.optimizer == "auto":
-        opt, extra, post = _search(scene, problem, settings, callback, should_stop, collision)
+        post = Posterior.from_scene(scene, problem=problem, collision=collision)
+        search = settings.search_params()
+        opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
+        extra = _search_report(post, opt, search, problem.layout)
         if settings.samples and not opt.stopped and math.isfinite(opt.loss):
             samples_drawn = _sample(post, opt, settings, callback, should_stop)
             from dejaview.inference.posterior_report import summary
@@ -349,7 +229,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     else:
         if truth is not None:
             raise InferenceError("a truth is placed in the posterior of the default search (optimizer auto)")
-        opt, extra = _optimize_locally(problem, settings, x0, callback, should_stop)
+        opt, extra = fit_locally(problem, settings.local_params(), x0, callback=callback, should_stop=should_stop)
     if not math.isfinite(opt.loss):
         if opt.stopped and not opt.history:
             raise InferenceError("stopped before the first iteration: no solution to report")
@@ -392,41 +272,23 @@ def _make_problem(scene, problem, world, backend):
     return options.make_problem(scene, **({} if world is None else {"world": world}))
 
 
-def _search(scene, problem, settings: SolveSettings, callback, should_stop, collision=None):
-    """The default search: the most probable start under the scene's prior and observation noise
-    (``collision``: the scene's ``SceneCollision``, if one was built already)."""
-    from dejaview.inference.model_uncertainty import ModelVariants, refine_under_variants
-    from dejaview.inference.posterior import Posterior, feasibility_check
-    from dejaview.inference.search import DEFAULT_BUDGET, LM_FINAL_ITERATIONS, staged_search
-
-    inner = getattr(problem, "inner", problem)
-    feasible = feasibility_check(scene, inner, collision=collision)
-    post = Posterior(inner, settings.posterior, feasible=feasible)
-    opt = staged_search(post, iterations=settings.iterations, seed=settings.seed, callback=callback,
-                        should_stop=should_stop, tolerance=settings.tolerance,
-                        budget=settings.budget or DEFAULT_BUDGET)
-    model = ModelVariants.from_scene(scene, inner.world)
-    if model is not None and not opt.stopped:  # the modes refined and ranked under model uncertainty
-        post = Posterior(inner, settings.posterior, feasible=feasible, model=model)
-        opt = refine_under_variants(post, opt, iterations=LM_FINAL_ITERATIONS, seed=settings.seed,
-                                    callback=callback, should_stop=should_stop)
-    extra = {**settings.posterior.to_json(), **({"model_uncertainty": model.to_json()} if model else {}),
-             "search": {
+def _search_report(post, opt, params: SearchParams, layout) -> dict:
+    """``result.json``'s prior, noise, model uncertainty and ``search`` of a solve by ``MapSearch``."""
+    model = post.model
+    return {**post.settings.to_json(), **({"model_uncertainty": model.to_json()} if model else {}),
+            "search": {
         "neg_log_posterior": opt.cost, "observation_chi2": opt.chi2, "rollouts": opt.rollouts,
-        "jacobians": opt.jacobians, "budget": settings.budget or DEFAULT_BUDGET,
+        "jacobians": opt.jacobians, "budget": params.budget,
         "modes": [{"neg_log_posterior": m.cost, "observation_chi2": m.chi2, "loss": m.loss,
                    **({} if m.heldout is None else {"heldout_neg_log_posterior": m.heldout,
                                                     "heldout_mean_end_chi2": m.heldout_mean_chi2}),
                    "initial_state": {k: v[0].tolist() for k, v in
-                                     problem.layout.decode(m.x.unsqueeze(0).to(problem.dtype)).items()}}
+                                     layout.decode(m.x.unsqueeze(0).to(post.problem.dtype)).items()}}
                   for m in opt.modes]}}
-    return opt, extra, post
 
 
 def _sample(post, opt, settings: SolveSettings, callback, should_stop):
     """Posterior samples around the search's modes, reporting progress as phase ``sample``."""
-    from dejaview.inference.sampling import sample_posterior
-
     last = opt.history[-1] if opt.history else None
     it = last.iteration if last is not None else 0
 
@@ -435,42 +297,5 @@ def _sample(post, opt, settings: SolveSettings, callback, should_stop):
             callback(Progress(iteration=it, loss=opt.cost, best_loss=opt.cost, duration_s=0.0,
                               elapsed_s=(last.elapsed_s if last else 0.0) + d["elapsed_s"], restarted=False,
                               evaluations=post.rollouts, phase="sample", fraction=d["fraction"]))
-    return sample_posterior(post, opt.modes, settings.samples, seed=settings.seed, callback=report,
-                            should_stop=should_stop)
-
-
-def _optimize_locally(problem, settings: SolveSettings, x0, callback, should_stop):
-    """A local optimiser with epsilon-greedy restarts from screened or given guesses."""
-    gradient = settings.gradient or default_gradient(problem.num_params)
-    if gradient not in problem.gradient_modes:
-        raise InferenceError(f"the {problem.backend} backend offers {' and '.join(problem.gradient_modes)}-mode "
-                             f"gradients only, not {gradient} mode; use --gradient reverse")
-    s = settings
-    gen = torch.Generator().manual_seed(int(s.seed))
-    sample = problem.layout.sample
-    screened = 0
-    if x0 is None:
-        x0 = problem.layout.encode().to(problem.dtype)
-        if s.screen > 0:
-            ranked, _, drawn = screen_rounds_ranked(problem, x0, max(s.screen, s.multistart - 1), gen,
-                                                    should_stop=should_stop, rounds=s.screen_rounds,
-                                                    near=s.screen_near)
-            screened = ranked.shape[0]
-            x0, pool = ranked[:s.multistart], restart_pool(ranked[s.multistart:], drawn[s.multistart:])
-
-            def sample(n, generator):
-                """Restarts: the next-best screened guesses, then fresh draws."""
-                taken = [pool.pop(0) for _ in range(min(n, len(pool)))]
-                parts = [torch.stack(taken)] if taken else []
-                if n > len(taken):
-                    parts.append(problem.layout.sample(n - len(taken), generator).to(x0.dtype))
-                return torch.cat(parts, 0)
-        elif s.multistart > 1:
-            x0 = torch.cat([x0, problem.layout.sample(s.multistart - 1, gen)], 0)
-    x0 = x0.to(problem.dtype)
-    opt = optimize(problem.objective_and_grad, x0, optimizer=s.optimizer, iterations=s.iterations,
-                   gradient=gradient, lr=s.lr, epsilon=s.epsilon, patience=s.patience, sample=sample,
-                   seed=s.seed, callback=callback, should_stop=should_stop, tolerance=s.tolerance,
-                   report=objective_to_loss)
-    return opt, {"gradient": gradient, "multistart": s.multistart, "epsilon": s.epsilon,
-                 "patience": s.patience, "screened": screened}
+    return Sampler(settings.sampler_params()).sample(post, opt.modes, settings.samples, callback=report,
+                                                     should_stop=should_stop)

@@ -14,6 +14,7 @@ from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem
 from dejaview.inference.model_uncertainty import (HELDOUT_SEED, HELDOUT_VARIANTS, ModelVariants, design,
                                                   rank_on_heldout, vary_world)
+from dejaview.inference.params import SearchParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.scene import ModelUncertainty, Prior
 from dejaview.sim.world import _discrete_restitution
@@ -134,7 +135,7 @@ def test_where_no_refined_mode_explains_the_end_the_searchs_other_modes_are_refi
 
     def refine(xs):  # no Levenberg-Marquardt step (one Jacobian each): every mode stays where it was found
         before = post.jacobians
-        res = refine_under_variants(post, found(xs), iterations=0, seed=0)
+        res = refine_under_variants(post, found(xs), params=SearchParams(lm_final_iterations=0))
         return res, post.jacobians - before
 
     alone, _ = refine(far)

@@ -31,8 +31,8 @@ from dejaview.inference.posterior_report import (
     weighted_quantiles,
 )
 from dejaview.inference.reference import Mixture, log_base_density
-from dejaview.inference import sampling
-from dejaview.inference.sampling import sample_posterior
+from dejaview.inference.params import SamplerParams
+from dejaview.inference.sampling import Sampler
 from dejaview.inference.sampling import PosteriorSamples as Samples
 from dejaview.inference.search import Mode
 from dejaview.scene import Optimize, PosteriorSamples, Scene
@@ -98,7 +98,7 @@ def test_a_linear_gaussian_posterior_is_sampled_exactly():
     cov = torch.linalg.inv(A.T @ A)
     mean = cov @ A.T @ b
     off = Mode(mean + torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64), 0.0, 0.0, 0.0)  # a rough mode
-    smp = sample_posterior(post, [off], 2000, seed=1)
+    smp = Sampler(SamplerParams(seed=1)).sample(post, [off], 2000)
     assert torch.allclose(smp.weights.sum(), torch.tensor(1.0, dtype=torch.float64))
     x = smp.x
     sd = torch.sqrt(torch.diagonal(cov))
@@ -115,7 +115,7 @@ def test_infeasible_starts_get_no_sample_and_only_kept_proposals_are_checked():
     simulated (only on proposals the likelihood would accept)."""
     post = FakePosterior(2, lambda x: 0.5 * (x * x).sum(-1), lambda x: x, feasible=lambda x: x[:, 0] < 0.5)
     zero = Mode(torch.zeros(2, dtype=torch.float64), 0.0, 0.0, 0.0)
-    smp = sample_posterior(post, [zero], 2000, seed=4)
+    smp = Sampler(SamplerParams(seed=4)).sample(post, [zero], 2000)
     assert float(smp.x[:, 0].max()) < 0.5
     # mean of N(0, 1) below 0.5: -pdf(0.5) / cdf(0.5)
     expected = -math.exp(-0.125) / math.sqrt(2 * math.pi) / (0.5 * (1 + math.erf(0.5 / math.sqrt(2))))
@@ -138,7 +138,7 @@ def test_a_long_thin_ridge_is_sampled_along_its_whole_length():
     cov = torch.linalg.inv(prec)
     mean = cov @ (a.T @ torch.tensor([100.0], dtype=torch.float64))
     start = Mode(mean + torch.tensor([0.2, -0.2], dtype=torch.float64), 0.0, 0.0, 0.0)
-    smp = sample_posterior(post, [start], 1000, seed=3)
+    smp = Sampler(SamplerParams(seed=3)).sample(post, [start], 1000)
     along = (smp.x - mean) @ torch.tensor([1.0, -1.0], dtype=torch.float64) / math.sqrt(2)
     true_sd = math.sqrt(float(torch.tensor([1.0, -1.0], dtype=torch.float64) @ cov
                               @ torch.tensor([1.0, -1.0], dtype=torch.float64)) / 2)
@@ -163,7 +163,7 @@ def test_every_mode_is_covered_in_proportion_to_its_mass():
 
     post = FakePosterior(1, neg_log, res)
     modes = [Mode(m[i:i + 1].clone(), float(neg_log(m[i:i + 1, None])), 0.0, 0.0) for i in range(2)]
-    smp = sample_posterior(post, modes, 3000, seed=2)
+    smp = Sampler(SamplerParams(seed=2)).sample(post, modes, 3000)
     share = float(smp.weights[smp.x[:, 0] < 0.25].sum())
     assert share == pytest.approx(0.7, abs=0.04)
     assert float(smp.x[smp.x[:, 0] > 0.25, 0].std()) == pytest.approx(0.2, rel=0.15)
@@ -184,7 +184,7 @@ def test_mixture_density_integrates_to_one():
 
 
 def test_flat_orientation_has_the_haar_density_up_to_pi():
-    from dejaview.inference.params import layout_from_scene
+    from dejaview.backends.params import layout_from_scene
     from dejaview.inference.posterior import Posterior
 
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
@@ -278,9 +278,9 @@ def test_rhat_is_one_for_runs_of_one_distribution_and_flags_runs_apart():
     assert torch.isnan(rhat(values, torch.zeros(600, dtype=torch.long))).all()
 
 
-def test_the_samples_come_from_independent_runs_of_half_the_particles(monkeypatch):
-    """Two runs of half the particles (odd: the first one more); n samples below ``PARTICLES``
-    come from twice as many particles (at most ``PARTICLES``), n/2 of each run's, labelled;
+def test_the_samples_come_from_independent_runs_of_half_the_particles():
+    """Two runs of half the particles (odd: the first one more); n samples below ``particles``
+    come from twice as many particles (at most ``particles``), n/2 of each run's, labelled;
     fewer than 40 particles: one run."""
     A = torch.eye(2, dtype=torch.float64)
 
@@ -289,14 +289,14 @@ def test_the_samples_come_from_independent_runs_of_half_the_particles(monkeypatc
 
     post = FakePosterior(2, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
     mode = Mode(torch.zeros(2, dtype=torch.float64), 0.0, 0.0, 0.0)
-    smp = sample_posterior(post, [mode], 101, seed=0)
+    smp = Sampler(SamplerParams(seed=0)).sample(post, [mode], 101)
     assert smp.stats["runs"] == 2 and smp.stats["particles"] == 202
     assert torch.bincount(smp.run).tolist() == [51, 50] and smp.x.shape == (101, 2)
     assert torch.unique(smp.x, dim=0).shape[0] > 90  # a subset of the particles, not copies
-    monkeypatch.setattr(sampling, "PARTICLES", 150)
-    assert sample_posterior(post, [mode], 101, seed=0).stats["particles"] == 150
-    assert sample_posterior(post, [mode], 160, seed=0).stats["particles"] == 160
-    few = sample_posterior(post, [mode], 15, seed=0)
+    fewer = Sampler(SamplerParams(particles=150))
+    assert fewer.sample(post, [mode], 101).stats["particles"] == 150
+    assert fewer.sample(post, [mode], 160).stats["particles"] == 160
+    few = Sampler(SamplerParams(seed=0)).sample(post, [mode], 15)
     assert few.stats["runs"] == 1 and few.stats["particles"] == 30 and bool((few.run == 0).all())
 
 
@@ -358,7 +358,7 @@ def test_cli_samples_flag(tmp_path):
 def test_prior_draws_follow_the_normalised_prior_density(block, settings):
     """``log_prior_density`` is the normalised density of ``prior_draws``: importance weights
     p / g under a broad normal g average to 1, and the draws' density ranks like p."""
-    from dejaview.inference.params import layout_from_scene
+    from dejaview.backends.params import layout_from_scene
     from dejaview.inference.reference import log_prior_density, prior_draws
 
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
@@ -403,7 +403,7 @@ def test_a_thin_slab_in_eleven_parameters_keeps_the_priors_spread_along_it():
 
         post = FakePosterior(p, lambda x, res=res: 0.5 * (res(x) ** 2).sum(-1), res)
         rough = mean + 4 * evecs[:, :m] @ torch.sqrt(evals[:m])  # a search's mode, 4 sd off across
-        smp = sample_posterior(post, [Mode(rough, 0.0, 0.0, 0.0)], 300, seed=seed)
+        smp = Sampler(SamplerParams(seed=seed)).sample(post, [Mode(rough, 0.0, 0.0, 0.0)], 300)
         ratios.append(torch.diagonal(evecs.T @ torch.cov(smp.x.T) @ evecs) / evals)
     r = torch.stack(ratios).mean(0)
     assert 0.85 < float(r[m:].mean()) < 1.2, r  # along the slab
@@ -435,7 +435,7 @@ def test_the_population_move_rebalances_basins_the_particles_hold():
     x0 = m[basin] + s[basin, None] * torch.randn(n, 3, generator=gen, dtype=torch.float64)
     shares = {}
     for kind in ("population_move", "random_walk_move"):
-        smc = _SMC(post, q, n, 0, None, None, from_prior=False)
+        smc = _SMC(post, q, n, 0, None, None, from_prior=False, params=SamplerParams())
         smc.x = x0.clone()
         smc.lr, smc.lq = smc.reference(smc.x), q.log_prob(smc.x)
         smc.lp = -neg_log(smc.x)

@@ -8,7 +8,7 @@ import torch
 from dejaview.backends import as_problem, make_problem
 from dejaview.errors import InferenceError
 from dejaview.inference import solve
-from dejaview.inference.solve import screen_guesses
+from dejaview.inference.local import screen_guesses
 from dejaview.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -126,7 +126,7 @@ def test_bad_screen_rounds_are_one_line_errors():
 def test_restarts_take_the_first_rounds_guesses_before_the_refinements():
     """The pool keeps the loss order within each part: first round (spread over the prior)
     first, then the refinement rounds, which crowd around the start."""
-    from dejaview.inference.solve import restart_pool, screen_rounds_ranked
+    from dejaview.inference.local import restart_pool, screen_rounds_ranked
 
     problem = as_problem(make_problem(Scene.from_xml(BALL)))
     first = problem.layout.encode().to(problem.dtype)
