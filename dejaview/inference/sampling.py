@@ -133,6 +133,12 @@ class PosteriorSamples:
     stats: dict = field(default_factory=dict)
 
 
+def particles(n: int) -> list[int]:
+    """The particles of each independent run (``RUNS``) that draw n samples."""
+    m = max(n, min(PARTICLES, 2 * n))
+    return _shares(m, RUNS if m >= RUNS * MIN_RUN_SIZE else 1)
+
+
 def _shares(total: int, parts: int) -> list[int]:
     """``total`` split into ``parts`` near-equal counts, the first ones one more."""
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
@@ -539,9 +545,9 @@ def sample_posterior(post, modes: list, n: int, *, seed: int = 0, callback=None,
     proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
     if proper:  # the prior is a proper distribution: temper from it, propose from it too
         q.prior, q.prior_share = post, PRIOR_SHARE
-    m = max(n, min(PARTICLES, 2 * n))  # particles
-    runs_wanted = RUNS if m >= RUNS * MIN_RUN_SIZE else 1
-    sizes, keep = _shares(m, runs_wanted), _shares(n, runs_wanted)
+    sizes = particles(n)
+    m = sum(sizes)
+    keep = _shares(n, len(sizes))
     t0 = time.perf_counter()
     runs = []
     for i, size in enumerate(sizes):

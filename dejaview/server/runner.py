@@ -39,7 +39,8 @@ import uuid
 from pathlib import Path
 
 from dejaview.server.config import ServerConfig
-from dejaview.server.errors import ServiceError
+from dejaview.io.result_set import partial_folders
+from dejaview.server.errors import ServiceError, write_error
 from dejaview.server.messages import (
     FINISHED_STATES,
     AcceptedMessage,
@@ -130,7 +131,8 @@ class JobRunner:
         self._prune()
         self.pool = make_pool(self.config.executor, self.config.workers,
                               {"job_timeout_s": self.config.job_timeout_s,
-                               "progress_interval_s": self.config.progress_interval_s})
+                               "progress_interval_s": self.config.progress_interval_s,
+                               "memory_limit": self.config.job_memory_bytes})
         self.pool.start(self._from_worker)
         self._dispatch()
 
@@ -192,7 +194,7 @@ class JobRunner:
         job.status.progress = None
         job.slot = None
         (self.pending.appendleft if front else self.pending.append)(job.id)
-        for stale in (self.jobs_dir / job.id).glob(".partial-*"):
+        for stale in partial_folders(self.jobs_dir / job.id):
             shutil.rmtree(stale, ignore_errors=True)  # what a killed worker left half written
         self._save(job)
 
@@ -250,14 +252,19 @@ class JobRunner:
         """Queue a checked job; ``subscriber`` gets ``accepted`` first, then everything else.
 
         Raises:
-            ServiceError: ``queue_full`` (503), ``invalid_scene`` / ``limit_exceeded`` (422).
+            ServiceError: ``queue_full`` (503), ``invalid_scene`` / ``limit_exceeded`` (422),
+                ``disk_full`` (507) / ``write_failed`` / ``store_error`` where nothing can be written.
         """
         check_job(kind, scene_input.scene, overrides, self.config)
         self._check_room()
         job_id = uuid.uuid4().hex
         folder = self.jobs_dir / job_id
-        folder.mkdir(parents=True)
-        write_atomically(folder / "scene.xml", scene_input.text.encode("utf-8"))
+        try:
+            folder.mkdir(parents=True)
+            write_atomically(folder / "scene.xml", scene_input.text.encode("utf-8"))
+        except OSError as exc:  # a full disk refuses the job; the server goes on
+            shutil.rmtree(folder, ignore_errors=True)
+            raise write_error(exc) from None
         status = JobStatus(job_id=job_id, kind=kind, state="queued", created_at=time.time(),
                            scene=scene_input.source, overrides=overrides)
         spec = {"kind": kind, "text": scene_input.text, "base_dir": str(scene_input.base_dir),
