@@ -8,6 +8,7 @@ torch.set_num_threads(1)
 
 import builtins  # noqa: E402
 import errno  # noqa: E402
+import io  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
@@ -30,6 +31,7 @@ def disk_full_at(monkeypatch):
         return real_open(file, mode, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "open", open_)
+    monkeypatch.setattr(io, "open", open_)  # what pathlib's Path.open calls
 
     def set_full(name):
         state["name"] = name
