@@ -4,3 +4,36 @@ import torch
 
 # many small ops: one intra-op thread is faster and deterministic (see dejaview.cli.options)
 torch.set_num_threads(1)
+
+
+import builtins  # noqa: E402
+import errno  # noqa: E402
+import io  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture
+def disk_full_at(monkeypatch):
+    """``disk_full_at(name)``: from then on, in this process, opening a file called ``name`` inside a
+    result set being written (a ``.partial-`` folder, ``dejaview.io.result_set``) fails as on a
+    full disk (ENOSPC); ``disk_full_at(None)`` frees the disk. The files written before it stay
+    in the folder, as a real full disk leaves them."""
+    real_open = builtins.open
+    state = {"name": None}
+
+    def open_(file, mode="r", *args, **kwargs):
+        path = Path(file) if isinstance(file, (str, Path)) else None
+        if (path is not None and state["name"] == path.name and ".partial-" in path.parent.name
+                and any(c in mode for c in "wax")):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)
+    monkeypatch.setattr(io, "open", open_)  # what pathlib's Path.open calls
+
+    def set_full(name):
+        state["name"] = name
+
+    return set_full

@@ -190,7 +190,7 @@ class SpheresBackend:
 
     name = "spheres"
     gradient_modes = GRADIENT_MODES
-    simulate_options = frozenset({"dtype", "engine", "world", "max_steps"})
+    simulate_options = frozenset({"dtype", "engine", "world", "max_steps", "memory_limit"})
     problem_options = frozenset({"dtype", "engine", "compile", "world", "checkpoint_every", "orientation_weight",
                                  "max_speed", "max_spin"})
 
@@ -218,7 +218,8 @@ class SpheresBackend:
         return SpheresProblem.from_scene(scene, **options)
 
     def simulate(self, scene, *, steps=None, record_every=1, callback=None, should_stop=None, **options):
-        """``dejaview.sim.simulate.simulate`` (options: ``dtype``, ``engine``, ``world``, ``max_steps``)."""
+        """``dejaview.sim.simulate.simulate`` (options: ``dtype``, ``engine``, ``world``, ``max_steps``,
+        ``memory_limit``)."""
         from dejaview.backends import check_options
         from dejaview.errors import SimulationError
         from dejaview.sim.simulate import simulate

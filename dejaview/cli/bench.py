@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -532,6 +533,28 @@ def load(clients, url, workers, executor, csv_path, check):
     row = bench_module("load").run(print_fn=click.echo, clients=clients, url=url, workers=workers,
                                    executor=executor)
     _finish([row], csv_path, check, [row["lost"] == 0])
+
+
+@command.command("soak")
+@click.option("--minutes", default=10.0, show_default=True, type=click.FloatRange(min=0.1, max=24 * 60),
+              help="How long the clients submit jobs.")
+@click.option("--clients", default=8, show_default=True, type=click.IntRange(min=1, max=256),
+              help="Clients submitting solve and heatmap jobs one after another.")
+@click.option("--kills", default=5, show_default=True, type=click.IntRange(min=0, max=100),
+              help="Times the server and its workers are killed with -9 and restarted, at random moments.")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1),
+              help="Worker processes of the server.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seeds the kill moments and the clients.")
+@csv_option
+@check_option
+def soak(minutes, clients, kills, workers, seed, csv_path, check):
+    """Service soak: clients submit jobs for MINUTES while the server is killed -9 and restarted;
+    accepted, finished, failed by code, lost (must be 0), duplicated (must be 0), peak memory
+    (--check: exit 1 if a job was lost or duplicated). Loopback only."""
+    row = bench_module("soak").run(print_fn=click.echo, minutes=minutes, clients=clients, kills=kills,
+                                   workers=workers, seed=seed)
+    _finish([{**row, "failed": json.dumps(row["failed"]), "refused": json.dumps(row["refused"])}], csv_path,
+            check, [row["lost"] == 0 and row["duplicated"] == 0])
 
 
 def _finish(rows, csv_path, check, verdicts):

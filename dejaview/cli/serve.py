@@ -38,6 +38,9 @@ from dejaview.server.config import KIB, MIB, default_workers
               help="largest rollout in integration substeps (steps x substeps)")
 @click.option("--max-iterations", type=click.IntRange(min=1), default=10_000, show_default=True,
               help="largest number of optimiser iterations")
+@click.option("--max-job-memory", "max_job_memory", default=None, metavar="SIZE",
+              help="memory one job may hold, e.g. 2G (default: the machine's limit, DEJAVIEW_MEMORY_LIMIT or "
+                   "80 % of its memory, shared by the workers); larger jobs fail with limit_exceeded")
 @click.option("--job-timeout", type=click.FloatRange(min=0, min_open=True), default=3600.0,
               show_default=True, help="seconds a job may run")
 @click.option("--max-connections", type=click.IntRange(min=1), default=None,
@@ -53,7 +56,8 @@ from dejaview.server.config import KIB, MIB, default_workers
               default="info", show_default=True)
 def command(host, port, scene_root, results_dir, workers, executor, queue_size, max_body_kb,
             max_message_kb, max_scene_kb, messages_per_second, inline_limit_kb, max_jobs_per_connection,
-            max_steps, max_iterations, job_timeout, max_connections, token, allow_origins, log_level):
+            max_steps, max_iterations, max_job_memory, job_timeout, max_connections, token, allow_origins,
+            log_level):
     """Serve simulate, solve and heatmap jobs over REST and WebSocket.
 
     Clients submit scenes as XML text or as paths inside --scene-root; results
@@ -70,6 +74,7 @@ def command(host, port, scene_root, results_dir, workers, executor, queue_size, 
 
     import uvicorn
 
+    from dejaview.memory import parse_size
     from dejaview.server.access import LOOPBACK_NAMES, host_name, is_loopback
     from dejaview.server.app import create_app
     from dejaview.server.config import ServerConfig
@@ -88,6 +93,7 @@ def command(host, port, scene_root, results_dir, workers, executor, queue_size, 
                               inline_limit_bytes=inline_limit_kb * 1000,
                               max_jobs_per_connection=max_jobs_per_connection, max_steps=max_steps,
                               max_iterations=max_iterations, job_timeout_s=job_timeout, token=token,
+                              max_job_memory_bytes=None if max_job_memory is None else parse_size(max_job_memory),
                               allow_origins=allow_origins, allowed_hosts=None)
     except ValueError as exc:
         raise click.UsageError(str(exc)) from None

@@ -339,6 +339,13 @@ class SceneCollision:
             return (torch.as_tensor(hit, device=device), torch.as_tensor(depth, device=device), other)
         return hit, depth, other
 
+    def query_bytes(self, source_id: str) -> int:
+        """Bytes a ``penetration`` query holds per candidate pose at its peak: the support values of
+        the source's hull vertices against a plane (B, V), beside its rotation, pose and depths
+        (5.3 kB measured for the ball's 642 vertices)."""
+        body = self._body(source_id)
+        return 8 * ((0 if body.hull is None else len(body.hull)) + 32)
+
     def ball_penetration(self, source_id: str, position, radius: float):
         """How deep a ball of ``radius`` centred at each position overlaps the objects other than
         ``source_id`` (each at its scene pose).

@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import torch
 
-from dejaview.errors import InferenceError
+from dejaview.errors import InferenceError, ResourceError
 
 METHODS = ("posterior", "basins")
 """``compute_heatmap`` methods: the posterior's marginal (this module) or the per-cell
@@ -60,7 +60,7 @@ def choose_method(method: str | None, optimizer: str | None, backend: str | None
 
 
 def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations=None, seed=None,
-                      callback=None, should_stop=None, problem=None, backend=None):
+                      callback=None, should_stop=None, problem=None, backend=None, memory_limit=None):
     """Heatmap of the posterior's start-position marginal (module docstring).
 
     Args:
@@ -74,6 +74,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
         should_stop: polled between iterations and sampler moves; True raises InferenceError.
         problem: reuse a spheres problem of this scene; backend: else the spheres backend's
             ``BackendOptions`` (e.g. its engine) or None.
+        memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``).
     Returns:
         HeatmapResult (``best``: the solve, with its posterior samples).
     """
@@ -121,8 +122,12 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
                                  elapsed_s=time.perf_counter() - t0, cells_done=int(share * cells_total),
                                  cells_total=cells_total, chunk=0, chunks=1, phase=p.phase))
 
-    result = solve(scene, optimizer="auto", iterations=iterations, seed=seed, samples=n, callback=progress,
-                   should_stop=should_stop, problem=problem, backend=backend)
+    try:
+        result = solve(scene, optimizer="auto", iterations=iterations, seed=seed, samples=n, callback=progress,
+                       should_stop=should_stop, problem=problem, backend=backend, memory_limit=memory_limit)
+    except ResourceError as exc:
+        raise exc.naming(f"a heatmap of {nx} x {ny} cells with {per_cell} samples each ({n} posterior "
+                         f"samples)") from None
     if result.posterior is None:
         raise InferenceError("stopped before the posterior was sampled: no heatmap to report")
     layout = result.problem.layout

@@ -93,14 +93,25 @@ class HeatmapResult:
 
     def write(self, out_dir, plot: bool = True, truth=None) -> dict[str, Path]:
         """Write heatmap.ppm, heatmap.json, heatmap.png (``plot``), result.json, iterations.csv and
-        trajectory.csv (the best solution) to out_dir. ``truth``: optional (x, y) marked in the PNG."""
+        trajectory.csv (the best solution) to out_dir, whole or not at all
+        (``dejaview.io.result_set``). ``truth``: optional (x, y) marked in the PNG.
+
+        Raises:
+            OutputError: the set could not be written (a full disk...): out_dir keeps what it held.
+        """
+        from dejaview.inference.result import RESULT_FILES
+        from dejaview.io.result_set import write_result_set
+
+        return write_result_set(out_dir, lambda folder: self.write_files(folder, plot, truth),
+                                RESULT_FILES + ("heatmap.json", "heatmap.ppm", "heatmap.png"))
+
+    def write_files(self, out: Path, plot: bool = True, truth=None) -> dict[str, Path]:
+        """``write``'s files, written straight into the folder ``out`` (exists)."""
         import json
 
         from dejaview.heatmap.images import write_png, write_ppm
 
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = self.best.write(out)
+        paths = self.best.write_files(out)
         result = self.best.to_json()
         result["heatmap"] = {"file": "heatmap.json", "cells": list(self.cells),
                              "entropy_bits": self.entropy_bits(), "candidates": self.candidates,

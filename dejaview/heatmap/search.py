@@ -81,7 +81,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     radii: tuple[float, ...] = DEFAULT_RADII, directions: int = DEFAULT_DIRECTIONS,
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
                     callback=None, should_stop=None, problem=None, backend=None,
-                    method: str | None = None, ray: str | None = None) -> HeatmapResult:
+                    method: str | None = None, ray: str | None = None,
+                    memory_limit: int | None = None) -> HeatmapResult:
     """Start-position heatmap of a scene's source.
 
     ``method="posterior"`` (the default where the spheres backend runs, no local optimiser is
@@ -125,6 +126,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         ray: optimise the chunks on Ray (``dejaview.parallel``): ``"local"`` or a cluster address,
             ``workers`` actors; each builds the problem from the scene. Same results as in processes.
             Basins method only (a ``ray`` given picks it).
+        memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``): the posterior
+            method refuses samples that would need more, before any work (``ResourceError``).
     Returns:
         HeatmapResult.
     Raises:
@@ -154,7 +157,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                                      f"not to the posterior's")
         return posterior_heatmap(scene, cells=cells, samples=samples, sigma=sigma, iterations=iterations,
                                  seed=seed, callback=callback, should_stop=should_stop, problem=problem,
-                                 backend=None if problem is not None else options)
+                                 backend=None if problem is not None else options, memory_limit=memory_limit)
     t_start = time.perf_counter()
     run = _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
                     radii, directions)

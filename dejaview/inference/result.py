@@ -171,9 +171,18 @@ class SolveResult:
 
     def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
         """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``); with
-        posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``)."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``); whole
+        or not at all (``dejaview.io.result_set``).
+
+        Raises:
+            OutputError: the set could not be written (a full disk...): out_dir keeps what it held.
+        """
+        from dejaview.io.result_set import write_result_set
+
+        return write_result_set(out_dir, lambda folder: self.write_files(folder, plot), RESULT_FILES)
+
+    def write_files(self, out: Path, plot: bool = False) -> dict[str, Path]:
+        """``write``'s files, written straight into the folder ``out`` (exists)."""
         paths = {"result": out / "result.json", "iterations": out / "iterations.csv",
                  "trajectory": out / "trajectory.csv"}
         paths["result"].write_text(json.dumps(self.to_json(), indent=2), encoding="utf-8")
@@ -194,6 +203,11 @@ class SolveResult:
             quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
             paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)
         return paths
+
+
+RESULT_FILES = ("result.json", "iterations.csv", "trajectory.csv", "posterior.csv", "posterior_paths.csv",
+                "loss.png")
+"""Every file a solve's result set may hold."""
 
 
 def _target_json(t) -> dict:

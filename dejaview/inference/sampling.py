@@ -97,6 +97,13 @@ class PosteriorSamples:
     stats: dict = field(default_factory=dict)
 
 
+def particles(n: int, params: SamplerParams | None = None) -> list[int]:
+    """The particles of each independent run (``SamplerParams.runs``) that draw n samples."""
+    p = SamplerParams() if params is None else params
+    m = max(n, min(p.particles, 2 * n))
+    return _shares(m, p.runs if m >= p.runs * p.min_run_size else 1)
+
+
 def _shares(total: int, parts: int) -> list[int]:
     """``total`` split into ``parts`` near-equal counts, the first ones one more."""
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
@@ -514,9 +521,8 @@ class Sampler:
         proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
         if proper:  # the prior is a proper distribution: temper from it, propose from it too
             q.prior, q.prior_share = post, p.prior_share
-        m = max(n, min(p.particles, 2 * n))  # particles
-        runs_wanted = p.runs if m >= p.runs * p.min_run_size else 1
-        sizes, keep = _shares(m, runs_wanted), _shares(n, runs_wanted)
+        sizes = particles(n, p)
+        m, keep = sum(sizes), _shares(n, len(sizes))
         t0 = time.perf_counter()
         runs = []
         for i, size in enumerate(sizes):

@@ -152,7 +152,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
           backend=None,
           screen: int | None = None, screen_rounds: int | None = None,
           screen_near: float | None = None, budget: int | None = None,
-          samples: int | None = None, truth: dict | None = None) -> SolveResult:
+          samples: int | None = None, truth: dict | None = None,
+          memory_limit: int | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object: its most probable past.
 
     The default (``optimizer="auto"``, what a scene without ``optimizer`` asks for) maximises the
@@ -182,18 +183,22 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
             integrator, ...; ``dejaview.backends``); not with ``problem``. The ``auto`` search
             needs the spheres backend's residual Jacobians; with another backend ``auto`` runs
             ``lbfgs``.
+        memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``); posterior
+            samples that would not fit are refused before the search runs.
     Returns:
         SolveResult.
     Raises:
         InferenceError: bad settings (one line naming the problem); ``StartAreaError`` (an
             ``InferenceError``) first of all where the start area cannot hold the source
-            (``dejaview.inference.start_area``).
+            (``dejaview.inference.start_area``). ``ResourceError``: posterior samples that would
+            need more memory than the limit (``dejaview.memory``), before anything runs.
     """
     from dejaview.scene import Scene
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
     from dejaview.inference.problem import check_inference
+    from dejaview.inference.sizing import check_solve_memory
     from dejaview.inference.start_area import check_start_area
 
     local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
@@ -212,6 +217,8 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn = None
     if settings.optimizer == "auto":
+        if settings.samples:
+            collision = check_solve_memory(scene, problem, settings.samples, collision, memory_limit)
         post = Posterior.from_scene(scene, problem=problem, collision=collision)
         search = settings.search_params()
         opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)

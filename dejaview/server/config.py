@@ -44,6 +44,9 @@ class ServerConfig:
         max_steps: largest number of integration substeps (steps x substeps) of one rollout.
         max_iterations: largest number of optimiser iterations.
         max_heatmap_runs: largest cells_x * cells_y * samples of a heatmap.
+        max_job_memory_bytes: memory one job's worker may hold (``dejaview.memory``); a job sized
+            over it fails with ``limit_exceeded`` before any work. None: the machine's limit
+            (``DEJAVIEW_MEMORY_LIMIT`` or 80 % of its memory) shared equally by the workers.
         job_timeout_s: a running job is stopped (failed, ``timeout``) after this long.
         progress_interval_s: at most one progress message per job per this many seconds.
         keep_jobs: finished jobs kept on disk; the oldest are deleted beyond it.
@@ -71,6 +74,7 @@ class ServerConfig:
     max_steps: int = 200_000
     max_iterations: int = 10_000
     max_heatmap_runs: int = 4096
+    max_job_memory_bytes: int | None = None
     job_timeout_s: float | None = 3600.0
     progress_interval_s: float = 0.25
     keep_jobs: int = 1000
@@ -88,6 +92,8 @@ class ServerConfig:
                      "max_steps", "max_iterations", "max_heatmap_runs", "keep_jobs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_job_memory_bytes is not None and self.max_job_memory_bytes < 1:
+            raise ValueError(f"max_job_memory_bytes must be >= 1, got {self.max_job_memory_bytes}")
         if not self.messages_per_second > 0:
             raise ValueError("messages_per_second must be > 0")
         if self.token is not None and (not self.token or any(c.isspace() or not c.isprintable()
@@ -96,6 +102,17 @@ class ServerConfig:
         object.__setattr__(self, "allow_origins", tuple(_origin(o) for o in self.allow_origins))
         if self.allowed_hosts is not None:
             object.__setattr__(self, "allowed_hosts", tuple(h.lower() for h in self.allowed_hosts))
+
+    @property
+    def job_memory_bytes(self) -> int:
+        """Memory one job may hold: ``max_job_memory_bytes`` (at most the machine's limit), or the
+        machine's limit over the workers."""
+        from dejaview import memory
+
+        machine = memory.limit()[0]
+        if self.max_job_memory_bytes is not None:
+            return min(self.max_job_memory_bytes, machine)
+        return machine // self.workers
 
     @property
     def ws_max_size(self) -> int:

@@ -4,8 +4,9 @@
 the job's spec (kind, scene text, overrides), a folder to write into, a
 function to report progress through and a ``StopCheck`` to poll, and returns
 the job's summary and the names of the files it wrote. The files appear
-atomically (written aside, renamed into place), so a job run again after a
-crash simply writes the same files again. Torch and the
+atomically (``dejaview.io.result_set``: written aside, renamed into place), so a
+job run again after a crash simply writes the same files again, and a full disk
+fails the job (``disk_full``) without a half-written set. Torch and the
 simulator are imported here, inside the worker, never by the web process's
 event loop.
 """
@@ -15,9 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import time
-import uuid
 from pathlib import Path
 
 from dejaview.server.errors import ServiceError
@@ -76,7 +75,8 @@ def _finite(v):
     return v if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
-def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval: float = 0.25) -> dict:
+def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval: float = 0.25,
+            memory_limit: int | None = None) -> dict:
     """Run one job and write its artefacts into ``out_dir``.
 
     Args:
@@ -86,6 +86,8 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
         emit: called with a progress dict (fields of ``messages.Progress``), throttled here.
         stop: polled every iteration / step.
         progress_interval: seconds between progress reports.
+        memory_limit: bytes the job may hold (None: ``dejaview.memory.limit()``); a job sized over
+            it raises ``ResourceError`` before any work.
     Returns:
         ``{"summary": {...}, "artefacts": [file names]}``.
     Raises:
@@ -100,34 +102,13 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
     scene = read_scene_string(spec["text"], base_dir=spec["base_dir"], filename=spec["filename"],
                               check_files=True, max_bytes=max(len(spec["text"].encode()), 1),
                               root=spec.get("root"))
-    overrides = dict(spec.get("overrides") or {})
+    overrides = dict(spec.get("overrides") or {}, memory_limit=memory_limit)
     progress = Throttle(emit, progress_interval)
     stop.raise_if_stopped()
     runner = {"simulate": _simulate, "solve": _solve, "heatmap": _heatmap}[spec["kind"]]
-    out_dir = Path(out_dir)
-    # written into a folder of this run's own, then renamed into place one by one: a reader (or
-    # a run of the same job after a crash) never sees a half-written artefact
-    stage = out_dir / f".partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    stage.mkdir()
-    try:
-        out = runner(scene, overrides, stage, progress, stop)
-        stop.raise_if_stopped()
-        for name in out["artefacts"]:
-            _sync(stage / name)
-            os.replace(stage / name, out_dir / name)
-        _sync(out_dir)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-    return out
-
-
-def _sync(path: Path) -> None:
-    """fsync a file or folder (a rename is durable once its folder is synced)."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    # each result set is written whole or not at all (``dejaview.io.result_set``): a reader, or a
+    # run of the same job after a crash, never sees a half-written artefact
+    return runner(scene, overrides, Path(out_dir), progress, stop)
 
 
 def _simulate(scene, overrides, out_dir, progress, stop):
@@ -140,9 +121,12 @@ def _simulate(scene, overrides, out_dir, progress, stop):
         progress({"iteration": step, "total": total, "elapsed_s": time.perf_counter() - start},
                  last=step == total)
 
+    backend = overrides.get("backend") or "spheres"
+    limit = {"memory_limit": overrides["memory_limit"]} if backend == "spheres" else {}
     try:
-        run = simulate(scene, overrides.get("backend") or "spheres", steps=overrides.get("steps"),
-                       record_every=overrides.get("record_every", 1), callback=step_done, should_stop=stop)
+        run = simulate(scene, backend, steps=overrides.get("steps"),
+                       record_every=overrides.get("record_every", 1), callback=step_done, should_stop=stop,
+                       **limit)
     except SimulationStopped:
         raise JobStopped(stop.reason or "cancelled") from None
     paths = run.write(out_dir)
@@ -174,7 +158,7 @@ def _solve(scene, overrides, out_dir, progress, stop):
     total = overrides.get("iterations", scene.inference.iterations)
     kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "budget", "gradient", "seed", "lr",
                                         "tolerance", "backend", "multistart", "screen", "screen_rounds",
-                                        "samples")
+                                        "samples", "memory_limit")
               if k in overrides}
     result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
     if stop.reason is not None:
@@ -199,7 +183,7 @@ def _heatmap(scene, overrides, out_dir, progress, stop):
 
     total = None  # iterations run over chunks of cells: cells_done / cells_total tell how far it is
     kwargs = {k: overrides[k] for k in ("cells", "samples", "sigma", "iterations", "optimizer", "gradient",
-                                        "seed", "backend") if k in overrides}
+                                        "seed", "backend", "memory_limit") if k in overrides}
     if "cells" in kwargs:
         kwargs["cells"] = tuple(kwargs["cells"])
     result = compute_heatmap(scene, callback=_optimiser_progress(total, progress), should_stop=stop,

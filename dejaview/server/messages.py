@@ -30,9 +30,15 @@ scene_too_large       413    scene XML over the scene size limit
 invalid_scene         422    the scene XML is malformed or invalid (file:line: <element> reason)
 scene_not_found       400    ``scene_path`` names no file inside the scene root
 path_outside_root     400    a scene or mesh path that leaves the scene root
-limit_exceeded        422    a job bigger than the server allows (steps, iterations, heatmap size)
+limit_exceeded        422    a job bigger than the server allows (steps, iterations, heatmap size);
+                             as a failed job's error, before any work: its memory estimate is over
+                             the server's limit for one job (posterior samples, heatmap cells,
+                             simulation records: the one line names the estimate and the limit)
 queue_full            503    the job queue is full: retry later
 store_error           503    the job store (SQLite in the results dir) cannot be written
+disk_full             507    the results dir's disk is full: a job is refused (REST) or fails with
+                             nothing of its result set written (the path named); retry later
+write_failed          500    a job's files could not be written for another reason (permission...)
 too_many_jobs         429    this connection has too many unfinished jobs
 not_found             404    no such job (or route)
 not_ready             409    the job has not finished: no artefacts yet
@@ -48,6 +54,8 @@ timeout               --     the job ran longer than the server's job time limit
 interrupted           --     the server stopped under the job 5 times (or its record is from an
                              older version); a job is otherwise run again after a restart
 worker_crashed        --     the job's worker process died twice while running it
+result_unreadable     --     a finished job whose artefacts could not be read when the server
+                             started (moved aside to ``<results_dir>/unreadable/<id>``)
 internal_error        500    a bug: the message names the exception
 ===================== ====== ===================================================
 

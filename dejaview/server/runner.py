@@ -14,6 +14,10 @@ previous server left queued or running (after a crash or a plain stop), in
 their order: at-least-once, as a job's outputs are a pure function of its
 scene and overrides, and a worker writes them atomically (``jobs.run_job``).
 
+A finished job whose artefacts cannot be read when the server starts (a file
+gone, a JSON file edited by hand) is moved to ``<results_dir>/unreadable/`` and
+fails with ``result_unreadable``; the log says so once, the rest is served.
+
 A job whose worker process dies is queued again at the front; the second
 time (``MAX_CRASHES``) it fails with ``worker_crashed``, and the server goes
 on with the next job. A job the server itself was stopped under
@@ -39,7 +43,8 @@ import uuid
 from pathlib import Path
 
 from dejaview.server.config import ServerConfig
-from dejaview.server.errors import ServiceError
+from dejaview.io.result_set import partial_folders
+from dejaview.server.errors import ServiceError, write_error
 from dejaview.server.messages import (
     FINISHED_STATES,
     AcceptedMessage,
@@ -61,6 +66,7 @@ log = logging.getLogger("dejaview.server")
 
 JOB_ID_RE = re.compile(r"^[0-9a-f]{32}$")
 MAX_CRASHES = 2  # a job whose worker process dies this many times fails (worker_crashed)
+UNREADABLE = "unreadable"  # where finished jobs whose artefacts cannot be read are moved, in the results dir
 MAX_STARTS = 5  # a job started this many times, the server stopping under it each time, fails
 
 # artefact file name -> media type; what GET /jobs/{id}/{name} may serve
@@ -130,7 +136,8 @@ class JobRunner:
         self._prune()
         self.pool = make_pool(self.config.executor, self.config.workers,
                               {"job_timeout_s": self.config.job_timeout_s,
-                               "progress_interval_s": self.config.progress_interval_s})
+                               "progress_interval_s": self.config.progress_interval_s,
+                               "memory_limit": self.config.job_memory_bytes})
         self.pool.start(self._from_worker)
         self._dispatch()
 
@@ -145,7 +152,7 @@ class JobRunner:
             self.store = None
 
     def _load_records(self) -> None:
-        requeued = 0
+        requeued, aside = 0, []
         for row in self.store.load():
             try:
                 status = JobStatus.model_validate_json(row.record)
@@ -157,6 +164,9 @@ class JobRunner:
             self.jobs[job.id] = job
             if job.finished:
                 job.spec = None
+                unreadable = self._unreadable_artefact(job)
+                if unreadable is not None:
+                    aside.append(self._set_aside(job, unreadable))
             elif job.spec is None:
                 self._finish(job, "failed", ErrorInfo(
                     code="interrupted", message="the server stopped before this job finished (its record "
@@ -170,6 +180,39 @@ class JobRunner:
                 requeued += 1
         if requeued:
             log.warning("%d unfinished job(s) of a previous server queued again", requeued)
+        if aside:
+            log.warning("%d finished job(s) whose artefacts could not be read moved aside to %s: %s",
+                        len(aside), self.config.results_dir / UNREADABLE, ", ".join(aside))
+
+    def _unreadable_artefact(self, job: Job) -> str | None:
+        """What of a finished job's artefacts cannot be read (a file missing, JSON edited by hand into
+        something else), or None."""
+        for name in job.status.artefacts:
+            path = self.jobs_dir / job.id / name
+            try:
+                if name.endswith(".json"):
+                    json.loads(path.read_text(encoding="utf-8"))
+                elif not path.is_file():
+                    return f"{name}: missing"
+            except (OSError, ValueError) as exc:
+                return f"{name}: {first_line(exc)}"
+        return None
+
+    def _set_aside(self, job: Job, why: str) -> str:
+        """Move a job with an unreadable artefact to ``<results_dir>/unreadable/<id>``; the job is failed
+        with ``result_unreadable``, the rest of the results dir served as before."""
+        target = self.config.results_dir / UNREADABLE / job.id
+        try:
+            target.parent.mkdir(exist_ok=True)
+            os.replace(self.jobs_dir / job.id, target)
+        except OSError as exc:
+            why += f" (not moved: {exc.strerror})"
+        job.status.artefacts = {}
+        job.status.state = "failed"
+        job.status.error = ErrorInfo(code="result_unreadable", message=f"the job's artefacts could not be read "
+                                     f"when the server started ({why}); they were moved to {target}")
+        self._save(job)
+        return job.id
 
     def _import_json_records(self) -> None:
         """Records of older versions (``jobs/<id>/job.json``) that the store does not hold yet."""
@@ -192,7 +235,7 @@ class JobRunner:
         job.status.progress = None
         job.slot = None
         (self.pending.appendleft if front else self.pending.append)(job.id)
-        for stale in (self.jobs_dir / job.id).glob(".partial-*"):
+        for stale in partial_folders(self.jobs_dir / job.id):
             shutil.rmtree(stale, ignore_errors=True)  # what a killed worker left half written
         self._save(job)
 
@@ -250,14 +293,19 @@ class JobRunner:
         """Queue a checked job; ``subscriber`` gets ``accepted`` first, then everything else.
 
         Raises:
-            ServiceError: ``queue_full`` (503), ``invalid_scene`` / ``limit_exceeded`` (422).
+            ServiceError: ``queue_full`` (503), ``invalid_scene`` / ``limit_exceeded`` (422),
+                ``disk_full`` (507) / ``write_failed`` / ``store_error`` where nothing can be written.
         """
         check_job(kind, scene_input.scene, overrides, self.config)
         self._check_room()
         job_id = uuid.uuid4().hex
         folder = self.jobs_dir / job_id
-        folder.mkdir(parents=True)
-        write_atomically(folder / "scene.xml", scene_input.text.encode("utf-8"))
+        try:
+            folder.mkdir(parents=True)
+            write_atomically(folder / "scene.xml", scene_input.text.encode("utf-8"))
+        except OSError as exc:  # a full disk refuses the job; the server goes on
+            shutil.rmtree(folder, ignore_errors=True)
+            raise write_error(exc) from None
         status = JobStatus(job_id=job_id, kind=kind, state="queued", created_at=time.time(),
                            scene=scene_input.source, overrides=overrides)
         spec = {"kind": kind, "text": scene_input.text, "base_dir": str(scene_input.base_dir),
@@ -420,12 +468,11 @@ class JobRunner:
                 grid_text, _ = self._inline(folder / "heatmap.json") if "heatmap.json" in names else (None, 0)
                 out.append(HeatmapMessage(job_id=jid, ppm=ppm, ppm_url=names["heatmap.ppm"],
                                           png_url=names.get("heatmap.png"),
-                                          grid=json.loads(grid_text) if grid_text else None,
+                                          grid=_json_or_none(grid_text),
                                           grid_url=names.get("heatmap.json")))
             if "result.json" in names:
                 text, _ = self._inline(folder / "result.json")
-                out.append(ResultMessage(job_id=jid, result=json.loads(text) if text else None,
-                                         url=names["result.json"]))
+                out.append(ResultMessage(job_id=jid, result=_json_or_none(text), url=names["result.json"]))
         elif state == "failed" and job.status.error is not None:
             out.append(ErrorMessage(job_id=jid, code=job.status.error.code, message=job.status.error.message))
         out.append(DoneMessage(job_id=jid, state=state))
@@ -483,6 +530,15 @@ def write_atomically(path: Path, data: bytes) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _json_or_none(text: str | None):
+    """The JSON of an artefact's text, None where absent or not JSON (a file edited since the start:
+    its URL still says where it is)."""
+    try:
+        return json.loads(text) if text else None
+    except ValueError:
+        return None
 
 
 def first_line(exc: BaseException) -> str:

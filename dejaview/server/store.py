@@ -17,6 +17,10 @@ after a crash the next server runs them again (at-least-once: a job's
 outputs are a pure function of its scene and overrides). The artefacts stay
 files in ``<results_dir>/jobs/<id>/``.
 
+A database that cannot be read (truncated, overwritten by hand) does not stop a server: the rows
+still readable are kept, the file is moved aside to ``jobs.sqlite3.unreadable-<time>`` and the
+server says so once in its log (``JobStore.moved_aside``).
+
 Only one server may use a results dir at a time: the store holds an
 exclusive ``flock`` on ``<results_dir>/jobs.lock`` while it is open (the
 kernel drops it when the process dies, however it dies).
@@ -26,8 +30,10 @@ from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import os
 import sqlite3
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +52,8 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, seq);
 """
 
+log = logging.getLogger("dejaview.server")
+
 # results dir -> [lock file, users]: the app of a test and a restarted app in one process share it
 _LOCKS: dict[Path, list] = {}
 
@@ -60,6 +68,29 @@ class StoredJob:
     spec: dict | None
     starts: int
     crashes: int
+
+
+def _corrupt(exc: sqlite3.Error) -> bool:
+    """Whether an error says the database file itself is damaged (not locked, not a full disk)."""
+    text = str(exc).lower()
+    return "malformed" in text or "not a database" in text or "quick_check" in text
+
+
+def _readable_rows(path: Path) -> list[tuple]:
+    """The rows of a damaged job store that can still be read, in order, until the first that cannot."""
+    rows = []
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1.0)
+    except sqlite3.Error:
+        return rows
+    try:
+        for row in db.execute("SELECT job_id, seq, state, record, spec, starts, crashes FROM jobs ORDER BY seq"):
+            rows.append(row)
+    except sqlite3.Error:
+        pass
+    finally:
+        db.close()
+    return rows
 
 
 def _lock(results_dir: Path) -> None:
@@ -107,17 +138,51 @@ class JobStore:
         self.results_dir = Path(results_dir)
         self.path = self.results_dir / "jobs.sqlite3"
         self.results_dir.mkdir(parents=True, exist_ok=True)
+        self.moved_aside: Path | None = None
         _lock(self.results_dir)
         try:
-            # the event loop thread uses it; check_same_thread=False lets close() come from elsewhere
-            self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=10.0)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=FULL")
-            self.db.executescript(SCHEMA)
-            self._seq = self.db.execute("SELECT COALESCE(MAX(seq), 0) FROM jobs").fetchone()[0]
+            try:
+                self._open()
+            except sqlite3.DatabaseError as exc:
+                if isinstance(exc, sqlite3.OperationalError) and not _corrupt(exc):
+                    raise  # locked, or the disk: not the file's fault
+                self._set_aside(exc)
         except sqlite3.Error as exc:
             _unlock(self.results_dir)
             raise ServiceError("store_error", f"cannot open the job store {self.path}: {exc}", 503) from None
+
+    def _open(self) -> None:
+        # the event loop thread uses it; check_same_thread=False lets close() come from elsewhere
+        self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=10.0)
+        try:
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.executescript(SCHEMA)
+            check = self.db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise sqlite3.DatabaseError(f"quick_check: {check}")
+            self._seq = self.db.execute("SELECT COALESCE(MAX(seq), 0) FROM jobs").fetchone()[0]
+        except sqlite3.Error:
+            self.db.close()
+            raise
+
+    def _set_aside(self, exc: sqlite3.Error) -> None:
+        """A database that cannot be read (truncated, overwritten): the rows still readable are kept,
+        the file (and its WAL) moved aside to ``jobs.sqlite3.unreadable-<time>``, a new one made."""
+        rows = _readable_rows(self.path)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        self.moved_aside = self.path.with_name(f"{self.path.name}.unreadable-{stamp}")
+        for suffix in ("", "-wal", "-shm"):
+            part = Path(f"{self.path}{suffix}")
+            if part.exists():
+                os.replace(part, Path(f"{self.moved_aside}{suffix}"))
+        self._open()
+        with self.db:
+            self.db.executemany("INSERT OR IGNORE INTO jobs (job_id, seq, state, record, spec, starts, crashes) "
+                                "VALUES (?, ?, ?, ?, ?, ?, ?)", rows)
+        self._seq = self.db.execute("SELECT COALESCE(MAX(seq), 0) FROM jobs").fetchone()[0]
+        log.warning("the job store %s could not be read (%s): moved aside to %s; %d job record(s) of it "
+                    "kept", self.path, exc, self.moved_aside.name, len(rows))
 
     def load(self) -> list[StoredJob]:
         """Every job, oldest first."""

@@ -21,6 +21,9 @@ from dejaview.sim.integrate import Trajectory
 from dejaview.sim.world import World
 
 
+RECORD_COPIES = 4
+"""Copies of the recorded states a simulation holds at its peak: the records, their stacked
+trajectory, and trajectory.csv's rows as they are formatted."""
 NATIVE_CHUNK = 50
 """Steps per native call between progress callbacks (rounded up to a multiple of record_every)."""
 
@@ -86,16 +89,23 @@ class SimulationRun:
         return trajectory_csv(self.world, self.trajectory)
 
     def write(self, out_dir) -> dict[str, Path]:
-        """Write ``trajectory.csv`` into ``out_dir`` (created); returns ``{"trajectory": path}``."""
+        """Write ``trajectory.csv`` into ``out_dir`` (created), whole or not at all
+        (``dejaview.io.result_set``); returns ``{"trajectory": path}``.
+
+        Raises:
+            OutputError: it could not be written (a full disk...): out_dir keeps what it held.
+        """
+        from dejaview.io.result_set import write_result_set
         from dejaview.io.trajectory import write_trajectory_csv
 
-        return {"trajectory": write_trajectory_csv(Path(out_dir) / "trajectory.csv", self.world,
-                                                   self.trajectory)}
+        return write_result_set(out_dir, lambda folder: {
+            "trajectory": write_trajectory_csv(folder / "trajectory.csv", self.world, self.trajectory)})
 
 
 def simulate(scene, *, steps: int | None = None, record_every: int = 1,
              dtype: torch.dtype = torch.float64, callback=None, should_stop=None,
-             world: World | None = None, engine: str = "auto", max_steps: int | None = None) -> SimulationRun:
+             world: World | None = None, engine: str = "auto", max_steps: int | None = None,
+             memory_limit: int | None = None) -> SimulationRun:
     """Simulate a scene forward without gradients.
 
     Args:
@@ -110,12 +120,15 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
             native C++ simulator in float64, torch otherwise). Native runs call ``callback``
             and ``should_stop`` between chunks of ``NATIVE_CHUNK`` steps.
         max_steps: step budget, steps x substeps (default ``dejaview.scene.bounds.max_steps()``).
+        memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``): records that
+            would need more are refused before the first step.
     Returns:
         SimulationRun, every recorded number finite.
     Raises:
         SceneError: a scene file that cannot be read (or over the step budget).
         SimulationError: ``steps`` or ``record_every`` below 1, steps over the budget, or a state
             that diverged (``dejaview.sim.divergence``: naming the object, the step and the quantity).
+        ResourceError: records that would need more memory than the limit (``dejaview.memory``).
         SimulationStopped: ``should_stop`` answered True.
     """
     from dejaview.scene import Scene
@@ -138,6 +151,13 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
     if reason:
         raise SimulationError(reason)
     record_every = min(int(record_every), n)  # the same records, and a number C++ can hold
+    from dejaview import memory
+
+    records = n // record_every + 2
+    memory.check(f"a simulation of {n} steps recording every {record_every} ({records} records of "
+                 f"{world.num_bodies} bodies)",
+                 RECORD_COPIES * records * world.num_bodies * 13 * torch.finfo(world.dtype).bits // 8,
+                 memory_limit)
     state = initial_state(world, scene)
     done = 0
 
