@@ -73,6 +73,7 @@ def run(print_fn=print, iterations=ITERATIONS, backends=BACKENDS, optimizers=OPT
 
     from dejaview.backends import make_problem
     from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
 
     say = print_fn or (lambda *_: None)
@@ -109,8 +110,8 @@ def run(print_fn=print, iterations=ITERATIONS, backends=BACKENDS, optimizers=OPT
                 per_iteration.append(problem.evaluations - seen[0])
                 seen[0] = problem.evaluations
 
-            result = solve(sc, iterations=counts[-1], optimizer=opt, gradient="reverse", epsilon=0.0,
-                           problem=problem, callback=tally)
+            result = solve(sc, SolveParams(iterations=counts[-1], optimizer=opt, gradient="reverse",
+                           epsilon=0.0), problem=problem, callback=tally)
             history = result.iterations
             evaluations = sum(per_iteration)
             seconds = history[-1].elapsed_s

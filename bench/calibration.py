@@ -149,6 +149,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     import torch
 
     from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.inference.posterior import Posterior, PosteriorSettings
     from dejaview.inference.posterior_report import physical, weighted_quantiles
     from dejaview.inference.problem import InferenceProblem
@@ -160,7 +161,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     truth = prior_post.sample(1, gen)
     observed = observe(scene, prior_post, truth, gen)
     t0 = time.perf_counter()
-    result = solve(observed, samples=samples, seed=index)
+    result = solve(observed, SolveParams(samples=samples, seed=index))
     seconds = time.perf_counter() - t0
     lay = result.problem.layout
     smp = result.posterior

@@ -105,6 +105,7 @@ def run(print_fn=print, iterations=ITERATIONS, modes=MODES, optimizers=OPTIMIZER
     import torch
 
     from dejaview.inference import InferenceProblem, solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
 
     say = print_fn or (lambda *_: None)
@@ -136,7 +137,7 @@ def run(print_fn=print, iterations=ITERATIONS, modes=MODES, optimizers=OPTIMIZER
                 per_iteration.append(problem.evaluations - seen[0])
                 seen[0] = problem.evaluations
 
-            result = solve(sc, iterations=counts[-1], optimizer=opt, gradient=mode, epsilon=0.0,
+            result = solve(sc, SolveParams(iterations=counts[-1], optimizer=opt, gradient=mode, epsilon=0.0),
                            problem=problem, callback=tally)
             evaluations = sum(per_iteration)
             history = result.iterations

@@ -280,11 +280,11 @@ def explains_the_end(result, errors: dict | None = None) -> bool:
 def solve_case(case: Case, callback=None, **solve_options) -> dict:
     """Draw, simulate and solve one case with ``dejaview.solve``'s defaults (``solve_options``
     override them, e.g. for a comparison; ``callback``: solve's); the row of the table."""
-    from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams, solve
 
     scene, truth, draws = make_case(case)
     t0 = time.perf_counter()
-    result = solve(scene, callback=callback, **solve_options)
+    result = solve(scene, SolveParams(**solve_options), callback=callback)
     seconds = time.perf_counter() - t0
     errors = pose_errors(result)
     start = np.asarray(result.initial_state["position"])

@@ -39,18 +39,20 @@ SEED_MAX_EVALUATIONS = 1000
 def solve_once(scene_name: str, pipeline: str, seed: int) -> dict:
     """One solve; the row of the table."""
     from dejaview.cli.bench import bench_module
-    from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams, solve
     from dejaview.scene import Scene
 
     recovery = bench_module("recovery")  # its success criterion, one place
     scene = Scene.from_xml(SCENES / f"{scene_name}.xml")
     options: dict = {"seed": seed}
+    hooks: dict = {}
     if pipeline == "seed-pipeline":
         spent = [0]
-        options.update(SEED_PIPELINE, callback=lambda p: spent.__setitem__(0, p.evaluations),
-                       should_stop=lambda: spent[0] >= SEED_MAX_EVALUATIONS)
+        options.update(SEED_PIPELINE)
+        hooks = dict(callback=lambda p: spent.__setitem__(0, p.evaluations),
+                     should_stop=lambda: spent[0] >= SEED_MAX_EVALUATIONS)
     t0 = time.perf_counter()
-    result = solve(scene, **options)
+    result = solve(scene, SolveParams(**options), **hooks)
     seconds = time.perf_counter() - t0
     errors = recovery.pose_errors(result)
     return {"scene": scene_name, "pipeline": pipeline, "seed": seed, "seconds": seconds,

@@ -36,6 +36,7 @@ def solve_both(scene_path: Path = SCENE, samples: int = 300, seed: int = 0) -> d
         ``{"tracked": result, "last": result, "truth": initial_state}`` (``SolveResult`` each).
     """
     from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
 
     scene = Scene.from_xml(scene_path)
@@ -44,7 +45,7 @@ def solve_both(scene_path: Path = SCENE, samples: int = 300, seed: int = 0) -> d
     out = {"truth": truth}
     for name, sc in (("tracked", scene), ("last", last)):
         t0 = time.perf_counter()
-        out[name] = solve(sc, samples=samples, seed=seed, truth=truth)
+        out[name] = solve(sc, SolveParams(samples=samples, seed=seed), truth=truth)
         out[name].settings["wall_s"] = time.perf_counter() - t0
     return out
 

@@ -24,6 +24,10 @@ def __getattr__(name):
         from dejaview.inference.solve import solve
 
         return solve
+    if name == "SolveParams":
+        from dejaview.inference.solve import SolveParams
+
+        return SolveParams
     if name == "Scene":
         from dejaview.scene import Scene
 
@@ -40,6 +44,7 @@ __all__ = [
     "Scene",
     "World",
     "solve",
+    "SolveParams",
     "DejaViewError",
     "GeometryError",
     "InferenceError",

@@ -43,6 +43,7 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
     from tqdm import tqdm
 
     from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
 
     configure_torch()
@@ -67,9 +68,9 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
         bar.update(1)
         bar.set_postfix(loss=f"{p.loss:.4g}", best=f"{p.best_loss:.4g}", refresh=False)
 
-    result = solve(sc, iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
+    result = solve(sc, SolveParams(iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, screen=screen, budget=budget, samples=samples,
-                   callback=progress, tolerance=tolerance, backend=backend, truth=truth)
+                   tolerance=tolerance), callback=progress, backend=backend, truth=truth)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:

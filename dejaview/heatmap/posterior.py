@@ -80,6 +80,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
     """
     from dejaview.heatmap.result import HeatmapProgress, HeatmapResult
     from dejaview.inference import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.inference.posterior_report import position_histogram
     from dejaview.scene import HeatmapSettings, Observation, Scene
 
@@ -123,8 +124,9 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
                                  cells_total=cells_total, chunk=0, chunks=1, phase=p.phase))
 
     try:
-        result = solve(scene, optimizer="auto", iterations=iterations, seed=seed, samples=n, callback=progress,
-                       should_stop=should_stop, problem=problem, backend=backend, memory_limit=memory_limit)
+        result = solve(scene, SolveParams(optimizer="auto", iterations=iterations, seed=seed, samples=n,
+                       memory_limit=memory_limit), callback=progress, should_stop=should_stop,
+                       problem=problem, backend=backend)
     except ResourceError as exc:
         raise exc.naming(f"a heatmap of {nx} x {ny} cells with {per_cell} samples each ({n} posterior "
                          f"samples)") from None

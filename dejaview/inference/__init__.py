@@ -15,9 +15,9 @@ from dejaview.inference.problem import InferenceProblem
 from dejaview.inference.result import SolveResult
 from dejaview.inference.sampling import PosteriorSamples, Sampler
 from dejaview.inference.search import MapSearch, SearchResult
-from dejaview.inference.solve import solve
+from dejaview.inference.solve import SolveParams, solve
 
 __all__ = ["OPTIMIZERS", "InferenceProblem", "LocalParams", "MapSearch", "OptimizationResult", "ParameterLayout",
            "Posterior", "PosteriorSamples", "PosteriorSettings", "Progress", "SamplerParams", "Sampler",
-           "SearchParams", "SearchResult", "SolveResult", "fit_locally", "layout_from_scene", "make_optimizer",
+           "SearchParams", "SearchResult", "SolveParams", "SolveResult", "fit_locally", "layout_from_scene", "make_optimizer",
            "optimize", "solve"]

@@ -77,7 +77,7 @@ UNEXPLAINED_P = 1e-3
 """Goodness of fit of the answer under model uncertainty (``explains_end``): a refined mode whose
 held-out variants' mean end is off the observation by more than the ``1 - UNEXPLAINED_P`` quantile
 of its chi-square (22.5 for a pose's 6 residuals) does not explain the end once the physics varies
-(a needle fitted on the scene's own physics), and ``refine_under_variants`` then refines the
+(a needle fitted on the scene's own physics), and ``search.refine_under_variants`` then refines the
 search's other modes that fit best under the variants (docs/physics-fidelity.md, "When no refined
 mode explains the end")."""
 MIN_FACTOR = 0.05
@@ -193,12 +193,9 @@ def rank_on_heldout(post, modes: list, seed: int = 0) -> tuple[list, int]:
         (``Posterior.rollouts``' count: each under every held-out variant)). One mode or none is
         returned as it is, with 0.
     """
-    from dejaview.inference.posterior import Posterior
-
     if len(modes) < 2:
         return list(modes), 0
-    held = Posterior(post.problem, post.settings, feasible=post.feasible_fn,
-                     model=post.model.heldout(post.problem.world, seed))
+    held = post.with_model(post.model.heldout(post.problem.world, seed))
     x = torch.stack([m.x for m in modes]).to(torch.float64)
     with torch.no_grad():
         trajs = held.trajectories(x)
@@ -225,64 +222,3 @@ def explains_end(post, mode) -> bool:
     if mode.heldout_mean_chi2 is None:
         return True
     return mode.heldout_mean_chi2 <= float(chi2.ppf(1.0 - UNEXPLAINED_P, max(1, post.num_observed)))
-
-
-def refine_under_variants(post, found, *, params=None, callback=None, should_stop=None):
-    """The search's answer under model uncertainty: its modes refined and re-ranked on ``post``.
-
-    The global stage (``MapSearch``) runs on the scene's own physics: one rollout per candidate,
-    and it stops once a candidate explains the end, which under model uncertainty none does (the
-    variants' spread is a floor), so a global search on the averaged likelihood ran to its
-    patience (``docs/physics-fidelity.md`` has the measured cost). Its distinct modes (``found.modes``, best first,
-    and its best) are instead refined by Levenberg-Marquardt on the averaged likelihood of
-    ``post`` (exact Jacobians through every variant) and ranked by the averaged likelihood under
-    held-out variants (``rank_on_heldout``): a needle past, whose end moves when the friction
-    does, loses to one whose end holds, also where it happened to fit the variants it was
-    refined on. Where the first of them does not explain the end under the held-out variants
-    (``explains_end``: every past fitted on the scene's own physics was a needle), the search's
-    other modes, up to ``params.candidates`` of those with the lowest cost on ``post`` (unrefined, no
-    Jacobians), are refined too and all are ranked again.
-
-    Args:
-        post: ``Posterior`` with ``model`` set.
-        found: ``SearchResult`` of the search on the scene's physics.
-        params: the search's ``SearchParams`` (``lm_final_iterations``: most LM iterations of each
-            refinement; ``seed`` draws the held-out variants; ``candidates``).
-    Returns:
-        ``SearchResult`` on ``post`` (cost, chi2 and modes under model uncertainty, ranked on the
-        held-out variants), history appended to ``found``'s.
-    """
-    from dataclasses import replace
-
-    from dejaview.inference.params import SearchParams
-    from dejaview.inference.search import SearchResult, _Search
-
-    params = SearchParams() if params is None else params
-    iterations, seed, candidates = params.lm_final_iterations, params.seed, params.candidates
-    s = _Search(post, replace(params, iterations=max(1, iterations + len(found.history)), budget=10 ** 12,
-                              tolerance=None), callback, should_stop)
-    s.history = list(found.history)
-    s.n_obs = max(1, post.num_observed)
-    starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:candidates - 1]
-    s.add_modes(s.refine(torch.stack(starts).to(torch.float64), iterations))
-    heldout_rollouts = 0
-    if not s.stopped:  # a cancelled solve returns at once, its modes as the refinement ranked them
-        s.modes, heldout_rollouts = rank_on_heldout(post, s.modes, seed)
-    others = [m.x for m in found.modes if all(float((m.x - y).norm()) > 0 for y in starts)]
-    if not s.stopped and others and s.modes and not explains_end(post, s.modes[0]):
-        cost = post.cost(torch.stack(others).to(torch.float64))[0]
-        order = [i for i in torch.argsort(cost, stable=True).tolist() if math.isfinite(float(cost[i]))]
-        if order:
-            s.iterations = len(s.history) + iterations  # the second refinement's own iterations
-            s.add_modes(s.refine(torch.stack([others[i] for i in order[:candidates]]).to(torch.float64),
-                                 iterations))
-            if not s.stopped:
-                s.modes, spent = rank_on_heldout(post, s.modes, seed)
-                heldout_rollouts += spent
-    best = s.modes[0] if s.modes else s.best
-    return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
-                        candidate_x=torch.stack([m.x for m in s.modes or [best]]),
-                        candidate_loss=torch.tensor([m.loss for m in s.modes or [best]], dtype=torch.float64),
-                        cost=best.cost, chi2=best.chi2, modes=s.modes or [best],
-                        rollouts=found.rollouts + post.rollouts + heldout_rollouts,
-                        jacobians=found.jacobians + post.jacobians)

@@ -210,10 +210,26 @@ class Posterior:
         return cls(problem, PosteriorSettings.from_scene(scene), feasible=feasible,
                    model=ModelVariants.from_scene(scene, problem.world))
 
+    def with_model(self, model) -> "Posterior":
+        """The same posterior averaged over other physics variants (``ModelVariants``; None: the
+        scene's own physics alone), counting its own rollouts."""
+        return Posterior(self.problem, self.settings, feasible=self.feasible_fn, model=model)
+
     def without_model(self) -> "Posterior":
-        """The same posterior on the scene's own physics alone (no model variants), counting its own
-        rollouts."""
-        return Posterior(self.problem, self.settings, feasible=self.feasible_fn)
+        """``with_model(None)``."""
+        return self.with_model(None)
+
+    def restricted(self, sightings: tuple) -> "Posterior":
+        """The posterior of the observations ``sightings`` alone (a tracked source's first moments,
+        all timed): rollouts stop at the last of them. On the scene's own physics."""
+        from dataclasses import replace
+
+        from dejaview.losses.targets import record_interval
+
+        steps = max(sg.step for sg in sightings)
+        problem = replace(self.problem, sightings=tuple(sightings), steps=steps,
+                          record_every=record_interval(sightings, steps, penalties=bool(self.problem.penalties)))
+        return Posterior(problem, self.settings, feasible=self.feasible_fn)
 
     # ---------------------------------------------------------------- residuals
     @property

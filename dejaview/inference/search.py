@@ -373,7 +373,7 @@ class MapSearch:
         there) and seeds the next stage's instances with its modes, beside fresh prior draws.
         Under model uncertainty (``post.model``) the global search runs on the scene's own
         physics and its modes are refined and ranked under the variants
-        (``model_uncertainty.refine_under_variants``).
+        (``refine_under_variants``).
 
         Args:
             callback: called with a ``Progress`` after every iteration (``loss``: the iteration's
@@ -386,9 +386,6 @@ class MapSearch:
         """
         from dataclasses import replace
 
-        from dejaview.inference.posterior import Posterior
-        from dejaview.losses.targets import record_interval
-
         p = self.params
         plain = post.without_model() if post.model is not None else post
         history, seeds, spent, rollouts, jacobians = [], None, 0, 0, 0
@@ -399,11 +396,7 @@ class MapSearch:
                 callback(replace(progress, iteration=progress.iteration + offset))
 
         for prefix in stages(plain):
-            steps = max(sg.step for sg in prefix)
-            problem = replace(plain.problem, sightings=prefix, steps=steps,
-                              record_every=record_interval(prefix, steps, penalties=bool(plain.problem.penalties)))
-            sub = Posterior(problem, plain.settings, feasible=plain.feasible_fn)
-            found = self._stage(sub, replace(p, iterations=max(1, int(p.stage_share * p.iterations)),
+            found = self._stage(plain.restricted(prefix), replace(p, iterations=max(1, int(p.stage_share * p.iterations)),
                                              budget=max(1, int(p.stage_share * p.budget)), tolerance=None),
                                 report, should_stop, seeds)
             spent += found.rollouts + p.jacobian_cost * found.jacobians
@@ -422,8 +415,6 @@ class MapSearch:
         final.rollouts += rollouts
         final.jacobians += jacobians
         if post.model is not None and not final.stopped:
-            from dejaview.inference.model_uncertainty import refine_under_variants
-
             final = refine_under_variants(post, final, params=p, callback=callback, should_stop=should_stop)
         return final
 
@@ -442,3 +433,63 @@ class MapSearch:
                             candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
                             cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts,
                             jacobians=post.jacobians)
+
+
+def refine_under_variants(post, found, *, params=None, callback=None, should_stop=None):
+    """The search's answer under model uncertainty: its modes refined and re-ranked on ``post``.
+
+    The global stage (``MapSearch``) runs on the scene's own physics: one rollout per candidate,
+    and it stops once a candidate explains the end, which under model uncertainty none does (the
+    variants' spread is a floor), so a global search on the averaged likelihood ran to its
+    patience (``docs/physics-fidelity.md`` has the measured cost). Its distinct modes (``found.modes``, best first,
+    and its best) are instead refined by Levenberg-Marquardt on the averaged likelihood of
+    ``post`` (exact Jacobians through every variant) and ranked by the averaged likelihood under
+    held-out variants (``rank_on_heldout``): a needle past, whose end moves when the friction
+    does, loses to one whose end holds, also where it happened to fit the variants it was
+    refined on. Where the first of them does not explain the end under the held-out variants
+    (``explains_end``: every past fitted on the scene's own physics was a needle), the search's
+    other modes, up to ``params.candidates`` of those with the lowest cost on ``post`` (unrefined, no
+    Jacobians), are refined too and all are ranked again.
+
+    Args:
+        post: ``Posterior`` with ``model`` set.
+        found: ``SearchResult`` of the search on the scene's physics.
+        params: the search's ``SearchParams`` (``lm_final_iterations``: most LM iterations of each
+            refinement; ``seed`` draws the held-out variants; ``candidates``).
+    Returns:
+        ``SearchResult`` on ``post`` (cost, chi2 and modes under model uncertainty, ranked on the
+        held-out variants), history appended to ``found``'s.
+    """
+    from dataclasses import replace
+
+    from dejaview.inference.model_uncertainty import explains_end, rank_on_heldout
+
+    params = SearchParams() if params is None else params
+    iterations, seed, candidates = params.lm_final_iterations, params.seed, params.candidates
+    s = _Search(post, replace(params, iterations=max(1, iterations + len(found.history)), budget=10 ** 12,
+                              tolerance=None), callback, should_stop)
+    s.history = list(found.history)
+    s.n_obs = max(1, post.num_observed)
+    starts = [found.x] + [m.x for m in found.modes if float((m.x - found.x).norm()) > 0][:candidates - 1]
+    s.add_modes(s.refine(torch.stack(starts).to(torch.float64), iterations))
+    heldout_rollouts = 0
+    if not s.stopped:  # a cancelled solve returns at once, its modes as the refinement ranked them
+        s.modes, heldout_rollouts = rank_on_heldout(post, s.modes, seed)
+    others = [m.x for m in found.modes if all(float((m.x - y).norm()) > 0 for y in starts)]
+    if not s.stopped and others and s.modes and not explains_end(post, s.modes[0]):
+        cost = post.cost(torch.stack(others).to(torch.float64))[0]
+        order = [i for i in torch.argsort(cost, stable=True).tolist() if math.isfinite(float(cost[i]))]
+        if order:
+            s.iterations = len(s.history) + iterations  # the second refinement's own iterations
+            s.add_modes(s.refine(torch.stack([others[i] for i in order[:candidates]]).to(torch.float64),
+                                 iterations))
+            if not s.stopped:
+                s.modes, spent = rank_on_heldout(post, s.modes, seed)
+                heldout_rollouts += spent
+    best = s.modes[0] if s.modes else s.best
+    return SearchResult(x=best.x, loss=best.loss, history=s.history, best_index=0, stopped=s.stopped,
+                        candidate_x=torch.stack([m.x for m in s.modes or [best]]),
+                        candidate_loss=torch.tensor([m.loss for m in s.modes or [best]], dtype=torch.float64),
+                        cost=best.cost, chi2=best.chi2, modes=s.modes or [best],
+                        rollouts=found.rollouts + post.rollouts + heldout_rollouts,
+                        jacobians=found.jacobians + post.jacobians)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -16,10 +16,43 @@ from dejaview.inference.result import SolveResult
 from dejaview.inference.sampling import Sampler
 from dejaview.inference.search import MapSearch
 
-LOCAL_ONLY = ("multistart", "screen", "screen_rounds", "screen_near", "epsilon", "patience", "lr", "gradient",
-              "x0")
+LOCAL_ONLY = ("multistart", "screen", "screen_rounds", "screen_near", "epsilon", "patience", "lr", "gradient")
 """Settings of the local optimisers with restarts (``gd|adam|lbfgs|bfgs``) that the default search
 (``auto``) has no use for: given with ``auto`` they are an error, not silently ignored."""
+
+
+@dataclass(frozen=True)
+class SolveParams:
+    """What a solve changes from its scene's ``<inference>``: each field None keeps the scene's
+    value (else the default). Checked against the scene by ``SolveSettings.resolve`` (one-line
+    ``InferenceError``s naming the field).
+
+    Attributes:
+        optimizer: ``auto`` (``MapSearch``) or ``gd|adam|lbfgs|bfgs`` (``fit_locally``).
+        iterations, seed, tolerance: budget, seed, early stop (scene loss in metres).
+        budget: rollouts of the ``auto`` search (``SearchParams.budget``).
+        samples: posterior samples drawn after the search (``Sampler``; the scene's
+            ``<posterior samples>``, else 0).
+        gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
+            pipeline's (``LocalParams``); an error with ``auto``.
+        memory_limit: bytes a sampled solve may take (``dejaview.memory``; None: the machine's).
+    """
+
+    optimizer: str | None = None
+    iterations: int | None = None
+    seed: int | None = None
+    tolerance: float | None = None
+    budget: int | None = None
+    samples: int | None = None
+    gradient: str | None = None
+    lr: float | None = None
+    multistart: int | None = None
+    screen: int | None = None
+    screen_rounds: int | None = None
+    screen_near: float | None = None
+    epsilon: float | None = None
+    patience: int | None = None
+    memory_limit: int | None = None
 
 
 @dataclass(frozen=True)
@@ -72,15 +105,10 @@ class SolveSettings:
                            screen_near=self.screen_near, epsilon=self.epsilon, patience=self.patience)
 
     @staticmethod
-    def resolve(scene, *, optimizer: str | None = None, iterations: int | None = None,
-                seed: int | None = None, tolerance: float | None = None, budget: int | None = None,
-                samples: int | None = None, **local) -> "SolveSettings":
-        """Settings from the scene's ``<inference>`` and overrides (None: the scene's / default).
+    def resolve(scene, params: SolveParams | None = None) -> "SolveSettings":
+        """Settings from the scene's ``<inference>`` and ``params`` (its None fields: the scene's
+        value, else the default).
 
-        Args:
-            scene: a Scene with an ``<inference>`` section.
-            samples: posterior samples (None: the scene's ``<posterior samples>``, else 0).
-            local: ``LOCAL_ONLY`` overrides (None: unset).
         Raises:
             InferenceError: one line naming a bad value, or a local optimiser's setting given with
                 the ``auto`` search.
@@ -91,9 +119,10 @@ class SolveSettings:
         inf = scene.inference
         if inf is None:
             raise InferenceError("the scene has no <inference> section: nothing to solve")
-        unknown = set(local) - set(LOCAL_ONLY)
-        if unknown:
-            raise InferenceError(f"unknown solve setting {sorted(unknown)[0]!r}")
+        params = SolveParams() if params is None else params
+        optimizer, iterations, seed, tolerance = params.optimizer, params.iterations, params.seed, params.tolerance
+        budget, samples = params.budget, params.samples
+        local = {k: getattr(params, k) for k in LOCAL_ONLY}
         optimizer = inf.optimizer if optimizer is None else optimizer
         if optimizer not in OPTIMIZERS:
             raise InferenceError(f"unknown optimizer {optimizer!r}; choose one of {', '.join(OPTIMIZERS)}")
@@ -144,16 +173,8 @@ class SolveSettings:
             patience=given.get("patience", exploration.patience if exploration else 25))
 
 
-def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
-          gradient: str | None = None, seed: int | None = None, lr: float | None = None,
-          multistart: int | None = None, epsilon: float | None = None, patience: int | None = None,
-          callback=None, should_stop=None, world=None, problem=None,
-          x0: torch.Tensor | None = None, tolerance: float | None = None,
-          backend=None,
-          screen: int | None = None, screen_rounds: int | None = None,
-          screen_near: float | None = None, budget: int | None = None,
-          samples: int | None = None, truth: dict | None = None,
-          memory_limit: int | None = None) -> SolveResult:
+def solve(scene, params: SolveParams | None = None, *, callback=None, should_stop=None, backend=None,
+          problem=None, truth: dict | None = None) -> SolveResult:
     """Infer the initial state of the scene's source object: its most probable past.
 
     The default (``optimizer="auto"``, what a scene without ``optimizer`` asks for) maximises the
@@ -164,27 +185,19 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
 
     Args:
         scene: a Scene (or a path to a scene file) with an ``<inference>`` section.
-        iterations, optimizer, seed, tolerance: override the scene's settings (``SolveSettings``).
-        budget: rollouts of the ``auto`` search.
-        samples: posterior samples drawn around the search's modes (``dejaview.inference.sampling``;
-            None: the scene's ``<posterior samples>``, else none); the result's ``posterior``.
+        params: ``SolveParams``: what to change from the scene's ``<inference>`` (iterations,
+            optimizer, seed, budget, samples, the local pipeline's settings, the memory limit).
+        callback: called with a ``Progress`` after every iteration.
+        should_stop: polled every iteration; True stops early (cancellation).
+        backend: a backend's name, ``spheres`` (default) | ``warp``, or ``BackendOptions`` (a
+            backend with its own settings: the spheres backend's engine and compile, Warp's
+            integrator, ...; ``dejaview.backends``); not with ``problem``.
+            The ``auto`` search needs the spheres backend's residual Jacobians; with another
+            backend ``auto`` runs ``lbfgs``.
+        problem: an already built problem (any backend's, ``dejaview.backends.make_problem``).
         truth: a known true ``initial_state`` (a ``.truth.json``'s): the result says where it lies
             in the posterior (``posterior_report.truth_report``: its -log posterior, and with
             samples its credible level); the default search only.
-        gradient, lr, multistart, epsilon, patience, screen, screen_rounds, screen_near, x0: the
-            local optimisers' settings (see ``optimize`` and ``screen_rounds_ranked``):
-            multistart K guesses as one batch, ``screen`` random guesses ranked by loss first.
-        callback: called with a ``Progress`` after every iteration.
-        should_stop: polled every iteration; True stops early (cancellation).
-        world / problem: reuse an already built World (spheres) / problem (any backend's,
-            ``dejaview.backends.make_problem``, or a bare ``InferenceProblem``).
-        backend: a backend's name, ``spheres`` (default) | ``warp``, or ``BackendOptions`` (a
-            backend with its own settings: the spheres backend's engine and compile, Warp's
-            integrator, ...; ``dejaview.backends``); not with ``problem``. The ``auto`` search
-            needs the spheres backend's residual Jacobians; with another backend ``auto`` runs
-            ``lbfgs``.
-        memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``); posterior
-            samples that would not fit are refused before the search runs.
     Returns:
         SolveResult.
     Raises:
@@ -201,16 +214,14 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     from dejaview.inference.sizing import check_solve_memory
     from dejaview.inference.start_area import check_start_area
 
-    local = dict(multistart=multistart, screen=screen, screen_rounds=screen_rounds,
-                 screen_near=screen_near, epsilon=epsilon, patience=patience, lr=lr, gradient=gradient,
-                 x0=x0)
+    params = SolveParams() if params is None else params
     check_inference(scene)
     collision = check_start_area(scene)  # before anything is built or simulated
-    problem = _make_problem(scene, problem, world, backend)
+    problem = _make_problem(scene, problem, backend)
+    optimizer = params.optimizer
     if (optimizer or scene.inference.optimizer) == "auto" and problem.backend != "spheres":
         optimizer = "lbfgs"  # the default search needs the spheres backend's residual Jacobians
-    settings = SolveSettings.resolve(scene, optimizer=optimizer, iterations=iterations, seed=seed,
-                                     tolerance=tolerance, budget=budget, samples=samples, **local)
+    settings = SolveSettings.resolve(scene, replace(params, optimizer=optimizer))
     mu = scene.inference.model_uncertainty
     if settings.optimizer != "auto" and mu is not None and ((mu.friction or 0) > 0 or (mu.restitution or 0) > 0):
         raise InferenceError(f"<model-uncertainty> needs the default search (optimizer auto on the spheres "
@@ -218,7 +229,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     samples_drawn = None
     if settings.optimizer == "auto":
         if settings.samples:
-            collision = check_solve_memory(scene, problem, settings.samples, collision, memory_limit)
+            collision = check_solve_memory(scene, problem, settings.samples, collision, params.memory_limit)
         post = Posterior.from_scene(scene, problem=problem, collision=collision)
         search = settings.search_params()
         opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
@@ -236,7 +247,7 @@ def solve(scene, *, iterations: int | None = None, optimizer: str | None = None,
     else:
         if truth is not None:
             raise InferenceError("a truth is placed in the posterior of the default search (optimizer auto)")
-        opt, extra = fit_locally(problem, settings.local_params(), x0, callback=callback, should_stop=should_stop)
+        opt, extra = fit_locally(problem, settings.local_params(), callback=callback, should_stop=should_stop)
     if not math.isfinite(opt.loss):
         if opt.stopped and not opt.history:
             raise InferenceError("stopped before the first iteration: no solution to report")
@@ -263,20 +274,17 @@ def _rest_report(scene, problem, settings: SolveSettings, best: torch.Tensor, sa
     return duration_warnings(problem, post, best, samples)
 
 
-def _make_problem(scene, problem, world, backend):
+def _make_problem(scene, problem, backend):
     """The backend problem of a solve: ``problem`` itself, or built from ``backend`` (a name or
-    ``BackendOptions``) and ``world``."""
+    ``BackendOptions``)."""
     from dejaview.backends import BackendOptions, as_problem
-    from dejaview.inference.problem import check_inference
 
-    check_inference(scene)
     if problem is not None:
         if backend is not None:
             raise InferenceError("backend options build a problem; solve got a built problem as well: "
                                  "pass one of backend and problem")
         return as_problem(problem)
-    options = BackendOptions.of(backend)
-    return options.make_problem(scene, **({} if world is None else {"world": world}))
+    return BackendOptions.of(backend).make_problem(scene)
 
 
 def _search_report(post, opt, params: SearchParams, layout) -> dict:

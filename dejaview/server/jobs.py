@@ -153,14 +153,15 @@ def _optimiser_progress(total: int, progress):
 
 
 def _solve(scene, overrides, out_dir, progress, stop):
-    from dejaview.inference.solve import solve
+    from dejaview.inference.solve import SolveParams, solve
 
     total = overrides.get("iterations", scene.inference.iterations)
-    kwargs = {k: overrides[k] for k in ("iterations", "optimizer", "budget", "gradient", "seed", "lr",
-                                        "tolerance", "backend", "multistart", "screen", "screen_rounds",
-                                        "samples", "memory_limit")
-              if k in overrides}
-    result = solve(scene, callback=_optimiser_progress(total, progress), should_stop=stop, **kwargs)
+    params = SolveParams(**{k: overrides[k] for k in ("iterations", "optimizer", "budget", "gradient", "seed",
+                                                       "lr", "tolerance", "multistart", "screen",
+                                                       "screen_rounds", "samples", "memory_limit")
+                            if k in overrides})
+    result = solve(scene, params, callback=_optimiser_progress(total, progress), should_stop=stop,
+                   backend=overrides.get("backend"))
     if stop.reason is not None:
         raise JobStopped(stop.reason)
     paths = result.write(out_dir)

@@ -12,6 +12,7 @@ from dejaview.backends import BACKENDS, WARP_MISSING, Backend, Problem, as_probl
 from dejaview.cli import main
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem, solve
+from dejaview.inference.solve import SolveParams
 from dejaview.io.trajectory import read_trajectory_csv
 from dejaview.scene import Scene
 
@@ -82,13 +83,13 @@ def test_trajectory_csv_holds_every_movable_object(tmp_path):
 
 
 def test_solve_reports_the_backend(tmp_path):
-    result = solve(BALL, iterations=1, backend="spheres")
+    result = solve(BALL, SolveParams(iterations=1), backend="spheres")
     result.write(tmp_path)
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["backend"] == "spheres" and data["simulation"]["steps"] == 50
     # a bare InferenceProblem is still accepted
     bare = InferenceProblem.from_scene(Scene.from_xml(BALL))
-    assert solve(BALL, iterations=1, problem=bare).settings["backend"] == "spheres"
+    assert solve(BALL, SolveParams(iterations=1), problem=bare).settings["backend"] == "spheres"
     assert bare.evaluations >= 1
 
 
@@ -110,7 +111,7 @@ def test_warp_without_the_extra_says_how_to_install_it(no_warp):
     with pytest.raises(InferenceError, match="pip install 'dejaview\\[warp\\]'"):
         make_problem(BALL, backend="warp")
     with pytest.raises(InferenceError) as info:
-        solve(BALL, iterations=1, backend="warp")
+        solve(BALL, SolveParams(iterations=1), backend="warp")
     assert str(info.value) == WARP_MISSING
 
 

@@ -14,6 +14,7 @@ from dejaview.backends import BackendOptions, make_problem
 from dejaview.cli import cli
 from dejaview.errors import InferenceError, SimulationError
 from dejaview.inference import solve
+from dejaview.inference.solve import SolveParams
 from dejaview.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -57,10 +58,10 @@ def test_the_backend_reads_its_settings_into_the_problem():
 
 
 def test_solve_takes_backend_options_and_refuses_them_beside_a_built_problem():
-    result = solve(BALL, iterations=2, optimizer="adam", backend=BackendOptions.of(engine="torch"))
+    result = solve(BALL, SolveParams(iterations=2, optimizer="adam"), backend=BackendOptions.of(engine="torch"))
     assert result.problem.engine == "torch" and result.settings["backend"] == "spheres"
     with pytest.raises(InferenceError, match="pass one of backend and problem"):
-        solve(BALL, iterations=1, problem=make_problem(BALL), backend="spheres")
+        solve(BALL, SolveParams(iterations=1), problem=make_problem(BALL), backend="spheres")
 
 
 def test_simulate_runs_on_the_options_backend(tmp_path):

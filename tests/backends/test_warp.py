@@ -18,6 +18,7 @@ from dejaview.backends import make_problem  # noqa: E402
 from dejaview.cli import main  # noqa: E402
 from dejaview.errors import InferenceError, SceneError  # noqa: E402
 from dejaview.inference import solve  # noqa: E402
+from dejaview.inference.solve import SolveParams
 from dejaview.io.trajectory import read_trajectory_csv  # noqa: E402
 from dejaview.losses import trajectory_loss  # noqa: E402
 from dejaview.scene import Scene  # noqa: E402
@@ -66,7 +67,7 @@ def test_forward_mode_is_a_clear_error(flight):
         problem.value_and_grad(problem.layout.encode(), "forward")
     assert "reverse" in str(info.value) and "\n" not in str(info.value)
     with pytest.raises(InferenceError, match="reverse"):
-        solve(FLIGHT, iterations=1, backend="warp", gradient="forward")
+        solve(FLIGHT, SolveParams(iterations=1, gradient="forward"), backend="warp")
 
 
 @pytest.mark.parametrize("kind, evaluate", [("pose", "final"), ("pose", "best"), ("position", "best"),
@@ -183,7 +184,7 @@ def test_solve_an_example_scene_with_warp():
     """examples/scenes/ball_rolled.xml (a mesh ball bowled across the floor, 40 steps of 10 ms),
     L-BFGS in Warp from the scene's guess: the re-simulated end lies within 1 cm of the target."""
     scene = ROOT / "examples" / "scenes" / "ball_rolled.xml"
-    result = solve(scene, iterations=40, backend="warp", tolerance=1e-3)
+    result = solve(scene, SolveParams(iterations=40, tolerance=1e-3), backend="warp")
     end, _ = result.final_pose()
     target = Scene.from_xml(scene).inference.target.position
     assert np.linalg.norm(np.subtract(end, target)) < 0.01

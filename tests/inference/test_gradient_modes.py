@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from dejaview.inference import solve
+from dejaview.inference.solve import SolveParams
 from dejaview.scene import Scene
 
 BALL = Path(__file__).resolve().parents[1] / "fixtures" / "inference" / "ball_throw.xml"
@@ -31,7 +32,7 @@ def test_forward_and_reverse_mode_follow_the_same_path(ball, optimizer, iteratio
     relative between the modes, as do the final state and the number of evaluations
     (L-BFGS's line search takes the same trial steps). The path must go somewhere:
     the loss drops, so the comparison is not of a run standing still."""
-    runs = {mode: solve(ball, optimizer=optimizer, gradient=mode, iterations=iterations, seed=7)
+    runs = {mode: solve(ball, SolveParams(optimizer=optimizer, gradient=mode, iterations=iterations, seed=7))
             for mode in ("forward", "reverse")}
     fwd, rev = runs["forward"], runs["reverse"]
     assert fwd.settings["gradient"] == "forward" and rev.settings["gradient"] == "reverse"

@@ -119,7 +119,8 @@ def test_where_no_refined_mode_explains_the_end_the_searchs_other_modes_are_refi
     chi-square of their mean end over the 0.999 quantile), the search's other modes cheapest under the variants
     are refined and ranked beside them, and the truth among them is the answer. Where the first ones
     explain it, the others are never refined."""
-    from dejaview.inference.model_uncertainty import explains_end, refine_under_variants
+    from dejaview.inference.model_uncertainty import explains_end
+    from dejaview.inference.search import refine_under_variants
     from dejaview.inference.search import Mode, SearchResult
 
     problem, settings, x = _shelf_observing_its_truth()

@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from dejaview.inference import solve
+from dejaview.inference.solve import SolveParams
 from dejaview.losses import contact_penalty
 from dejaview.scene import Scene
 
@@ -55,8 +56,8 @@ def touched(result) -> bool:
 
 @pytest.fixture(scope="module")
 def runs():
-    with_penalty = solve(scene(penalty=True), iterations=15, tolerance=0.005)
-    without = solve(scene(penalty=False), iterations=15, tolerance=0.005)
+    with_penalty = solve(scene(penalty=True), SolveParams(iterations=15, tolerance=0.005))
+    without = solve(scene(penalty=False), SolveParams(iterations=15, tolerance=0.005))
     return with_penalty, without
 
 

@@ -17,6 +17,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference import solve
+from dejaview.inference.solve import SolveParams
 from dejaview.inference.posterior import PosteriorSettings
 from dejaview.inference.posterior_report import (
     CSV_HEADER,
@@ -311,7 +312,7 @@ def test_paths_are_drawn_by_weight_among_distinct_samples():
 
 
 def test_samples_override_the_scene_and_zero_draws_none():
-    assert solve(ramp_scene(samples=50), samples=0).posterior is None
+    assert solve(ramp_scene(samples=50), SolveParams(samples=0)).posterior is None
 
 
 @pytest.mark.parametrize("kwargs, fragment", [
@@ -321,7 +322,7 @@ def test_samples_override_the_scene_and_zero_draws_none():
 ])
 def test_bad_sample_settings_are_one_line_errors(kwargs, fragment):
     with pytest.raises(InferenceError) as info:
-        solve(ramp_scene(), **kwargs)
+        solve(ramp_scene(), SolveParams(**kwargs))
     assert fragment in str(info.value) and "\n" not in str(info.value)
 
 

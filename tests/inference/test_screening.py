@@ -8,6 +8,7 @@ import torch
 from dejaview.backends import as_problem, make_problem
 from dejaview.errors import InferenceError
 from dejaview.inference import solve
+from dejaview.inference.solve import SolveParams
 from dejaview.inference.local import screen_guesses
 from dejaview.scene import Scene
 
@@ -41,8 +42,8 @@ def test_solve_starts_from_the_best_screened_guess():
     """The first evaluation of a screened solve is the best screened loss, which beats the
     scene's own guess here; result settings say how many guesses were screened."""
     scene = Scene.from_xml(BALL)
-    plain = solve(scene, iterations=1, optimizer="adam")
-    screened = solve(scene, iterations=1, optimizer="adam", screen=15)
+    plain = solve(scene, SolveParams(iterations=1, optimizer="adam"))
+    screened = solve(scene, SolveParams(iterations=1, optimizer="adam", screen=15))
     problem = as_problem(make_problem(scene))
     _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
                                torch.Generator().manual_seed(scene.inference.seed))
@@ -71,13 +72,13 @@ def test_half_the_first_round_is_drawn_around_the_scenes_guess():
 @pytest.mark.parametrize("bad", [-1, True, 2.5])
 def test_bad_screen_counts_are_one_line_errors(bad):
     with pytest.raises(InferenceError, match="screen must be a non-negative integer"):
-        solve(Scene.from_xml(BALL), iterations=1, screen=bad)
+        solve(Scene.from_xml(BALL), SolveParams(iterations=1, screen=bad))
 
 
 @pytest.mark.parametrize("bad", [-0.1, 1.5])
 def test_screen_near_outside_zero_to_one_is_a_one_line_error(bad):
     with pytest.raises(InferenceError, match=r"screen_near must be a fraction in \[0, 1\]"):
-        solve(Scene.from_xml(BALL), iterations=1, screen=4, screen_near=bad)
+        solve(Scene.from_xml(BALL), SolveParams(iterations=1, screen=4, screen_near=bad))
 
 
 def test_restarts_take_the_next_best_screened_guesses_in_order():
@@ -86,8 +87,8 @@ def test_restarts_take_the_next_best_screened_guesses_in_order():
     the screened ranking, best first."""
     scene = Scene.from_xml(BALL)
     iterations = []
-    result = solve(scene, iterations=200, optimizer="gd", lr=0.0, screen=15, epsilon=1.0, patience=1,
-                   callback=iterations.append, should_stop=lambda: len(iterations) >= 12)
+    result = solve(scene, SolveParams(iterations=200, optimizer="gd", lr=0.0, screen=15, epsilon=1.0,
+                   patience=1), callback=iterations.append, should_stop=lambda: len(iterations) >= 12)
     problem = as_problem(make_problem(scene))
     _, losses = screen_guesses(problem, problem.layout.encode().to(problem.dtype), 15,
                                torch.Generator().manual_seed(scene.inference.seed))
@@ -120,7 +121,7 @@ def test_refinement_rounds_draw_around_the_best_guesses():
 
 def test_bad_screen_rounds_are_one_line_errors():
     with pytest.raises(InferenceError, match="screen rounds must be a positive integer"):
-        solve(Scene.from_xml(BALL), iterations=1, screen=3, screen_rounds=0)
+        solve(Scene.from_xml(BALL), SolveParams(iterations=1, screen=3, screen_rounds=0))
 
 
 def test_restarts_take_the_first_rounds_guesses_before_the_refinements():

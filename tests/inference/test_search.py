@@ -11,6 +11,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem, solve
+from dejaview.inference.solve import SolveParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.inference.params import SearchParams
 from dejaview.inference.search import MapSearch
@@ -60,12 +61,12 @@ def test_the_budget_bounds_the_rollouts(scene):
 
 def test_settings_of_the_local_optimisers_are_errors_with_the_default_search(scene):
     with pytest.raises(InferenceError, match="screen applies to the local optimisers"):
-        solve(scene, screen=8)
+        solve(scene, SolveParams(screen=8))
     with pytest.raises(InferenceError, match="budget applies to the default search"):
-        solve(scene, optimizer="adam", budget=100)
+        solve(scene, SolveParams(optimizer="adam", budget=100))
     with pytest.raises(InferenceError, match="budget"):
-        solve(scene, budget=0)
-    result = solve(scene, optimizer="adam", iterations=2)  # the local optimisers stay selectable
+        solve(scene, SolveParams(budget=0))
+    result = solve(scene, SolveParams(optimizer="adam", iterations=2))  # the local optimisers stay selectable
     assert result.settings["optimizer"] == "adam" and "search" not in result.to_json()
 
 
@@ -94,6 +95,6 @@ def test_the_levenberg_marquardt_solve_is_reproducible_and_exact():
 def test_a_solve_is_reproducible_bit_for_bit():
     """Two solves of the same scene and seed in one process give the same start, exactly."""
     scene = Scene.from_xml(RAMP.with_name("ball_off_table.xml"))
-    a, b = solve(scene, seed=0), solve(scene, seed=0)
+    a, b = solve(scene, SolveParams(seed=0)), solve(scene, SolveParams(seed=0))
     assert torch.equal(torch.as_tensor(a.optimization.x), torch.as_tensor(b.optimization.x))
     assert a.loss == b.loss

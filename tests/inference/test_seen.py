@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from dejaview.inference import InferenceProblem, solve
+from dejaview.inference.solve import SolveParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.inference.search import stages
 from dejaview.scene import Scene
@@ -61,7 +62,7 @@ def test_the_solve_of_a_source_seen_at_rest_ends_there_at_rest():
     problem = InferenceProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>'))
     rest_x = end_of(problem, start(problem, 1.5))
     scene = slide_scene(f'<target position="{rest_x} 0.02 0.05" orientation="1 0 0 0"/>')
-    result = solve(scene, seed=0)
+    result = solve(scene, SolveParams(seed=0))
     data = result.to_json()
     assert data["end_error"]["position_error"] < 0.005 and data["end_error"]["time"] == pytest.approx(0.8)
     assert data["rest"]["came_to_rest_s"] is not None and data["rest"]["came_to_rest_s"] < 0.6
@@ -72,7 +73,7 @@ def test_the_solve_of_a_source_seen_at_rest_ends_there_at_rest():
 def test_a_duration_too_short_to_come_to_rest_is_warned_with_the_duration_it_needs():
     """1 m from the area needs 3.1 m/s, which slides for 0.63 s: nothing rests there by 0.5 s."""
     scene = slide_scene('<target position="1.0 0 0.05" orientation="1 0 0 0"/>', duration=0.5)
-    result = solve(scene, seed=0, iterations=40)
+    result = solve(scene, SolveParams(seed=0, iterations=40))
     rest = result.settings["rest"]
     assert rest["came_to_rest_s"] is None
     assert 0.6 < rest["needs_duration_s"] <= 1.2
@@ -128,7 +129,7 @@ def test_a_tracked_source_is_searched_stage_by_stage_and_found():
     problem = InferenceProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     assert [len(prefix) for prefix in stages(post)] == [1, 2]
-    result = solve(scene, seed=0)
+    result = solve(scene, SolveParams(seed=0))
     assert result.settings["search"]["observation_chi2"] < 1.0
     for row in result.observations():
         assert row["position_error"] < 0.005 and row["angle_error_deg"] is None
@@ -141,7 +142,8 @@ def test_the_truths_credible_level_is_the_posterior_mass_more_probable_than_it()
     from dejaview.inference.posterior_report import truth_report
 
     scene, truth = tracked_truth()
-    result = solve(scene, seed=0, samples=40, truth=dict(position=[0.05, -0.03, 0.5], orientation=[1, 0, 0, 0],
+    result = solve(scene, SolveParams(seed=0, samples=40), truth=dict(position=[0.05, -0.03, 0.5],
+                   orientation=[1, 0, 0, 0],
                                                         linear_velocity=[1.2, 0.4, 1.0],
                                                         angular_velocity=[0, 0, 0]))
     t = result.settings["truth"]

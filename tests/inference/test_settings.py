@@ -18,6 +18,7 @@ import pytest
 from dejaview.cli import main
 from dejaview.errors import InferenceError, SceneError
 from dejaview.inference import InferenceProblem, solve
+from dejaview.inference.solve import SolveParams
 from dejaview.scene import Scene, SceneObject
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "inference"
@@ -88,13 +89,13 @@ def ball():
 def test_unknown_optimizer_is_refused_before_any_work(ball):
     """``solve(scene, optimizer="newton")``: InferenceError naming it and the choices."""
     with pytest.raises(InferenceError) as err:
-        solve(ball, optimizer="newton")
+        solve(ball, SolveParams(optimizer="newton"))
     assert_one_line(err.value, "newton", "gd", "adam", "lbfgs", "bfgs")
 
 
 def test_unknown_gradient_mode_is_refused(ball):
     with pytest.raises(InferenceError) as err:
-        solve(ball, gradient="sideways", iterations=1)
+        solve(ball, SolveParams(gradient="sideways", iterations=1))
     assert_one_line(err.value, "sideways", "forward", "reverse")
 
 
@@ -103,13 +104,13 @@ def test_iterations_must_be_a_positive_integer(ball, iterations):
     """0 and -1 are not a number of iterations, nor are True (a bool is an int in Python),
     2.5 or a string."""
     with pytest.raises(InferenceError) as err:
-        solve(ball, iterations=iterations)
+        solve(ball, SolveParams(iterations=iterations))
     assert_one_line(err.value, "iterations", repr(iterations))
 
 
 def test_multistart_must_be_positive(ball):
     with pytest.raises(InferenceError) as err:
-        solve(ball, iterations=1, multistart=0)
+        solve(ball, SolveParams(iterations=1, multistart=0))
     assert_one_line(err.value, "multistart")
 
 
@@ -121,7 +122,7 @@ def test_no_free_parameter():
         InferenceProblem.from_scene(scene)
     assert_one_line(err.value, "no free parameter")
     with pytest.raises(InferenceError) as err:
-        solve(scene, iterations=1)
+        solve(scene, SolveParams(iterations=1))
     assert_one_line(err.value, "no free parameter")
 
 
@@ -157,7 +158,7 @@ def test_fixed_source_built_in_code_is_an_inference_error(with_other_movable):
         InferenceProblem.from_scene(scene)
     assert_one_line(err.value, "'ball'")
     with pytest.raises(InferenceError):
-        solve(scene, iterations=1)
+        solve(scene, SolveParams(iterations=1))
 
 
 def test_unknown_source_built_in_code_is_an_inference_error():
@@ -234,5 +235,5 @@ def test_cancelled_before_the_first_iteration_says_so(ball):
     """A stop request before any evaluation (a server job cancelled at once) has no solution
     to report; the error must say that, not blame the scene's numbers."""
     with pytest.raises(InferenceError) as err:
-        solve(ball, iterations=3, should_stop=lambda: True)
+        solve(ball, SolveParams(iterations=3), should_stop=lambda: True)
     assert_one_line(err.value, "stopped before the first iteration")

@@ -13,6 +13,7 @@ from dejaview import solve
 from dejaview.errors import InferenceError, SceneError, StartAreaError
 from dejaview.inference.start_area import BUDGET, check_start_area
 from dejaview.scene import Scene
+from dejaview.inference.solve import SolveParams
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "inference"
 BOX_IN_DESK = FIXTURES / "box_in_desk.xml"
@@ -66,7 +67,7 @@ def test_solve_raises_it_before_building_anything(monkeypatch):
     with pytest.raises(StartAreaError, match="'src' and 'desk' interpenetrate, by 0.0267 m"):
         solve(scene)
     with pytest.raises(StartAreaError, match="'src' and 'desk' interpenetrate, by 0.0267 m"):
-        solve(scene, optimizer="adam")  # the local optimisers know nothing of feasibility: checked too
+        solve(scene, SolveParams(optimizer="adam"))  # the local optimisers know nothing of feasibility: checked too
     with pytest.raises(StartAreaError):
         solve(BOX_IN_DESK)  # a path
 
@@ -77,7 +78,7 @@ def test_an_area_that_reaches_above_the_desk_passes_and_solves(tmp_path):
     returns a free start."""
     scene = Scene.from_xml(write_scene(tmp_path, area='<start-area min="-0.2 -0.1 0.6" max="0.2 0.1 0.78"/>'))
     assert check_start_area(scene) is not None
-    result = solve(scene, iterations=3, budget=300)
+    result = solve(scene, SolveParams(iterations=3, budget=300))
     assert result.initial_state["position"][2] >= 0.75 - 0.003
 
 

@@ -156,6 +156,7 @@ REST_CASES = [
 
 def test_hostile_input_while_other_clients_jobs_complete(live_server):
     from dejaview.inference.solve import solve
+    from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
     from dejaview.sim.simulate import simulate
 
@@ -201,7 +202,7 @@ def test_hostile_input_while_other_clients_jobs_complete(live_server):
     assert simulated.state == "done" and solved.state == "done"
     ball = Scene.from_string(BALL_XML, base_dir=FIXTURES)
     assert simulated.csv == simulate(ball).csv()
-    direct = solve(Scene.from_string(THROW_XML, base_dir=FIXTURES), iterations=4)
+    direct = solve(Scene.from_string(THROW_XML, base_dir=FIXTURES), SolveParams(iterations=4))
     assert solved.result["loss"] == pytest.approx(direct.loss, rel=1e-9)
     assert solved.result["initial_state"]["linear_velocity"] == pytest.approx(
         direct.initial_state["linear_velocity"], rel=1e-9)
