@@ -66,7 +66,7 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
 
 def _hull_notes(scene, path: str) -> list[str]:
     """One line per robot collision mesh that takes part as its convex hull (it has holes)."""
-    from dejaview.geometry.robot_links import hull_notes
+    from dejaview.scene.robot_links import hull_notes
 
     out = []
     for obj in scene.objects:
