@@ -81,13 +81,13 @@ class SimulationRun:
 
     def csv(self) -> str:
         """The trajectory CSV (scene-format spec, "Outputs") as text."""
-        from dejaview.io.trajectory import trajectory_csv
+        from dejaview.sim.trajectory_csv import trajectory_csv
 
         return trajectory_csv(self.world, self.trajectory)
 
     def write(self, out_dir) -> dict[str, Path]:
         """Write ``trajectory.csv`` into ``out_dir`` (created); returns ``{"trajectory": path}``."""
-        from dejaview.io.trajectory import write_trajectory_csv
+        from dejaview.sim.trajectory_csv import write_trajectory_csv
 
         return {"trajectory": write_trajectory_csv(Path(out_dir) / "trajectory.csv", self.world,
                                                    self.trajectory)}

@@ -12,7 +12,7 @@ from dejaview.backends import BACKENDS, WARP_MISSING, Backend, Problem, as_probl
 from dejaview.cli import main
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem, solve
-from dejaview.io.trajectory import read_trajectory_csv
+from dejaview.sim.trajectory_csv import read_trajectory_csv
 from dejaview.scene import Scene
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"

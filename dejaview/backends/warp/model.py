@@ -494,7 +494,7 @@ def simulate_scene(scene, *, steps: int | None = None, record_every: int = 1, de
         device, options: as ``WarpSimulator.from_scene`` (integrator, substeps, iterations, restitution).
     Returns:
         (BodyFrames, Trajectory with states (T, 1, N, ...)); write it with
-        ``dejaview.io.trajectory.write_trajectory_csv(path, frames, trajectory)``.
+        ``dejaview.sim.trajectory_csv.write_trajectory_csv(path, frames, trajectory)``.
     """
     from dejaview.scene import Scene
 
