@@ -17,9 +17,8 @@ from typing import Protocol, runtime_checkable
 import torch
 
 from dejaview.errors import InferenceError
-
-DEFAULT_ORIENTATION_WEIGHT = 0.05  # metres per radian; see dejaview.losses.pose
-GRADIENT_MODES = ("forward", "reverse")
+from dejaview.losses.pose import DEFAULT_ORIENTATION_WEIGHT
+from dejaview.sim.gradients import GRADIENT_MODES
 
 
 class Problem:

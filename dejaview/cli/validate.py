@@ -9,8 +9,7 @@ import click
 from dejaview.cli.options import package_path_option
 
 from dejaview.errors import GeometryError, SceneError
-
-DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not imported: --help stays cheap)
+from dejaview.geometry import DEFAULT_MARGIN
 
 
 @click.command("validate")

@@ -19,3 +19,9 @@ Modules (import them directly; this package imports nothing, so that
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
 """Mesh file suffixes read (``load_mesh``): what a scene's ``mesh=`` and a URDF's meshes may name."""
+
+DEFAULT_MARGIN = 0.002
+"""Overlap (m) that ``dejaview validate`` and ``SceneCollision.interpenetrations`` accept as resting
+contact: the sphere packings reach up to 1 mm outside a surface, and an object left at rest by the
+simulator sinks a fraction of a millimetre into what it rests on. Here, not in ``collision``: the
+CLI's ``--help`` reads it without loading trimesh."""

@@ -51,6 +51,7 @@ import numpy as np
 import trimesh
 
 from dejaview.errors import GeometryError
+from dejaview.geometry import DEFAULT_MARGIN
 from dejaview.geometry.convex_pieces import load_or_build_pieces
 from dejaview.geometry.overlap import below_plane, piece_depth, support, vertex_depth
 from dejaview.geometry.transforms import quat_to_matrix
@@ -58,10 +59,6 @@ from dejaview.geometry.transforms import quat_to_matrix
 # Depths up to this count as touching: EPA's noise on touching solids is ~1e-16 m,
 # tessellated curved surfaces rest on each other to within ~1e-7 m.
 TOUCHING = 1e-6
-# What `dejaview validate` and `interpenetrations` accept as resting contact: the
-# sphere packings reach up to 1 mm outside a surface, and an object left at rest by
-# the simulator sinks a fraction of a millimetre into what it rests on.
-DEFAULT_MARGIN = 0.002
 # Pieces' depths up to this are refined with the exact surfaces' contacts (a filled
 # concavity can make them too deep by up to its size); deeper ones are far beyond
 # any margin and would cost one contact per buried triangle.
