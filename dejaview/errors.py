@@ -77,7 +77,7 @@ class ResourceError(DejaViewError):
 
 class OutputError(DejaViewError):
     """A result set that could not be written (a full disk, no permission): nothing of it was put
-    in place (``dejaview.io.result_set``).
+    in place (``dejaview.result_set``).
 
     Attributes:
         path: the file or folder that could not be written.

@@ -17,7 +17,7 @@ import pytest  # noqa: E402
 @pytest.fixture
 def disk_full_at(monkeypatch):
     """``disk_full_at(name)``: from then on, in this process, opening a file called ``name`` inside a
-    result set being written (a ``.partial-`` folder, ``dejaview.io.result_set``) fails as on a
+    result set being written (a ``.partial-`` folder, ``dejaview.result_set``) fails as on a
     full disk (ENOSPC); ``disk_full_at(None)`` frees the disk. The files written before it stay
     in the folder, as a real full disk leaves them."""
     real_open = builtins.open

@@ -17,9 +17,8 @@ from typing import Protocol, runtime_checkable
 import torch
 
 from dejaview.errors import InferenceError
-
-DEFAULT_ORIENTATION_WEIGHT = 0.05  # metres per radian; see dejaview.losses.pose
-GRADIENT_MODES = ("forward", "reverse")
+from dejaview.losses.pose import DEFAULT_ORIENTATION_WEIGHT
+from dejaview.sim.gradients import GRADIENT_MODES
 
 
 class Problem:
@@ -148,13 +147,13 @@ class Problem:
 
     def trajectory_csv(self, traj, index: int = 0) -> str:
         """Trajectory CSV text of candidate ``index`` (every movable object)."""
-        from dejaview.io.trajectory import trajectory_csv
+        from dejaview.sim.trajectory_csv import trajectory_csv
 
         return trajectory_csv(self.frames, traj, index)
 
     def write_trajectory(self, path, traj, index: int = 0):
         """Write the trajectory CSV of candidate ``index``; returns the path."""
-        from dejaview.io.trajectory import write_trajectory_csv
+        from dejaview.sim.trajectory_csv import write_trajectory_csv
 
         return write_trajectory_csv(path, self.frames, traj, index)
 

@@ -9,10 +9,27 @@ import sys
 
 import click
 
-from dejaview.scene.model import OPTIMIZERS  # a leaf module: --help stays cheap
+from dejaview.scene.model import GRADIENTS, OPTIMIZERS  # a leaf module: --help stays cheap
 
-BACKENDS = ("spheres", "warp")  # dejaview.backends.BACKENDS (not imported: --help stays cheap)
-ENGINES = ("auto", "native", "torch")  # dejaview.sim.native.ENGINES
+
+class RegistryChoice(click.Choice):
+    """A ``click.Choice`` whose names are read from where they are registered, on first use: the
+    commands' ``--help`` and their arguments import it, ``dejaview --help`` does not (it costs torch)."""
+
+    def __init__(self, module: str, name: str):
+        self._where = (module, name)
+        self.case_sensitive = True
+
+    @functools.cached_property
+    def choices(self) -> tuple[str, ...]:
+        import importlib
+
+        module, name = self._where
+        return tuple(getattr(importlib.import_module(module), name))
+
+
+BACKENDS = RegistryChoice("dejaview.backends", "BACKENDS")
+ENGINES = RegistryChoice("dejaview.sim.native", "ENGINES")
 
 
 def common_options(f):
@@ -22,7 +39,7 @@ def common_options(f):
         click.option("--optimizer", type=click.Choice(OPTIMIZERS), default=None,
                      help="auto: the most probable past (CMA-ES + Levenberg-Marquardt); or one local "
                           "optimiser with restarts (overrides the scene)"),
-        click.option("--gradient", type=click.Choice(["forward", "reverse"]), default=None,
+        click.option("--gradient", type=click.Choice(GRADIENTS), default=None,
                      help="gradient mode (overrides the scene)"),
         click.option("--seed", type=int, default=None, help="random seed (overrides the scene)"),
         click.option("--quiet", "-q", is_flag=True, help="no progress bar"),
@@ -52,9 +69,9 @@ def backend_options(*, with_compile: bool = False):
             return f(*args, backend=chosen, **kwargs)
 
         opts = [
-            click.option("--backend", type=click.Choice(BACKENDS), default="spheres", show_default=True,
+            click.option("--backend", type=BACKENDS, default="spheres", show_default=True,
                          help="physics backend (warp: pip install 'dejaview[warp]')"),
-            click.option("--engine", type=click.Choice(ENGINES), default="auto", show_default=True,
+            click.option("--engine", type=ENGINES, default="auto", show_default=True,
                          help="spheres backend: native C++ simulator (auto: where float64 allows) or torch"),
         ]
         if with_compile:

@@ -9,8 +9,7 @@ import click
 from dejaview.cli.options import package_path_option
 
 from dejaview.errors import GeometryError, SceneError
-
-DEFAULT_MARGIN = 0.002  # dejaview.geometry.collision.DEFAULT_MARGIN (not imported: --help stays cheap)
+from dejaview.geometry import DEFAULT_MARGIN
 
 
 @click.command("validate")
@@ -66,7 +65,7 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
 
 def _hull_notes(scene, path: str) -> list[str]:
     """One line per robot collision mesh that takes part as its convex hull (it has holes)."""
-    from dejaview.geometry.robot_links import hull_notes
+    from dejaview.scene.robot_links import hull_notes
 
     out = []
     for obj in scene.objects:

@@ -51,16 +51,14 @@ import numpy as np
 import trimesh
 
 from dejaview.errors import GeometryError
+from dejaview.geometry import DEFAULT_MARGIN
 from dejaview.geometry.convex_pieces import load_or_build_pieces
 from dejaview.geometry.overlap import below_plane, piece_depth, support, vertex_depth
+from dejaview.geometry.transforms import quat_to_matrix
 
 # Depths up to this count as touching: EPA's noise on touching solids is ~1e-16 m,
 # tessellated curved surfaces rest on each other to within ~1e-7 m.
 TOUCHING = 1e-6
-# What `dejaview validate` and `interpenetrations` accept as resting contact: the
-# sphere packings reach up to 1 mm outside a surface, and an object left at rest by
-# the simulator sinks a fraction of a millimetre into what it rests on.
-DEFAULT_MARGIN = 0.002
 # Pieces' depths up to this are refined with the exact surfaces' contacts (a filled
 # concavity can make them too deep by up to its size); deeper ones are far beyond
 # any margin and would cost one contact per buried triangle.
@@ -69,28 +67,6 @@ _MAX_CONTACTS = 100_000
 
 
 # ------------------------------------------------------------------- helpers
-def quaternion_matrices(q) -> np.ndarray:
-    """Rotation matrices of unit quaternions.
-
-    Args:
-        q: (..., 4) quaternions, w x y z (normalised here).
-    Returns:
-        (..., 3, 3) rotation matrices.
-    Raises:
-        GeometryError: a zero or non-finite quaternion.
-    """
-    q = np.asarray(q, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if not np.all(np.isfinite(q)) or np.any(norm < 1e-12):
-        raise GeometryError("orientation: quaternions must be finite and non-zero (w x y z)")
-    w, x, y, z = np.moveaxis(q / norm, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
 def _convex_geometry(mesh: trimesh.Trimesh):
     import fcl
 
@@ -179,43 +155,60 @@ def _face_normals(mesh: trimesh.Trimesh) -> np.ndarray:
     return normals[np.sort(first)]
 
 
-def _body_from_object(scene, obj, part=None) -> _Body | None:
-    """``obj``'s collision geometry; ``part``: the ``LinkPart`` a robot link's ``obj`` comes from."""
+def _body_from_object(scene, obj) -> _Body | None:
+    """A scene object's collision geometry (a mesh as CoACD's convex pieces)."""
+
+    def mesh_pieces():
+        from dejaview.geometry.mesh import load_mesh, watertight_mesh
+
+        path = scene.resolve(obj.mesh)
+        mesh = watertight_mesh(load_mesh(path))
+        return mesh, load_or_build_pieces(path, mesh)
+
+    return _body(obj.id, obj.geometry_kind, obj.fixed, obj.pose.orientation, obj.pose.position, obj.size,
+                 obj.radius, obj.height, mesh_pieces)
+
+
+def _body_from_piece(piece) -> _Body | None:
+    """A robot link's collision geometry (a ``dejaview.geometry.robot.RobotPiece``, fixed)."""
+
+    def mesh_pieces():  # only ever met by movable objects: its hull covers it
+        mesh, hull = piece.solid()
+        return mesh, [mesh if hull or mesh.is_convex else mesh.convex_hull]
+
+    return _body(piece.name, piece.kind, True, piece.orientation, piece.position, piece.size, piece.radius,
+                 piece.height, mesh_pieces)
+
+
+def _body(name, kind, fixed, orientation, position, size, radius, height, mesh_pieces) -> _Body | None:
+    """Collision geometry of a placed solid; ``mesh_pieces()``: a mesh's (mesh, convex pieces)."""
     import fcl
 
-    from dejaview.geometry.mesh import load_mesh, watertight_mesh
-
-    rotation = quaternion_matrices(obj.pose.orientation)
-    position = np.asarray(obj.pose.position, dtype=np.float64)
-    body = _Body(obj.id, obj.geometry_kind, obj.fixed, rotation, position)
+    rotation = quat_to_matrix(orientation)
+    position = np.asarray(position, dtype=np.float64)
+    body = _Body(name, kind, fixed, rotation, position)
     if body.kind == "plane":
         return body
     if body.kind == "box":
-        sx, sy, sz = (float(v) for v in obj.size)
+        sx, sy, sz = (float(v) for v in size)
         geometries = [fcl.Box(sx, sy, sz)]
         half = 0.5 * np.array([sx, sy, sz])
         body.hull = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]) * half
         body.centres, body.radii = np.zeros((1, 3)), np.array([np.linalg.norm(half)])
         body.shapes = [(body.hull, np.eye(3))]
     elif body.kind == "sphere":
-        geometries = [fcl.Sphere(float(obj.radius))]
-        body.size = (float(obj.radius),)
-        body.centres, body.radii = np.zeros((1, 3)), np.array([float(obj.radius)])
+        geometries = [fcl.Sphere(float(radius))]
+        body.size = (float(radius),)
+        body.centres, body.radii = np.zeros((1, 3)), np.array([float(radius)])
         body.shapes = [None]
     elif body.kind == "cylinder":
-        geometries = [fcl.Cylinder(float(obj.radius), float(obj.height))]
-        body.size = (float(obj.radius), float(obj.height))
+        geometries = [fcl.Cylinder(float(radius), float(height))]
+        body.size = (float(radius), float(height))
         body.centres = np.zeros((1, 3))
-        body.radii = np.array([np.hypot(obj.radius, 0.5 * obj.height)])
+        body.radii = np.array([np.hypot(radius, 0.5 * height)])
         body.shapes = [None]
     elif body.kind == "mesh":
-        if part is not None:  # a robot link, only ever met by movable objects: its hull covers it
-            mesh = part.solid
-            pieces = [mesh if part.hull or mesh.is_convex else mesh.convex_hull]
-        else:
-            path = scene.resolve(obj.mesh)
-            mesh = watertight_mesh(load_mesh(path))
-            pieces = load_or_build_pieces(path, mesh)
+        mesh, pieces = mesh_pieces()
         geometries = [_convex_geometry(p) for p in pieces]
         spheres = [_bounding_sphere(np.asarray(p.vertices)) for p in pieces]
         body.centres = np.array([c for c, _ in spheres])
@@ -255,20 +248,20 @@ class SceneCollision:
     def __init__(self, scene):
         import fcl
 
-        from dejaview.geometry.robot_links import link_objects
+        from dejaview.geometry.robot import robot_pieces
 
         self.scene = scene
         self._bodies: dict[str, _Body] = {}
         for obj in scene.objects:
-            parts = link_objects(scene, obj) if obj.robot is not None else [None]
-            for part in parts:
-                one = obj if part is None else part.object
+            solids = robot_pieces(scene, obj) if obj.robot is not None else [obj]
+            for one in solids:
+                name = one.id if one is obj else one.name
                 try:
-                    body = _body_from_object(scene, one, part)
+                    body = _body_from_object(scene, one) if one is obj else _body_from_piece(one)
                 except GeometryError as exc:
-                    raise GeometryError(f"object {one.id!r}: {exc}") from exc
+                    raise GeometryError(f"object {name!r}: {exc}") from exc
                 if body is not None:
-                    self._bodies[one.id] = body
+                    self._bodies[name] = body
         self._request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
         self._boolean_request = fcl.CollisionRequest(num_max_contacts=1, enable_contact=False)
         self._exact_request = fcl.CollisionRequest(num_max_contacts=_MAX_CONTACTS, enable_contact=True)
@@ -328,7 +321,7 @@ class SceneCollision:
                                 f"{tuple(pos.shape)} and {tuple(quat.shape)}")
         if not np.all(np.isfinite(pos)):
             raise GeometryError("penetration: positions must be finite")
-        rot = quaternion_matrices(quat)
+        rot = quat_to_matrix(quat)
         limit = max(float(margin), TOUCHING)
         depth, other = self._deepest(source, rot, pos, source_id, limit, decide_only)
         hit = depth > limit

@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 
 from dejaview.errors import GeometryError
-from dejaview.scene.model import MESH_SUFFIXES
+from dejaview.geometry import MESH_SUFFIXES
 
 CACHE_ENV = "DEJAVIEW_CACHE_DIR"
 CACHE_FOLDER = ".dejaview-cache"

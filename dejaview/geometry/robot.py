@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from dejaview.errors import SceneError
+from dejaview.geometry import MESH_SUFFIXES
+from dejaview.geometry.transforms import matrix_to_quat, quat_to_matrix, rigid_transform, rpy_to_matrix
 
 __all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_transforms",
            "read_robot", "robot_model", "robot_pieces"]
@@ -157,7 +159,7 @@ def read_robot(path: str | Path, format: str, root: Path | None = None) -> Robot
         raise SceneError(f"{format.upper()} file is over the {MAX_ROBOT_BYTES >> 20} MiB limit", str(path))
     from lxml import etree
 
-    from dejaview.scene.parsing import parse_xml
+    from dejaview.untrusted_xml import parse_xml
 
     tree = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
     if format == "urdf":
@@ -193,31 +195,13 @@ def _positive(path: Path, el, name: str, value) -> float:
     return float(v)
 
 
-def rpy_matrix(rpy) -> np.ndarray:
-    """(3, 3) rotation of URDF roll-pitch-yaw (fixed axes x, y, z: R = Rz(yaw) Ry(pitch) Rx(roll))."""
-    r, p, y = rpy
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
-
-
-def _transform(rotation=None, translation=None) -> np.ndarray:
-    t = np.eye(4)
-    if rotation is not None:
-        t[:3, :3] = rotation
-    if translation is not None:
-        t[:3, 3] = translation
-    return t
-
-
 def _urdf_origin(path: Path, el) -> np.ndarray:
     origin = el.find("origin")
     if origin is None:
         return np.eye(4)
     xyz = _floats(path, origin, "xyz", 3, (0.0, 0.0, 0.0))
     rpy = _floats(path, origin, "rpy", 3, (0.0, 0.0, 0.0))
-    return _transform(rpy_matrix(rpy), xyz)
+    return rigid_transform(rpy_to_matrix(rpy), xyz)
 
 
 def _read_urdf(path: Path, root, confine: Path | None) -> RobotModel:
@@ -314,8 +298,6 @@ def _urdf_mesh(path: Path, g, root: Path | None) -> tuple[Path, float]:
     name = g.get("filename")
     if not name:
         raise _err(path, g, "a <mesh> needs a 'filename'")
-    from dejaview.scene.model import MESH_SUFFIXES
-
     if Path(name).suffix.lower() not in MESH_SUFFIXES:
         raise _err(path, g, f"mesh {name!r}: unsupported suffix (use one of {', '.join(MESH_SUFFIXES)})")
     scale = _floats(path, g, "scale", 3, (1.0, 1.0, 1.0))
@@ -379,7 +361,7 @@ def _read_mjcf(path: Path, root, text: bytes) -> RobotModel:
             raise SceneError(f"geom {g} is on a body without a name: name every body that carries geoms",
                              str(path), None, "body")
         kind, size = int(model.geom_type[g]), model.geom_size[g]
-        origin = _transform(_quat_matrix(model.geom_quat[g]), model.geom_pos[g])
+        origin = rigid_transform(quat_to_matrix(model.geom_quat[g]), model.geom_pos[g])
         if kind == _MJ_PLANE:
             geometry.append(LinkGeometry(body, "plane", origin))
         elif kind == _MJ_SPHERE:
@@ -391,19 +373,13 @@ def _read_mjcf(path: Path, root, text: bytes) -> RobotModel:
                                          height=2.0 * float(size[1])))
             if kind == _MJ_CAPSULE:  # a capsule is a cylinder with a sphere on each end
                 for sign in (-1.0, 1.0):
-                    geometry.append(LinkGeometry(body, "sphere", origin @ _transform(None, (0, 0, sign * size[1])),
+                    geometry.append(LinkGeometry(body, "sphere", origin @ rigid_transform(None, (0, 0, sign * size[1])),
                                                  radius=float(size[0])))
         else:
             name = model.geom(g).name or f"#{g}"
             raise SceneError(f"geom {name!r} is a {_MJ_NAMES.get(kind, kind)}: an MJCF robot's geoms are planes, "
                              "spheres, capsules, cylinders and boxes", str(path), None, "geom")
     return RobotModel(path=path, format="mjcf", joints=tuple(joints), geometry=tuple(geometry), text=text)
-
-
-def _quat_matrix(q) -> np.ndarray:
-    from dejaview.sim.world import quat_to_matrix_np
-
-    return quat_to_matrix_np(q)
 
 
 def joint_problems(model: RobotModel, values) -> list[str]:
@@ -505,26 +481,6 @@ def _mjcf_chain(pk, model: RobotModel):
     return pk.Chain(frames[0])
 
 
-def matrix_quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """(3, 3) rotation -> unit quaternion w x y z (Shepperd's method; any sign of w)."""
-    m = np.asarray(r, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 0.0))
-        v = [0.0, 0.0, 0.0]
-        v[i] = 0.25 * s
-        v[j] = (m[j, i] + m[i, j]) / s
-        v[k] = (m[k, i] + m[i, k]) / s
-        q = ((m[k, j] - m[j, k]) / s, *v)
-    n = math.sqrt(sum(c * c for c in q))
-    return tuple(float(c / n) for c in q)
-
-
 def robot_model(scene, obj) -> RobotModel:
     """The robot model of a scene object (``urdf`` or ``mjcf``), its file resolved against the scene
     (``package://`` URIs only inside ``scene.root`` where the scene has one)."""
@@ -542,15 +498,13 @@ def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece
     Raises:
         SceneError: naming the scene object, for any problem of the robot file or its joints.
     """
-    from dejaview.sim.world import quat_to_matrix_np
-
     try:
         model = model or robot_model(scene, obj)
         links = link_transforms(model, obj.joints)
     except SceneError as exc:
         raise SceneError(f"object {obj.id!r}: {exc}", str(scene.path) if scene.path else None, obj.line,
                          "object") from None
-    base = _transform(quat_to_matrix_np(obj.pose.orientation), obj.pose.position)
+    base = rigid_transform(quat_to_matrix(obj.pose.orientation), obj.pose.position)
     pieces, seen = [], {}
     for g in model.geometry:
         if g.link not in links:
@@ -561,6 +515,6 @@ def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece
         seen[g.link] = k + 1
         name = f"{obj.id}/{g.link}" + (f"#{k}" if k else "")
         pieces.append(RobotPiece(name=name, link=g.link, kind=g.kind, position=tuple(float(v) for v in world[:3, 3]),
-                                 orientation=matrix_quaternion(world[:3, :3]), size=g.size, radius=g.radius,
+                                 orientation=matrix_to_quat(world[:3, :3]), size=g.size, radius=g.radius,
                                  height=g.height, mesh=g.mesh, scale=g.scale, convex_hull=g.convex_hull))
     return pieces

@@ -94,13 +94,13 @@ class HeatmapResult:
     def write(self, out_dir, plot: bool = True, truth=None) -> dict[str, Path]:
         """Write heatmap.ppm, heatmap.json, heatmap.png (``plot``), result.json, iterations.csv and
         trajectory.csv (the best solution) to out_dir, whole or not at all
-        (``dejaview.io.result_set``). ``truth``: optional (x, y) marked in the PNG.
+        (``dejaview.result_set``). ``truth``: optional (x, y) marked in the PNG.
 
         Raises:
             OutputError: the set could not be written (a full disk...): out_dir keeps what it held.
         """
         from dejaview.inference.result import RESULT_FILES
-        from dejaview.io.result_set import write_result_set
+        from dejaview.result_set import write_result_set
 
         return write_result_set(out_dir, lambda folder: self.write_files(folder, plot, truth),
                                 RESULT_FILES + ("heatmap.json", "heatmap.ppm", "heatmap.png"))

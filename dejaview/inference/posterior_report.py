@@ -204,7 +204,7 @@ def write_paths(path, problem, samples, count: int = PATHS, seed: int = 0) -> Pa
     from a few samples (``path_samples``), re-simulated together; ``sample`` is the row of
     ``posterior.csv`` it starts from. About ``PATH_RECORDS`` records each, the last step
     included."""
-    from dejaview.io.trajectory import trajectory_rows
+    from dejaview.sim.trajectory_csv import trajectory_rows
 
     chosen = path_samples(samples, count, seed)
     path = Path(path)

@@ -172,12 +172,12 @@ class SolveResult:
     def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
         """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``); with
         posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``); whole
-        or not at all (``dejaview.io.result_set``).
+        or not at all (``dejaview.result_set``).
 
         Raises:
             OutputError: the set could not be written (a full disk...): out_dir keeps what it held.
         """
-        from dejaview.io.result_set import write_result_set
+        from dejaview.result_set import write_result_set
 
         return write_result_set(out_dir, lambda folder: self.write_files(folder, plot), RESULT_FILES)
 

@@ -1,1 +1,1 @@
-"""Files DejaView writes and reads: trajectory CSV, heatmaps, result JSON."""
+"""MuJoCo interchange: MJCF export and import of scenes (``dejaview.io.mjcf``)."""

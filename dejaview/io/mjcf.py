@@ -301,7 +301,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         MJCFError: a state that does not fit the scene.
         GeometryError: a mesh that cannot be read.
     """
-    from dejaview.geometry.collision import quaternion_matrices
+    from dejaview.geometry.transforms import quat_to_matrix
 
     states = _initial_states(scene, state)
     assets: list[str] = []
@@ -309,7 +309,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     world, qpos, qvel = [], [], []
     for obj in scene.objects:
         if obj.fixed:
-            from dejaview.geometry.robot_links import link_objects
+            from dejaview.scene.robot_links import link_objects
 
             # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
             for part in link_objects(scene, obj) if obj.robot is not None else [None]:
@@ -327,7 +327,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
                      f'<inertial pos="{_vec(props.center_of_mass)}" mass="{_num(props.mass)}" '
                      f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep, obj.id, geoms))}'
                      '</body>')
-        rot = quaternion_matrices(s["orientation"])
+        rot = quat_to_matrix(s["orientation"])
         omega = np.asarray(s["angular_velocity"], dtype=np.float64)
         # free joint: velocity of the body origin (world), angular velocity in the body frame
         v_origin = np.asarray(s["linear_velocity"]) - np.cross(omega, rot @ props.center_of_mass)

@@ -47,15 +47,13 @@ from dejaview.losses.add import add_error
 from dejaview.losses.penalty import contact_penalty
 from dejaview.losses.pose import (DEFAULT_ORIENTATION_WEIGHT, SMOOTH_EPS, position_error, pose_error,
                                   velocity_error)
-from dejaview.scene.model import InferenceSettings, Penalty, Target
+from dejaview.scene.model import EVALUATES, InferenceSettings, Penalty, Target
 from dejaview.sim.integrate import Trajectory
 from dejaview.sim.rotation import normalize_quat, quat_rotate
 from dejaview.sim.state import State
 
 DEFAULT_VELOCITY_WEIGHT = 0.1
 """Seconds: metres of loss per m/s of velocity error (times ``orientation_weight`` per rad/s)."""
-
-EVALUATES = ("best", "final")
 
 
 def _body_index(world, body: int | str) -> int:

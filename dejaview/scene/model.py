@@ -26,9 +26,6 @@ DEFAULT_GRAVITY: Vec3 = (0.0, 0.0, -9.81)
 DEFAULT_DENSITY = 1000.0
 
 
-MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
-"""Mesh file suffixes a scene may name (``mesh=``, a URDF's meshes)."""
-
 @dataclass(frozen=True)
 class Pose:
     """Position (m) and orientation quaternion (w x y z) of an object's frame."""

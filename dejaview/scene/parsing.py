@@ -1,10 +1,7 @@
 """Hardened parsing of scene XML: stages 1-3 of ``dejaview.scene.xml``'s reader.
 
-1. bytes: a size limit (default 1 MiB) and an outright refusal of any ``<!DOCTYPE``/``<!ENTITY``
-   declaration, before the parser sees the text, so entity bombs and external entities or DTDs
-   are never expanded or fetched;
-2. well-formedness, with a parser that resolves no entities, loads no DTD, touches no network and
-   keeps libxml2's size limits (no XInclude is run);
+1. bytes and 2. well-formedness: ``dejaview.untrusted_xml.parse_xml``, shared with the robot files'
+   reader (a size limit, no DOCTYPE or ENTITY declaration, a parser that resolves nothing);
 3. structure, against the XML Schema ``scene.xsd`` shipped in this package (which elements go
    where, which attributes each takes), with schema errors explained in one line.
 
@@ -22,85 +19,14 @@ from importlib import resources
 from lxml import etree
 
 from dejaview.errors import SceneError
-
-DEFAULT_MAX_BYTES = 1 << 20
-"""Largest scene accepted by default (1 MiB)."""
+from dejaview.untrusted_xml import DEFAULT_MAX_BYTES, hardened_parser
 
 SCENE_VERSION = "1"
 """The only format version this reader knows."""
 
-_DTD_RE = re.compile(rb"<!\s*(DOCTYPE|ENTITY)", re.IGNORECASE)
 _XML_SPACE = " \t\r\n"
 
-__all__ = ["DEFAULT_MAX_BYTES", "SCENE_VERSION", "check_structure", "load_schema", "parse_xml"]
-
-
-# ---------------------------------------------------------------------------
-# stage 1-2: bytes and well-formedness
-# ---------------------------------------------------------------------------
-def _make_parser() -> etree.XMLParser:
-    # A fresh parser per document: parsers keep an error log and are not thread-safe.
-    return etree.XMLParser(
-        resolve_entities=False,
-        no_network=True,
-        load_dtd=False,
-        dtd_validation=False,
-        huge_tree=False,
-        remove_comments=True,
-        remove_pis=True,
-        collect_ids=False,
-        encoding="utf-8",
-    )
-
-
-def parse_xml(text: str | bytes, filename: str = "<string>",
-              max_bytes: int = DEFAULT_MAX_BYTES, what: str = "scene files") -> etree._Element:
-    """Parse scene XML (or other untrusted XML: ``what`` names it in errors) safely and return
-    its root element (no schema check).
-
-    Refuses documents over ``max_bytes``, empty documents, any DOCTYPE or
-    ENTITY declaration (never expanded, never fetched) and malformed XML.
-
-    Raises:
-        SceneError: naming the file and line.
-    """
-    data = text.encode("utf-8") if isinstance(text, str) else bytes(text)
-    if len(data) > max_bytes:
-        raise SceneError(_too_large(len(data), max_bytes), filename)
-    if not data.strip(b" \t\r\n\xef\xbb\xbf"):
-        raise SceneError("empty file: no XML at all", filename, 1)
-    match = _DTD_RE.search(data)
-    if match:
-        kind = match.group(1).decode("ascii").upper()
-        line = data.count(b"\n", 0, match.start()) + 1
-        raise SceneError(
-            f"{kind} declarations are not allowed in {what} "
-            "(entities and DTDs are refused, never expanded or fetched)",
-            filename, line, "!" + kind)
-    try:
-        root = etree.fromstring(data, _make_parser())
-    except etree.XMLSyntaxError as exc:
-        message = re.sub(r", line \d+, column \d+$", "", " ".join((exc.msg or "syntax error").split()))
-        raise SceneError(f"not well-formed XML: {message}", filename,
-                         exc.lineno or 1) from None
-    # Defence in depth: the byte scan above should make this unreachable.
-    docinfo = root.getroottree().docinfo
-    if docinfo.doctype or docinfo.internalDTD is not None or docinfo.externalDTD is not None:
-        raise SceneError(f"DOCTYPE declarations are not allowed in {what}",
-                         filename, 1, "!DOCTYPE")
-    return root
-
-
-def _too_large(size: int, max_bytes: int) -> str:
-    return f"scene is too large: {size} bytes, over the {_human_bytes(max_bytes)} limit"
-
-
-def _human_bytes(n: int) -> str:
-    if n >= 1 << 20 and n % (1 << 20) == 0:
-        return f"{n >> 20} MiB"
-    if n >= 1 << 10 and n % (1 << 10) == 0:
-        return f"{n >> 10} KiB"
-    return f"{n} bytes"
+__all__ = ["DEFAULT_MAX_BYTES", "SCENE_VERSION", "check_structure", "load_schema"]
 
 
 # ---------------------------------------------------------------------------
@@ -118,7 +44,7 @@ def _schema_bytes() -> bytes:
 @functools.lru_cache(maxsize=1)
 def load_schema() -> etree.XMLSchema:
     """The XML Schema of scene files (``scene.xsd`` in this package), cached."""
-    doc = etree.fromstring(_schema_bytes(), _make_parser())
+    doc = etree.fromstring(_schema_bytes(), hardened_parser())
     return etree.XMLSchema(doc)
 
 
@@ -128,7 +54,7 @@ def _schema_outline() -> dict[str, dict[str, tuple[str, ...]]]:
 
     Read from ``scene.xsd`` itself so error hints never disagree with it.
     """
-    doc = etree.fromstring(_schema_bytes(), _make_parser())
+    doc = etree.fromstring(_schema_bytes(), hardened_parser())
     types = {t.get("name"): t for t in doc.iter(_XS + "complexType")}
     outline = {}
     for decl in doc.iter(_XS + "element"):

@@ -19,12 +19,12 @@ import re
 from pathlib import Path
 
 from dejaview.errors import SceneError
+from dejaview.geometry import MESH_SUFFIXES
 from dejaview.scene import bounds as B
 from dejaview.scene.model import (
     EVALUATES,
     GRADIENTS,
     LOSSES,
-    MESH_SUFFIXES,
     OPTIMIZERS,
     SHAPES,
     Scene,

@@ -25,8 +25,7 @@ import re
 from pathlib import Path
 
 from dejaview.errors import SceneError
-from dejaview.scene.parsing import (DEFAULT_MAX_BYTES, SCENE_VERSION, _XML_SPACE, _too_large,
-                                    check_structure, load_schema, parse_xml)
+from dejaview.scene.parsing import DEFAULT_MAX_BYTES, SCENE_VERSION, _XML_SPACE, check_structure, load_schema
 from dejaview.scene.model import (
     DEFAULT_GRAVITY,
     Exploration,
@@ -47,6 +46,7 @@ from dejaview.scene.model import (
     Velocity,
 )
 from dejaview.scene.writer import _default, scene_to_xml
+from dejaview.untrusted_xml import _too_large, parse_xml
 
 __all__ = [
     "DEFAULT_MAX_BYTES",

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dejaview.errors import DejaViewError
+from dejaview.server.access import CLOSE_UNAUTHORIZED
 
-CLOSE_UNAUTHORIZED = 4401  # the server's WebSocket close code for a missing or wrong token
 
 
 class ClientError(DejaViewError):

@@ -4,7 +4,7 @@
 the job's spec (kind, scene text, overrides), a folder to write into, a
 function to report progress through and a ``StopCheck`` to poll, and returns
 the job's summary and the names of the files it wrote. The files appear
-atomically (``dejaview.io.result_set``: written aside, renamed into place), so a
+atomically (``dejaview.result_set``: written aside, renamed into place), so a
 job run again after a crash simply writes the same files again, and a full disk
 fails the job (``disk_full``) without a half-written set. Torch and the
 simulator are imported here, inside the worker, never by the web process's
@@ -106,7 +106,7 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
     progress = Throttle(emit, progress_interval)
     stop.raise_if_stopped()
     runner = {"simulate": _simulate, "solve": _solve, "heatmap": _heatmap}[spec["kind"]]
-    # each result set is written whole or not at all (``dejaview.io.result_set``): a reader, or a
+    # each result set is written whole or not at all (``dejaview.result_set``): a reader, or a
     # run of the same job after a crash, never sees a half-written artefact
     return runner(scene, overrides, Path(out_dir), progress, stop)
 

@@ -43,7 +43,7 @@ import uuid
 from pathlib import Path
 
 from dejaview.server.config import ServerConfig
-from dejaview.io.result_set import partial_folders
+from dejaview.result_set import partial_folders
 from dejaview.server.errors import ServiceError, write_error
 from dejaview.server.messages import (
     FINISHED_STATES,

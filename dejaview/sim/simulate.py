@@ -84,19 +84,19 @@ class SimulationRun:
 
     def csv(self) -> str:
         """The trajectory CSV (scene-format spec, "Outputs") as text."""
-        from dejaview.io.trajectory import trajectory_csv
+        from dejaview.sim.trajectory_csv import trajectory_csv
 
         return trajectory_csv(self.world, self.trajectory)
 
     def write(self, out_dir) -> dict[str, Path]:
         """Write ``trajectory.csv`` into ``out_dir`` (created), whole or not at all
-        (``dejaview.io.result_set``); returns ``{"trajectory": path}``.
+        (``dejaview.result_set``); returns ``{"trajectory": path}``.
 
         Raises:
             OutputError: it could not be written (a full disk...): out_dir keeps what it held.
         """
-        from dejaview.io.result_set import write_result_set
-        from dejaview.io.trajectory import write_trajectory_csv
+        from dejaview.result_set import write_result_set
+        from dejaview.sim.trajectory_csv import write_trajectory_csv
 
         return write_result_set(out_dir, lambda folder: {
             "trajectory": write_trajectory_csv(folder / "trajectory.csv", self.world, self.trajectory)})

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from dejaview.errors import SimulationError
+from dejaview.geometry.transforms import quat_to_matrix
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
 from dejaview.sim.box_edges import static_edge_points
@@ -38,16 +39,6 @@ def _tensor_fields_to(obj, device=None, dtype=None):
         if isinstance(v, torch.Tensor):
             changes[f.name] = v.to(device=device, dtype=dtype if v.is_floating_point() else None)
     return replace(obj, **changes)
-
-
-def quat_to_matrix_np(q) -> np.ndarray:
-    """(4,) w x y z quaternion -> (3, 3) rotation matrix (numpy, for building worlds)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 @dataclass(frozen=True)
@@ -106,7 +97,7 @@ class StaticShape:
         for key in ("radius", "half_height", "grid_spacing"):
             if key in params:
                 kw[key] = float(params[key])
-        return StaticShape(name=name, kind=kind, rotation=t(quat_to_matrix_np(orientation)),
+        return StaticShape(name=name, kind=kind, rotation=t(quat_to_matrix(orientation)),
                            translation=t(position), friction=float(friction),
                            restitution=float(restitution), **kw)
 

@@ -13,7 +13,7 @@ from dejaview.cli import main
 from dejaview.errors import InferenceError
 from dejaview.inference import InferenceProblem, solve
 from dejaview.inference.solve import SolveParams
-from dejaview.io.trajectory import read_trajectory_csv
+from dejaview.sim.trajectory_csv import read_trajectory_csv
 from dejaview.scene import Scene
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"

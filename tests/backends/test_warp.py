@@ -18,8 +18,8 @@ from dejaview.backends import make_problem  # noqa: E402
 from dejaview.cli import main  # noqa: E402
 from dejaview.errors import InferenceError, SceneError  # noqa: E402
 from dejaview.inference import solve  # noqa: E402
-from dejaview.inference.solve import SolveParams
-from dejaview.io.trajectory import read_trajectory_csv  # noqa: E402
+from dejaview.inference.solve import SolveParams  # noqa: E402
+from dejaview.sim.trajectory_csv import read_trajectory_csv  # noqa: E402
 from dejaview.losses import trajectory_loss  # noqa: E402
 from dejaview.scene import Scene  # noqa: E402
 from dejaview.sim import World, rollout  # noqa: E402

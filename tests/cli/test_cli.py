@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from dejaview.cli import SUBCOMMANDS, cli
-from dejaview.io.trajectory import HEADER, read_trajectory_csv
+from dejaview.sim.trajectory_csv import HEADER, read_trajectory_csv
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 BALL = FIXTURES / "cli" / "ball.xml"

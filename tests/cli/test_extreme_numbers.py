@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from lxml import etree
 
 from dejaview.errors import SceneError, SimulationError
-from dejaview.io.trajectory import read_trajectory_csv
+from dejaview.sim.trajectory_csv import read_trajectory_csv
 from dejaview.scene import bounds
 from dejaview.scene.xml import read_scene_string
 from dejaview.sim.simulate import simulate

@@ -12,7 +12,8 @@ import torch
 import trimesh
 
 from dejaview.errors import GeometryError
-from dejaview.geometry.collision import DEFAULT_MARGIN, TOUCHING, SceneCollision, quaternion_matrices
+from dejaview.geometry.collision import DEFAULT_MARGIN, TOUCHING, SceneCollision
+from dejaview.geometry.transforms import quat_to_matrix
 from dejaview.geometry.convex_pieces import convex_pieces, load_or_build_pieces
 from dejaview.scene import Scene
 
@@ -266,7 +267,7 @@ def test_default_margin_is_a_few_millimetres():
 
 def test_quaternions_are_wxyz():
     """90 degrees about z, written w x y z, turns x into y."""
-    r = quaternion_matrices([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
+    r = quat_to_matrix([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
     np.testing.assert_allclose(r @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
 
 

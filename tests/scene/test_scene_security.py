@@ -11,7 +11,7 @@ from lxml import etree
 
 from dejaview.errors import SceneError
 from dejaview.scene import Scene
-from dejaview.scene.parsing import _make_parser
+from dejaview.untrusted_xml import hardened_parser
 from dejaview.scene.xml import DEFAULT_MAX_BYTES, read_scene_file, read_scene_string
 
 BROKEN = Path(__file__).resolve().parents[1] / "fixtures" / "scenes" / "broken"
@@ -78,7 +78,7 @@ def test_parser_itself_resolves_no_external_entity(tmp_path):
     secret = tmp_path / "secret.txt"
     secret.write_text("TOP-SECRET-MARKER")
     doc = (f'<!DOCTYPE s [<!ENTITY s SYSTEM "{secret.as_uri()}">]><s>&s;</s>').encode()
-    root = etree.fromstring(doc, _make_parser())
+    root = etree.fromstring(doc, hardened_parser())
     assert b"TOP-SECRET-MARKER" not in etree.tostring(root)
 
 

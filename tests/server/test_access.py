@@ -15,7 +15,7 @@ import anyio
 import pytest
 from starlette.websockets import WebSocketDisconnect
 
-from dejaview.io.trajectory import HEADER
+from dejaview.sim.trajectory_csv import HEADER
 from dejaview.server.access import host_name, is_loopback, normalize_origin
 from dejaview.server.client import ClientError, run_job, with_token
 from dejaview.server.config import ServerConfig

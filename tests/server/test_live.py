@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from dejaview.io.trajectory import HEADER, read_trajectory_csv
+from dejaview.sim.trajectory_csv import HEADER, read_trajectory_csv
 from dejaview.server.client import get_json, http_get, run_job, submit_job, wait_healthy
 from dejaview.server.local import LocalServer
 

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from dejaview.backends import warp_available
-from dejaview.io.trajectory import HEADER, read_trajectory_csv
+from dejaview.sim.trajectory_csv import HEADER, read_trajectory_csv
 from dejaview.server.runner import ARTEFACTS
 
 from .conftest import FIXTURES

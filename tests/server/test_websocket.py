@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from dejaview.io.trajectory import HEADER, read_trajectory_csv
+from dejaview.sim.trajectory_csv import HEADER, read_trajectory_csv
 from dejaview.server.messages import SERVER_MESSAGE
 
 from .conftest import FIXTURES, receive, types, until_done

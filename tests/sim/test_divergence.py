@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from dejaview.errors import SimulationError
-from dejaview.io.trajectory import write_trajectory_csv
+from dejaview.sim.trajectory_csv import write_trajectory_csv
 from dejaview.scene import Scene
 from dejaview.scene.model import Velocity
 from dejaview.sim import divergence, native

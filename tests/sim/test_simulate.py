@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from dejaview.errors import SimulationError
-from dejaview.io.trajectory import read_trajectory_csv
+from dejaview.sim.trajectory_csv import read_trajectory_csv
 from dejaview.scene import Scene
 from dejaview.sim.simulate import SimulationStopped, simulate
 

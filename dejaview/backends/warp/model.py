@@ -34,6 +34,7 @@ import warp as wp
 
 from dejaview.backends.warp.settings import CONTACT_MARGIN, SEMI_IMPLICIT_OMEGA_H, warp_settings
 from dejaview.errors import SceneError
+from dejaview.geometry.transforms import quat_multiply
 
 
 def init_warp():
@@ -114,14 +115,6 @@ def _wp_quat(q) -> tuple[float, float, float, float]:
     """w x y z (scene) -> x y z w (Warp), normalised."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
     return (float(x), float(y), float(z), float(w))
-
-
-def _quat_multiply(a, b) -> np.ndarray:
-    """Hamilton product of w x y z quaternions (numpy)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
 
 
 @dataclass
@@ -250,7 +243,7 @@ class WarpSimulator:
             restitution = sim.restitution if obj.restitution is None else obj.restitution
             try:
                 if obj.fixed and obj.robot is not None:  # a robot: one static per link geometry
-                    from dejaview.geometry.robot_links import link_objects
+                    from dejaview.scene.robot_links import link_objects
 
                     statics.extend(_Static(p.object.id, _shape_of(scene, p.object, p.solid), friction,
                                            restitution, np.asarray(p.object.pose.position, dtype=np.float64),
@@ -342,7 +335,7 @@ class WarpSimulator:
         for st in self.statics:
             q = st.orientation
             if st.shape[0] == "plane":
-                q = _quat_multiply(q, (math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0))
+                q = quat_multiply(q, (math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0))
             static_shapes.append(self._add_shape(
                 builder, -1, st.shape, wp.vec3(*st.position), wp.quat(*_wp_quat(q)),
                 dict(mu=st.friction, restitution=st.restitution, **stiffness), -1))
@@ -501,7 +494,7 @@ def simulate_scene(scene, *, steps: int | None = None, record_every: int = 1, de
         device, options: as ``WarpSimulator.from_scene`` (integrator, substeps, iterations, restitution).
     Returns:
         (BodyFrames, Trajectory with states (T, 1, N, ...)); write it with
-        ``dejaview.io.trajectory.write_trajectory_csv(path, frames, trajectory)``.
+        ``dejaview.sim.trajectory_csv.write_trajectory_csv(path, frames, trajectory)``.
     """
     from dejaview.scene import Scene
 

@@ -1,11 +1,11 @@
-"""``dejaview.io.result_set``: a result set is written whole or not at all."""
+"""``dejaview.result_set``: a result set is written whole or not at all."""
 
 import errno
 
 import pytest
 
 from dejaview.errors import OutputError
-from dejaview.io.result_set import partial_folders, write_result_set
+from dejaview.result_set import partial_folders, write_result_set
 
 NAMES = ("result.json", "iterations.csv", "posterior.csv")
 

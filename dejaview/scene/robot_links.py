@@ -1,6 +1,6 @@
 """A fixed robot's posed collision geometry as fixed scene objects, for the consumers that know scene
-objects (the fcl checks, ``export-mjcf``, the warp backend), and the lines ``dejaview validate`` prints
-about its meshes. Reading and posing are ``dejaview.geometry.robot``'s.
+objects (``export-mjcf``, the warp backend), and the lines ``dejaview validate`` prints about its
+meshes. Reading and posing are ``dejaview.geometry.robot``'s.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dejaview.geometry.robot import robot_model, robot_pieces
+from dejaview.scene.model import Pose, SceneObject
 
 __all__ = ["LinkPart", "hull_notes", "link_objects"]
 
@@ -17,7 +18,7 @@ __all__ = ["LinkPart", "hull_notes", "link_objects"]
 @dataclass(frozen=True)
 class LinkPart:
     """One collision geometry of a fixed robot as a fixed scene object, for consumers that know scene
-    objects (fcl checks, MJCF export, the warp backend).
+    objects (MJCF export, the warp backend).
 
     Attributes:
         object: a fixed SceneObject named ``robot-id/link``, posed in the world, with the robot's
@@ -43,8 +44,6 @@ def link_objects(scene, obj) -> list[LinkPart]:
         SceneError: naming the scene object, for any problem of the robot file or its joints.
         GeometryError: a mesh that cannot be read.
     """
-    from dejaview.scene.model import Pose, SceneObject
-
     parts = []
     for p in robot_pieces(scene, obj):
         solid, hull = p.solid() if p.kind == "mesh" else (None, False)
