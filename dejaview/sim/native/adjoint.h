@@ -126,13 +126,13 @@ struct ContactLaw {
     }
     stick = weight / (im * h);
     coulomb = mu * fn;
-    speed = std::sqrt(dot3(vs, vs) + S(1e-30));
+    speed = std::sqrt(dot3(vs, vs) + S(TINY));
     b = stick * speed;
     b_wins = b > coulomb;
-    scale = (b_wins ? b : coulomb) + S(1e-30);
+    scale = (b_wins ? b : coulomb) + S(TINY);
     uu = coulomb / scale;
     vv = b / scale;
-    pp = pow8(uu) + pow8(vv) + S(1e-30);
+    pp = pow8(uu) + pow8(vv) + S(TINY);
     rt = root8(pp);
     den = rt * scale;
     k = coulomb * stick / den;
@@ -147,7 +147,7 @@ struct ContactLaw {
     for (int i = 0; i < 3; ++i) nb[i] += fn * fb[i];
     const S kb = -dot3(fb, vs);
     for (int i = 0; i < 3; ++i) vtb[i] = -k * fb[i];
-    // friction: k = coulomb * stick / den, den = root8(pp) * scale, pp = uu^8 + vv^8 + 1e-30
+    // friction: k = coulomb * stick / den, den = root8(pp) * scale, pp = uu^8 + vv^8 + TINY
     S cb = kb * stick / den;
     S stickb = kb * coulomb / den;
     const S denb = -kb * k / den;
@@ -243,7 +243,7 @@ struct RollStick {
         centre[i] += it.w * it.r[i];
         mean_n[i] += it.w * it.n[i];
       }
-    zlen = std::sqrt(dot3(mean_n, mean_n) + S(1e-30));
+    zlen = std::sqrt(dot3(mean_n, mean_n) + S(TINY));
     for (int i = 0; i < 3; ++i) z[i] = mean_n[i] / zlen;
     for (int i = 0; i < 9; ++i) sec[i] = 0;
     for (Item& it : items) {
@@ -257,9 +257,9 @@ struct RollStick {
     sq = 0;
     for (int i = 0; i < 9; ++i) sq += sec[i] * sec[i];
     arg = S(2) * sq - tr * tr;
-    spread = std::sqrt(relu(arg) + S(1e-30));
+    spread = std::sqrt(relu(arg) + S(TINY));
     num = tr + spread - S(schema::LINE_ASPECT) * (tr - spread);
-    den = tr + spread + S(1e-30);
+    den = tr + spread + S(TINY);
     gate = relu(num / den);
     on = tr > S(schema::LINE_MIN_SPREAD) && gate > 0;
     if (!on || m == 0) return;
@@ -409,7 +409,7 @@ struct StaticAdjoint {
   void forward(const World<S>& w, int a, const S* st, const std::vector<Pick>& picks, S* out) {
     for (int i = 0; i < 6; ++i) out[i] = S(0);
     broken = false;
-    for (int i = 0; i < 13 && w.k > 0; ++i)
+    for (int i = 0; i < STATE_WIDTH && w.k > 0; ++i)
       if (std::isnan(st[i])) broken = true;
     if (broken) {  // as static_wrench: NaN wrench, no derivative
       for (int j = 0; j < 6; ++j) out[j] = std::numeric_limits<S>::quiet_NaN();
@@ -420,11 +420,11 @@ struct StaticAdjoint {
     empty = m == 0;
     if (empty) return;
     for (int i = 0; i < 3; ++i) {
-      x[i] = st[i];
-      v[i] = st[7 + i];
-      om[i] = st[10 + i];
+      x[i] = st[STATE_POSITION + i];
+      v[i] = st[STATE_LINEAR_VELOCITY + i];
+      om[i] = st[STATE_ANGULAR_VELOCITY + i];
     }
-    for (int i = 0; i < 4; ++i) q[i] = st[3 + i];
+    for (int i = 0; i < 4; ++i) q[i] = st[STATE_ORIENTATION + i];
     quat_to_matrix(q, rot);
     rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
     total = 0;
@@ -537,7 +537,7 @@ struct StaticAdjoint {
       }
   }
 
-  // gs (13) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent
+  // gs (STATE_WIDTH) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent
   void backward(const World<S>& w, int a, const S* mu, S* gs) {
     if (broken || empty) return;
     const S tiny = std::numeric_limits<S>::min();
@@ -663,11 +663,11 @@ struct StaticAdjoint {
     S qb[4] = {0, 0, 0, 0};
     quat_to_matrix_vjp(q, rb, qb);
     for (int i = 0; i < 3; ++i) {
-      gs[i] += xb[i];
-      gs[7 + i] += vb[i];
-      gs[10 + i] += omb[i];
+      gs[STATE_POSITION + i] += xb[i];
+      gs[STATE_LINEAR_VELOCITY + i] += vb[i];
+      gs[STATE_ANGULAR_VELOCITY + i] += omb[i];
     }
-    for (int i = 0; i < 4; ++i) gs[3 + i] += qb[i];
+    for (int i = 0; i < 4; ++i) gs[STATE_ORIENTATION + i] += qb[i];
   }
 };
 
@@ -697,8 +697,8 @@ struct PairAdjoint {
     if (m == 0) return;
     a = static_cast<int>(w.pairs[2 * pi]);
     b = static_cast<int>(w.pairs[2 * pi + 1]);
-    quat_to_matrix(st_a + 3, rot_a);
-    quat_to_matrix(st_b + 3, rot_b);
+    quat_to_matrix(st_a + STATE_ORIENTATION, rot_a);
+    quat_to_matrix(st_b + STATE_ORIENTATION, rot_b);
     rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
     rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
     total = 0;
@@ -712,17 +712,17 @@ struct PairAdjoint {
         const S* ca = w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3;
         for (int i = 0; i < 3; ++i) ct.ca[i] = ca[i];
         ct.r_a = w.radii[a * w.s_max + picks[k].i];
-        sphere_center(st_a, rot_a, ca, pa);
+        sphere_center(st_a + STATE_POSITION, rot_a, ca, pa);
       }
       if (picks[k].j >= 0) {
         const S* cb = w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3;
         for (int i = 0; i < 3; ++i) ct.cb[i] = cb[i];
         r_b = w.radii[b * w.s_max + picks[k].j];
-        sphere_center(st_b, rot_b, cb, pb);
+        sphere_center(st_b + STATE_POSITION, rot_b, cb, pb);
       }
       if (ct.box != 0) {  // the box's surface as the other's sphere's partner (box_partner)
         const bool on_b = ct.box == 1;
-        const S* xbox = on_b ? st_b : st_a;
+        const S* xbox = (on_b ? st_b : st_a) + STATE_POSITION;
         const S* rbox = on_b ? rot_b : rot_a;
         const S* half = w.box_half + 3 * (on_b ? b : a);
         const S* p = on_b ? pa : pb;
@@ -731,14 +731,14 @@ struct PairAdjoint {
         for (int i = 0; i < 3; ++i) ct.rel[i] = p[i] - xbox[i];
       }
       for (int i = 0; i < 3; ++i) ct.diff[i] = pb[i] - pa[i];
-      ct.dist = std::sqrt(dot3(ct.diff, ct.diff) + S(1e-24));
+      ct.dist = std::sqrt(dot3(ct.diff, ct.diff) + S(NORMAL_EPS2));
       ContactLaw<S>& law = ct.law;
       for (int i = 0; i < 3; ++i) law.n[i] = ct.diff[i] / ct.dist;
       law.depth = relu((ct.r_a + r_b) - ct.dist);
       for (int i = 0; i < 3; ++i) {
         const S point = pa[i] + law.n[i] * ct.r_a;
-        ct.arm_a[i] = point - st_a[i];
-        ct.arm_b[i] = point - st_b[i];
+        ct.arm_a[i] = point - st_a[STATE_POSITION + i];
+        ct.arm_b[i] = point - st_b[STATE_POSITION + i];
       }
       total += law.depth;
     }
@@ -751,9 +751,10 @@ struct PairAdjoint {
       law.arms = 2;
       law.weight = law.depth / (total + tiny);
       S wa[3], wb[3];
-      cross3(st_a + 10, ct.arm_a, wa);
-      cross3(st_b + 10, ct.arm_b, wb);
-      for (int i = 0; i < 3; ++i) law.vel[i] = (st_b[7 + i] + wb[i]) - (st_a[7 + i] + wa[i]);
+      cross3(st_a + STATE_ANGULAR_VELOCITY, ct.arm_a, wa);
+      cross3(st_b + STATE_ANGULAR_VELOCITY, ct.arm_b, wb);
+      for (int i = 0; i < 3; ++i)
+        law.vel[i] = (st_b[STATE_LINEAR_VELOCITY + i] + wb[i]) - (st_a[STATE_LINEAR_VELOCITY + i] + wa[i]);
       law.stiff = w.mass_pair[pi] * w.omega * w.omega;
       law.unload = w.unload_pair[pi];
       law.mu = w.mu_pair[pi];
@@ -807,7 +808,7 @@ struct PairAdjoint {
     }
   }
 
-  // ga, gb (13 each) += (d W_p / d (st_a, st_b))^T mu, mu (12) the cotangent of (wrench on a, on b)
+  // ga, gb (STATE_WIDTH each) += (d W_p / d (st_a, st_b))^T mu, mu (12) the cotangent of (wrench on a, on b)
   void backward(const World<S>& w, const S* st_a, const S* st_b, const S* mu, S* ga, S* gb) {
     if (contacts.empty()) return;
     const S tiny = std::numeric_limits<S>::min();
@@ -816,8 +817,8 @@ struct PairAdjoint {
     S rab[9] = {}, rbb[9] = {}, iwab[9] = {}, iwbb[9] = {};
     S totalb = 0;
     const S *mfa = mu, *mta = mu + 3, *mfb = mu + 6, *mtb = mu + 9;
-    const S* om_a = st_a + 10;
-    const S* om_b = st_b + 10;
+    const S* om_a = st_a + STATE_ANGULAR_VELOCITY;
+    const S* om_b = st_b + STATE_ANGULAR_VELOCITY;
     const S h = w.h;
     S accb[3] = {0, 0, 0}, alphaab[3] = {0, 0, 0}, alphabb[3] = {0, 0, 0};
     for (Contact& ct : contacts) {  // the friction's part, and the predicted slip's
@@ -915,7 +916,7 @@ struct PairAdjoint {
     }
     for (Contact& ct : contacts) {
       const S depthb = ct.depthb + totalb;
-      if (ct.law.depth > 0) {  // depth = relu(r_a + r_b - dist), dist = sqrt(diff.diff + 1e-24)
+      if (ct.law.depth > 0) {  // depth = relu(r_a + r_b - dist), dist = sqrt(diff.diff + NORMAL_EPS2)
         for (int i = 0; i < 3; ++i) {
           const S diffb = -depthb * ct.diff[i] / ct.dist;
           ct.pbb[i] += diffb;
@@ -951,29 +952,29 @@ struct PairAdjoint {
     rotate_tensor_vjp(rot_a, w.inv_inertia + 9 * a, iwab, rab);
     rotate_tensor_vjp(rot_b, w.inv_inertia + 9 * b, iwbb, rbb);
     S qab[4] = {0, 0, 0, 0}, qbb[4] = {0, 0, 0, 0};
-    quat_to_matrix_vjp(st_a + 3, rab, qab);
-    quat_to_matrix_vjp(st_b + 3, rbb, qbb);
+    quat_to_matrix_vjp(st_a + STATE_ORIENTATION, rab, qab);
+    quat_to_matrix_vjp(st_b + STATE_ORIENTATION, rbb, qbb);
     for (int i = 0; i < 3; ++i) {
-      ga[i] += xab[i];
-      gb[i] += xbb[i];
-      ga[7 + i] += vab[i];
-      gb[7 + i] += vbb[i];
-      ga[10 + i] += omab[i];
-      gb[10 + i] += ombb[i];
+      ga[STATE_POSITION + i] += xab[i];
+      gb[STATE_POSITION + i] += xbb[i];
+      ga[STATE_LINEAR_VELOCITY + i] += vab[i];
+      gb[STATE_LINEAR_VELOCITY + i] += vbb[i];
+      ga[STATE_ANGULAR_VELOCITY + i] += omab[i];
+      gb[STATE_ANGULAR_VELOCITY + i] += ombb[i];
     }
     for (int i = 0; i < 4; ++i) {
-      ga[3 + i] += qab[i];
-      gb[3 + i] += qbb[i];
+      ga[STATE_ORIENTATION + i] += qab[i];
+      gb[STATE_ORIENTATION + i] += qbb[i];
     }
   }
 };
 
 // ------------------------------------------------------------------ integration
-// s' = I(s, W) of integrate.h: gs (13) += (d s' / d s)^T lam, wb (6) = (d s' / d W)^T lam
+// s' = I(s, W) of integrate.h: gs (STATE_WIDTH) += (d s' / d s)^T lam, wb (6) = (d s' / d W)^T lam
 template <typename S>
 void integrate_vjp(const World<S>& w, int a, const S* st, const S* wr, const S* lam, S* gs, S* wb) {
-  const S* q = st + 3;
-  const S* om0 = st + 10;
+  const S* q = st + STATE_ORIENTATION;
+  const S* om0 = st + STATE_ANGULAR_VELOCITY;
   S rot[9];
   quat_to_matrix(q, rot);
   const S hm = w.h / w.mass[a];
@@ -991,7 +992,7 @@ void integrate_vjp(const World<S>& w, int a, const S* st, const S* wr, const S* 
   matvec(rot, tmp2, acc);
   for (int i = 0; i < 3; ++i) om[i] = om0[i] + w.h * acc[i];
   S r[3] = {om[0] * w.h, om[1] * w.h, om[2] * w.h};
-  const S eps = sizeof(S) == 8 ? S(1e-4) : S(1e-2);
+  const S eps = sizeof(S) == 8 ? S(schema::SMALL_ANGLE_F64) : S(schema::SMALL_ANGLE_F32);
   const S sq = dot3(r, r);
   const bool small = sq < eps * eps;
   S sinc, co, norm = 0, half = 0, sh = 0, ch = 0;
@@ -1016,15 +1017,15 @@ void integrate_vjp(const World<S>& w, int a, const S* st, const S* wr, const S* 
   S qo[4];
   for (int i = 0; i < 4; ++i) qo[i] = qn[i] / len;
   // back: out x = x + h v', v' = v + hm F, out q = qn / |qn|, out om = om
-  const S* lx = lam;
-  const S* lq = lam + 3;
-  const S* lv = lam + 7;
-  const S* lo = lam + 10;
+  const S* lx = lam + STATE_POSITION;
+  const S* lq = lam + STATE_ORIENTATION;
+  const S* lv = lam + STATE_LINEAR_VELOCITY;
+  const S* lo = lam + STATE_ANGULAR_VELOCITY;
   S vnb[3];
   for (int i = 0; i < 3; ++i) {
-    gs[i] += lx[i];
+    gs[STATE_POSITION + i] += lx[i];
     vnb[i] = lv[i] + w.h * lx[i];
-    gs[7 + i] += vnb[i];
+    gs[STATE_LINEAR_VELOCITY + i] += vnb[i];
     wb[i] = hm * vnb[i];
   }
   const S qdot = qo[0] * lq[0] + qo[1] * lq[1] + qo[2] * lq[2] + qo[3] * lq[3];
@@ -1086,8 +1087,8 @@ void integrate_vjp(const World<S>& w, int a, const S* st, const S* wr, const S* 
   for (int j = 0; j < 3; ++j)
     for (int i = 0; i < 3; ++i) rotb[3 * j + i] += om0[j] * bodyb[i];
   quat_to_matrix_vjp(q, rotb, qb);
-  for (int i = 0; i < 4; ++i) gs[3 + i] += qb[i];
-  for (int i = 0; i < 3; ++i) gs[10 + i] += om0b[i];
+  for (int i = 0; i < 4; ++i) gs[STATE_ORIENTATION + i] += qb[i];
+  for (int i = 0; i < 3; ++i) gs[STATE_ANGULAR_VELOCITY + i] += om0b[i];
 }
 
 }  // namespace dv

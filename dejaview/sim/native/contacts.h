@@ -13,6 +13,13 @@
 
 namespace dv {
 
+// a body's state row (dejaview.sim.state.STATE_LAYOUT): x, q, v, w at these offsets
+using schema::STATE_ANGULAR_VELOCITY;
+using schema::STATE_LINEAR_VELOCITY;
+using schema::STATE_ORIENTATION;
+using schema::STATE_POSITION;
+using schema::STATE_WIDTH;
+
 // ------------------------------------------------------------------ world
 template <typename S>
 struct Shape {
@@ -58,7 +65,7 @@ void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
   T p[3];
   for (int j = 0; j < 3; ++j) p[j] = rel[0] * sh.rot[j] + rel[1] * sh.rot[3 + j] + rel[2] * sh.rot[6 + j];
   T n[3];
-  const S tiny2 = S(1e-24);
+  const S tiny2 = S(schema::NORMAL_EPS2);
   if (sh.kind == schema::KIND_PLANE) {  // plane z <= 0
     dist = p[2];
     n[0] = T(0); n[1] = T(0); n[2] = T(1);
@@ -138,7 +145,7 @@ void distance_direct(const Shape<S>& sh, const T* pw, T& dist, T* normal) {
       }
     }
     T elen = sqrt(dot3(excess, excess) + tiny2);
-    if (val(elen) > S(1e-9)) {
+    if (val(elen) > S(schema::GRID_OUTSIDE)) {
       for (int c = 0; c < 3; ++c) n[c] = excess[c] / elen;
     } else {
       for (int c = 0; c < 3; ++c) n[c] = g[c] / sh.spacing;
@@ -175,7 +182,9 @@ void distance(const Shape<S>& sh, const Dual<S, W>* pw, Dual<S, W>& dist, Dual<S
 }
 
 // ------------------------------------------------------------------ contact model pieces
+using schema::NORMAL_EPS2;
 using schema::SLIP_EPS;
+using schema::TINY;
 using schema::SMOOTH_MIN_POWER;
 
 // x^8 and x^(1/8) (SMOOTH_MIN_POWER) by squarings and square roots: the values of std::pow to
@@ -201,10 +210,10 @@ template <typename T> inline std::vector<T>& scratch(int slot) {
 // friction force (contacts.friction_force)
 template <typename T, typename S>
 __attribute__((always_inline)) inline void friction(const T* vt, const T& coulomb, const T& stick, T* out) {
-  T speed = sqrt(dot3(vt, vt) + S(1e-30));
+  T speed = sqrt(dot3(vt, vt) + S(TINY));
   T b = stick * speed;
-  T scale = vmax(coulomb, b) + S(1e-30);
-  T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(1e-30)) * scale;
+  T scale = vmax(coulomb, b) + S(TINY);
+  T den = root8(pow8(coulomb / scale) + pow8(b / scale) + S(TINY)) * scale;
   T k = coulomb * stick / den;
   #pragma GCC unroll 3
   for (int c = 0; c < 3; ++c) out[c] = -(k * vt[c]);
@@ -228,10 +237,10 @@ __attribute__((always_inline)) inline void slip_direction(const T* vt, T* t) {
   for (int c = 0; c < 3; ++c) t[c] = vt[c] / den;
 }
 
-// the 13 state numbers of a body as duals, seeded as tangents offset..offset+12
+// a body's state row as duals, seeded as tangents offset..offset + STATE_WIDTH - 1
 template <typename S, int W>
 void seed_state(const S* s, Dual<S, W>* out, int offset) {
-  for (int i = 0; i < 13; ++i) {
+  for (int i = 0; i < STATE_WIDTH; ++i) {
     out[i] = Dual<S, W>(s[i]);
     out[i].d[offset + i] = S(1);
   }
@@ -399,7 +408,7 @@ void select_edges(const World<S>& w, int a, int k, const S* x, const S* rot, std
       }
       S t0 = S(0), t1 = len;
       for (int j = 0; j < 3 && t0 <= t1; ++j) {
-        if (std::abs(u[j]) < S(1e-12)) {
+        if (std::abs(u[j]) < S(schema::SLAB_PARALLEL)) {
           if (std::abs(l0[j]) >= hb[j]) t1 = S(-1);  // parallel to the slab and outside it
           continue;
         }
@@ -526,7 +535,7 @@ template <typename S>
 void select_static(const World<S>& w, int a, const S* s, const S* rot, std::vector<Pick>& picks, S* key,
                    S* floor, S* keymin, S travel) {
   picks.clear();
-  const S* x = s;
+  const S* x = s + STATE_POSITION;
   thread_local std::vector<Pick> cand;
   const bool box_body = is_box_body(w, a);
   for (int k = 0; k < w.k; ++k) {
@@ -553,7 +562,7 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
       mean_n[i] = mean_n[i] + wj * nr[3 * j + i];
     }
   }
-  const T zlen = sqrt(dot3(mean_n, mean_n) + S(1e-30));
+  const T zlen = sqrt(dot3(mean_n, mean_n) + S(TINY));
   T z[3];
   for (int i = 0; i < 3; ++i) z[i] = mean_n[i] / zlen;
   T sec[9];
@@ -571,8 +580,8 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
   const T tr = sec[0] + sec[4] + sec[8];
   T sq = T(0);
   for (int i = 0; i < 9; ++i) sq = sq + sec[i] * sec[i];
-  const T spread = sqrt(relu(S(2) * sq - tr * tr) + S(1e-30));
-  const T gate = relu((tr + spread - S(schema::LINE_ASPECT) * (tr - spread)) / (tr + spread + S(1e-30)));
+  const T spread = sqrt(relu(S(2) * sq - tr * tr) + S(TINY));
+  const T gate = relu((tr + spread - S(schema::LINE_ASPECT) * (tr - spread)) / (tr + spread + S(TINY)));
   if (!(val(tr) > S(schema::LINE_MIN_SPREAD)) || !(val(gate) > 0)) return false;
   // a a^T of the roll axis a = z x e: (P - (2 S - T P) / D) / 2, P = I - z z^T
   T roll[9];
@@ -604,23 +613,23 @@ bool line_roll_stick(int m, const T* dep, const T& denom, const T* nr, const T* 
   return true;
 }
 
-// force and torque on body a from its picked static contacts; st = its 13 state numbers as T
+// force and torque on body a from its picked static contacts; st = its state row as T
 template <typename T, typename S>
 void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick>& picks, T* out) {
   for (int i = 0; i < 6; ++i) out[i] = T(0);
   // a NaN anywhere in the state makes the torch model's forces NaN (0 * NaN in every candidate
   // contact, touching or not): the same here, so a broken candidate reads as broken everywhere
-  for (int i = 0; i < 13 && w.k > 0; ++i)
+  for (int i = 0; i < STATE_WIDTH && w.k > 0; ++i)
     if (std::isnan(val(st[i]))) {
       for (int j = 0; j < 6; ++j) out[j] = T(std::numeric_limits<S>::quiet_NaN());
       return;
     }
   const int m = static_cast<int>(picks.size());
   if (m == 0) return;
-  const T* x = st;
-  const T* q = st + 3;
-  const T* v = st + 7;
-  const T* om = st + 10;
+  const T* x = st + STATE_POSITION;
+  const T* q = st + STATE_ORIENTATION;
+  const T* v = st + STATE_LINEAR_VELOCITY;
+  const T* om = st + STATE_ANGULAR_VELOCITY;
   T rot[9], inv_w[9];
   quat_to_matrix(q, rot);
   rotate_tensor(rot, w.inv_inertia + 9 * a, inv_w);
@@ -811,21 +820,23 @@ template <typename S>
 S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb, const S* ra, const S* rb,
               std::vector<PairPick>& picks) {
   picks.clear();
-  S dx[3] = {sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2]};
+  const S* xa = sa + STATE_POSITION;
+  const S* xb = sb + STATE_POSITION;
+  S dx[3] = {xa[0] - xb[0], xa[1] - xb[1], xa[2] - xb[2]};
   const S centres = std::sqrt(dot3(dx, dx));
   if (!(centres < w.bound[a] + w.bound[b])) return centres - (w.bound[a] + w.bound[b]);
   // mid phase: sphere i of a can touch some sphere j of b only if |p_i - x_b| < r_i + bound_b
   // (|p_i - p_j| < r_i + r_j and |p_j - x_b| + r_j <= bound_b); likewise for b's spheres. A
   // sphere left out is at least |p_i - x_b| - r_i - bound_b >= 0 clear of every sphere of b.
   S bound = std::numeric_limits<S>::infinity();
-  auto near = [&](int body, const S* st, const S* rot, const S* other, S other_bound,
+  auto near = [&](int body, const S* x, const S* rot, const S* other, S other_bound,
                   std::vector<int>& ids, std::vector<S>& pts) {
     ids.clear();
     pts.clear();
     for (int i = 0; i < w.count[body]; ++i) {
       const S* c = w.centers + (static_cast<int64_t>(body) * w.s_max + i) * 3;
       S p[3], d[3];
-      sphere_center(st, rot, c, p);
+      sphere_center(x, rot, c, p);
       for (int k = 0; k < 3; ++k) d[k] = p[k] - other[k];
       const S gap = std::sqrt(dot3(d, d)) - (w.radii[body * w.s_max + i] + other_bound);
       if (gap < 0) {
@@ -839,8 +850,8 @@ S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb,
   const int64_t side = w.pair_surface[pi];
   if (side >= 0) {  // the other body's spheres against the box's surface (j or i = -1: the box)
     const int box = side == 0 ? a : b, other = side == 0 ? b : a;
-    const S* sbox = side == 0 ? sa : sb;
-    const S* sother = side == 0 ? sb : sa;
+    const S* sbox = side == 0 ? xa : xb;
+    const S* sother = side == 0 ? xb : xa;
     const S* rbox = side == 0 ? ra : rb;
     const S* rother = side == 0 ? rb : ra;
     const S* half = w.box_half + 3 * box;
@@ -862,9 +873,9 @@ S select_pair(const World<S>& w, int pi, int a, int b, const S* sa, const S* sb,
   std::vector<int>& ib = pair_ids_b<S>();
   std::vector<S>& pa = pair_pts_a<S>();
   std::vector<S>& pb = pair_pts_b<S>();
-  near(a, sa, ra, sb, w.bound[b], ia, pa);
+  near(a, xa, ra, xb, w.bound[b], ia, pa);
   if (ia.empty()) return bound;
-  near(b, sb, rb, sa, w.bound[a], ib, pb);
+  near(b, xb, rb, xa, w.bound[a], ib, pb);
   for (size_t u = 0; u < ia.size(); ++u) {
     const S r_i = w.radii[a * w.s_max + ia[u]];
     for (size_t v = 0; v < ib.size(); ++v) {
@@ -887,8 +898,8 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   if (m == 0) return;
   const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
   T rot_a[9], rot_b[9], iw_a[9], iw_b[9];
-  quat_to_matrix(st_a + 3, rot_a);
-  quat_to_matrix(st_b + 3, rot_b);
+  quat_to_matrix(st_a + STATE_ORIENTATION, rot_a);
+  quat_to_matrix(st_b + STATE_ORIENTATION, rot_b);
   rotate_tensor(rot_a, w.inv_inertia + 9 * a, iw_a);
   rotate_tensor(rot_b, w.inv_inertia + 9 * b, iw_b);
   std::vector<T>& depth = scratch<T>(3);
@@ -904,28 +915,30 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     T pa[3], pb[3], diff[3], cl[3];
     S r_a = 0, r_b = 0;
     if (picks[k].i >= 0) {
-      sphere_center(st_a, rot_a, w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3, pa);
+      sphere_center(st_a + STATE_POSITION, rot_a, w.centers + (static_cast<int64_t>(a) * w.s_max + picks[k].i) * 3,
+                    pa);
       r_a = w.radii[a * w.s_max + picks[k].i];
     }
     if (picks[k].j >= 0) {
-      sphere_center(st_b, rot_b, w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3, pb);
+      sphere_center(st_b + STATE_POSITION, rot_b, w.centers + (static_cast<int64_t>(b) * w.s_max + picks[k].j) * 3,
+                    pb);
       r_b = w.radii[b * w.s_max + picks[k].j];
     } else {  // b's box surface as a's sphere's partner (box_partner)
       S free[3];
-      box_partner(st_b, rot_b, w.box_half + 3 * b, pa, cl, pb, free, r_b);
+      box_partner(st_b + STATE_POSITION, rot_b, w.box_half + 3 * b, pa, cl, pb, free, r_b);
     }
     if (picks[k].i < 0) {  // a's box surface
       S free[3];
-      box_partner(st_a, rot_a, w.box_half + 3 * a, pb, cl, pa, free, r_a);
+      box_partner(st_a + STATE_POSITION, rot_a, w.box_half + 3 * a, pb, cl, pa, free, r_a);
     }
     for (int i = 0; i < 3; ++i) diff[i] = pb[i] - pa[i];
-    T dist = sqrt(dot3(diff, diff) + S(1e-24));
+    T dist = sqrt(dot3(diff, diff) + S(NORMAL_EPS2));
     for (int i = 0; i < 3; ++i) nrm[3 * k + i] = diff[i] / dist;
     depth[k] = relu((r_a + r_b) - dist);
     for (int i = 0; i < 3; ++i) {
       T point = pa[i] + nrm[3 * k + i] * r_a;
-      arm_a[3 * k + i] = point - st_a[i];
-      arm_b[3 * k + i] = point - st_b[i];
+      arm_a[3 * k + i] = point - st_a[STATE_POSITION + i];
+      arm_b[3 * k + i] = point - st_b[STATE_POSITION + i];
     }
     total = total + depth[k];
   }
@@ -953,10 +966,10 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
   const T* __restrict ab = arm_b.data();
   T va[3], vb[3], wa0[3], wb0[3], iwa[9], iwb[9];
   for (int i = 0; i < 3; ++i) {
-    va[i] = st_a[7 + i];
-    vb[i] = st_b[7 + i];
-    wa0[i] = st_a[10 + i];
-    wb0[i] = st_b[10 + i];
+    va[i] = st_a[STATE_LINEAR_VELOCITY + i];
+    vb[i] = st_b[STATE_LINEAR_VELOCITY + i];
+    wa0[i] = st_a[STATE_ANGULAR_VELOCITY + i];
+    wb0[i] = st_b[STATE_ANGULAR_VELOCITY + i];
   }
   for (int i = 0; i < 9; ++i) {
     iwa[i] = iw_a[i];

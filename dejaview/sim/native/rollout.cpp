@@ -102,15 +102,16 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
   for (int a = 0; a < n; ++a) {
     S* rot = &sc.rot[9 * a];
     S* last = &sc.last[12 * a];
-    quat_to_matrix(state + 13 * a + 3, rot);
+    quat_to_matrix(state + STATE_WIDTH * a + STATE_ORIENTATION, rot);
+    const S* x = state + STATE_WIDTH * a + STATE_POSITION;
     S dx = 0, dr = 0;
-    for (int i = 0; i < 3; ++i) dx += (state[13 * a + i] - last[i]) * (state[13 * a + i] - last[i]);
+    for (int i = 0; i < 3; ++i) dx += (x[i] - last[i]) * (x[i] - last[i]);
     for (int i = 0; i < 9; ++i) dr += (rot[i] - last[3 + i]) * (rot[i] - last[3 + i]);
     // |p_i' - p_i| <= |x' - x| + |R' - R|_F |c_i|
     // (no previous selection: every bound is -inf, nothing to lower)
     const S move = sc.placed[a] ? std::sqrt(dx) + std::sqrt(dr) * w.reach[a] : S(0);
     sc.placed[a] = 1;
-    for (int i = 0; i < 3; ++i) last[i] = state[13 * a + i];
+    for (int i = 0; i < 3; ++i) last[i] = x[i];
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
     sc.move[a] = move;
     sc.travel[a] += move;
@@ -127,9 +128,9 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
                                static_cast<int>(static_cast<int16_t>(first[j] & 0xFFFF)), 0.0});
       continue;
     }
-    select_static(w, a, state + 13 * a, rot, sc.picks[a], &sc.key[static_cast<int64_t>(a) * w.k * w.s_max],
-                  &sc.floor[static_cast<int64_t>(a) * w.k], &sc.keymin[static_cast<int64_t>(a) * w.k],
-                  sc.travel[a]);
+    select_static(w, a, state + STATE_WIDTH * a, rot, sc.picks[a],
+                  &sc.key[static_cast<int64_t>(a) * w.k * w.s_max], &sc.floor[static_cast<int64_t>(a) * w.k],
+                  &sc.keymin[static_cast<int64_t>(a) * w.k], sc.travel[a]);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
@@ -139,23 +140,23 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
       sc.pair_picks[pi].clear();
       continue;
     }
-    bound = select_pair(w, pi, a, b, state + 13 * a, state + 13 * b, &sc.rot[9 * a], &sc.rot[9 * b],
-                        sc.pair_picks[pi]);
+    bound = select_pair(w, pi, a, b, state + STATE_WIDTH * a, state + STATE_WIDTH * b, &sc.rot[9 * a],
+                        &sc.rot[9 * b], sc.pair_picks[pi]);
   }
 }
 
 template <typename S>
 void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or null */) {
   const int n = w.n;
-  const int dim = 13 * n;
+  const int dim = STATE_WIDTH * n;
   select_contacts(w, state, sc);
   if (jac == nullptr) {
-    for (int a = 0; a < n; ++a) static_wrench<S, S>(w, a, state + 13 * a, sc.picks[a], &sc.wrench[6 * a]);
+    for (int a = 0; a < n; ++a) static_wrench<S, S>(w, a, state + STATE_WIDTH * a, sc.picks[a], &sc.wrench[6 * a]);
     for (int pi = 0; pi < w.p; ++pi) {
       if (sc.pair_picks[pi].empty()) continue;
       const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
       S o[12];
-      pair_wrench<S, S>(w, pi, state + 13 * a, state + 13 * b, sc.pair_picks[pi], o);
+      pair_wrench<S, S>(w, pi, state + STATE_WIDTH * a, state + STATE_WIDTH * b, sc.pair_picks[pi], o);
       for (int i = 0; i < 6; ++i) {
         sc.wrench[6 * a + i] += o[i];
         sc.wrench[6 * b + i] += o[6 + i];
@@ -163,7 +164,7 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
     }
     for (int a = 0; a < n; ++a) {
       for (int i = 0; i < 3; ++i) sc.wrench[6 * a + i] += w.mass[a] * w.gravity[i];
-      integrate<S, S>(w, a, state + 13 * a, &sc.wrench[6 * a], &sc.next[13 * a]);
+      integrate<S, S>(w, a, state + STATE_WIDTH * a, &sc.wrench[6 * a], &sc.next[STATE_WIDTH * a]);
     }
     std::copy(sc.next.begin(), sc.next.end(), state);
     return;
@@ -173,22 +174,23 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
   sc.blk.assign(static_cast<size_t>(n) * n, 0);
   for (int a = 0; a < n; ++a) sc.blk[a * n + a] = 1;
   for (int a = 0; a < n; ++a) {
-    using D = Dual<S, 13>;
-    D st[13], o[6];
-    seed_state(state + 13 * a, st, 0);
+    using D = Dual<S, STATE_WIDTH>;
+    D st[STATE_WIDTH], o[6];
+    seed_state(state + STATE_WIDTH * a, st, 0);
     static_wrench<D, S>(w, a, st, sc.picks[a], o);
     for (int i = 0; i < 6; ++i) {
       sc.wrench[6 * a + i] = o[i].v;
-      for (int j = 0; j < 13; ++j) sc.dws[(static_cast<int64_t>(6 * a + i)) * dim + 13 * a + j] = o[i].d[j];
+      for (int j = 0; j < STATE_WIDTH; ++j)
+        sc.dws[(static_cast<int64_t>(6 * a + i)) * dim + STATE_WIDTH * a + j] = o[i].d[j];
     }
   }
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
-    using D = Dual<S, 26>;
+    using D = Dual<S, 2 * STATE_WIDTH>;
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
-    D sa[13], sb[13], o[12];
-    seed_state(state + 13 * a, sa, 0);
-    seed_state(state + 13 * b, sb, 13);
+    D sa[STATE_WIDTH], sb[STATE_WIDTH], o[12];
+    seed_state(state + STATE_WIDTH * a, sa, 0);
+    seed_state(state + STATE_WIDTH * b, sb, STATE_WIDTH);
     pair_wrench<D, S>(w, pi, sa, sb, sc.pair_picks[pi], o);
     sc.blk[a * n + b] = sc.blk[b * n + a] = 1;
     for (int half = 0; half < 2; ++half) {
@@ -197,30 +199,30 @@ void substep(const World<S>& w, S* state, Scratch<S>& sc, S* jac /* (13N)^2 or n
         const D& f = o[6 * half + i];
         sc.wrench[6 * body + i] += f.v;
         S* row = &sc.dws[static_cast<int64_t>(6 * body + i) * dim];
-        for (int j = 0; j < 13; ++j) {
-          row[13 * a + j] += f.d[j];
-          row[13 * b + j] += f.d[13 + j];
+        for (int j = 0; j < STATE_WIDTH; ++j) {
+          row[STATE_WIDTH * a + j] += f.d[j];
+          row[STATE_WIDTH * b + j] += f.d[STATE_WIDTH + j];
         }
       }
     }
   }
   std::fill(sc.jac.begin(), sc.jac.end(), S(0));
   for (int a = 0; a < n; ++a) {
-    using D = Dual<S, 19>;
-    D st[13], wr[6], o[13];
-    seed_state(state + 13 * a, st, 0);
+    using D = Dual<S, STATE_WIDTH + 6>;
+    D st[STATE_WIDTH], wr[6], o[STATE_WIDTH];
+    seed_state(state + STATE_WIDTH * a, st, 0);
     for (int i = 0; i < 6; ++i) {
       S value = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
       wr[i] = D(value);
-      wr[i].d[13 + i] = S(1);
+      wr[i].d[STATE_WIDTH + i] = S(1);
     }
     integrate<D, S>(w, a, st, wr, o);
-    for (int i = 0; i < 13; ++i) {
-      sc.next[13 * a + i] = o[i].v;
-      S* row = jac + static_cast<int64_t>(13 * a + i) * dim;
-      for (int j = 0; j < 13; ++j) row[13 * a + j] += o[i].d[j];
+    for (int i = 0; i < STATE_WIDTH; ++i) {
+      sc.next[STATE_WIDTH * a + i] = o[i].v;
+      S* row = jac + static_cast<int64_t>(STATE_WIDTH * a + i) * dim;
+      for (int j = 0; j < STATE_WIDTH; ++j) row[STATE_WIDTH * a + j] += o[i].d[j];
       for (int k = 0; k < 6; ++k) {
-        const S g = o[i].d[13 + k];
+        const S g = o[i].d[STATE_WIDTH + k];
         if (g == S(0)) continue;
         const S* dw = &sc.dws[static_cast<int64_t>(6 * a + k) * dim];
         for (int j = 0; j < dim; ++j) row[j] += g * dw[j];
@@ -244,24 +246,24 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
   std::vector<char>& live = sc.blk;  // per body: adjoint nonzero
   live.assign(n, 0);
   for (int a = 0; a < n; ++a)
-    for (int i = 0; i < 13; ++i)
-      if (lam[13 * a + i] != S(0)) { live[a] = 1; break; }
+    for (int i = 0; i < STATE_WIDTH; ++i)
+      if (lam[STATE_WIDTH * a + i] != S(0)) { live[a] = 1; break; }
   select_contacts(w, state, sc, live.data());
   // wrench values of every live body, keeping what the way back needs
   std::fill(sc.wrench.begin(), sc.wrench.end(), S(0));
-  sc.next.assign(13 * n, S(0));  // the new adjoint
+  sc.next.assign(STATE_WIDTH * n, S(0));  // the new adjoint
   std::vector<S>& mu = sc.dws;   // (N, 6)
   mu.assign(6 * n, S(0));
   sc.static_adj.resize(n);
   sc.pair_adj.resize(w.p);
   for (int a = 0; a < n; ++a)
-    if (live[a]) sc.static_adj[a].forward(w, a, state + 13 * a, sc.picks[a], &sc.wrench[6 * a]);
+    if (live[a]) sc.static_adj[a].forward(w, a, state + STATE_WIDTH * a, sc.picks[a], &sc.wrench[6 * a]);
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
     const int a = static_cast<int>(w.pairs[2 * pi]), b = static_cast<int>(w.pairs[2 * pi + 1]);
     if (!live[a] && !live[b]) continue;
     S o[12];
-    sc.pair_adj[pi].forward(w, pi, state + 13 * a, state + 13 * b, sc.pair_picks[pi], o);
+    sc.pair_adj[pi].forward(w, pi, state + STATE_WIDTH * a, state + STATE_WIDTH * b, sc.pair_picks[pi], o);
     for (int i = 0; i < 6; ++i) {
       sc.wrench[6 * a + i] += o[i];
       sc.wrench[6 * b + i] += o[6 + i];
@@ -272,8 +274,9 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
     if (!live[a]) continue;
     S wr[6];
     for (int i = 0; i < 6; ++i) wr[i] = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
-    integrate_vjp(w, a, state + 13 * a, wr, lam + 13 * a, &sc.next[13 * a], &mu[6 * a]);
-    sc.static_adj[a].backward(w, a, &mu[6 * a], &sc.next[13 * a]);
+    integrate_vjp(w, a, state + STATE_WIDTH * a, wr, lam + STATE_WIDTH * a, &sc.next[STATE_WIDTH * a],
+                  &mu[6 * a]);
+    sc.static_adj[a].backward(w, a, &mu[6 * a], &sc.next[STATE_WIDTH * a]);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
@@ -284,7 +287,8 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
       m[i] = mu[6 * a + i];
       m[6 + i] = mu[6 * b + i];
     }
-    sc.pair_adj[pi].backward(w, state + 13 * a, state + 13 * b, m, &sc.next[13 * a], &sc.next[13 * b]);
+    sc.pair_adj[pi].backward(w, state + STATE_WIDTH * a, state + STATE_WIDTH * b, m, &sc.next[STATE_WIDTH * a],
+                             &sc.next[STATE_WIDTH * b]);
   }
   std::copy(sc.next.begin(), sc.next.end(), lam);
 }
@@ -306,18 +310,18 @@ void phi_update_fixed(const S* __restrict J, const S* __restrict phi, S* __restr
 // through a touching pair), so only the blocks marked in blk (N x N) are multiplied
 template <typename S>
 void phi_update(int dim, const S* J, const S* phi, S* out, const std::vector<char>& blk) {
-  if (dim == 13) return phi_update_fixed<S, 13>(J, phi, out);
-  const int n = dim / 13;
+  if (dim == STATE_WIDTH) return phi_update_fixed<S, STATE_WIDTH>(J, phi, out);
+  const int n = dim / STATE_WIDTH;
   std::fill(out, out + static_cast<size_t>(dim) * dim, S(0));
   for (int a = 0; a < n; ++a)
     for (int b = 0; b < n; ++b) {
       if (!blk[a * n + b]) continue;
-      for (int i = 0; i < 13; ++i) {
-        S* o = out + static_cast<size_t>(13 * a + i) * dim;
-        const S* jrow = J + static_cast<size_t>(13 * a + i) * dim + 13 * b;
-        for (int l = 0; l < 13; ++l) {
+      for (int i = 0; i < STATE_WIDTH; ++i) {
+        S* o = out + static_cast<size_t>(STATE_WIDTH * a + i) * dim;
+        const S* jrow = J + static_cast<size_t>(STATE_WIDTH * a + i) * dim + STATE_WIDTH * b;
+        for (int l = 0; l < STATE_WIDTH; ++l) {
           const S jil = jrow[l];
-          const S* prow = phi + static_cast<size_t>(13 * b + l) * dim;
+          const S* prow = phi + static_cast<size_t>(STATE_WIDTH * b + l) * dim;
           for (int j = 0; j < dim; ++j) o[j] += jil * prow[j];
         }
       }
@@ -325,17 +329,19 @@ void phi_update(int dim, const S* J, const S* phi, S* out, const std::vector<cha
 }
 
 // Divergence check of forward simulations (dejaview.sim.divergence): the first quantity of body
-// state s (13 numbers) that is not finite or out of range -- 0 position (|coordinate| > reach),
+// state row s that is not finite or out of range -- 0 position (|coordinate| > reach),
 // 1 orientation, 2 linear velocity (|v| > speed), 3 angular velocity (|w| bound > speed) -- or -1.
 template <typename S>
 inline int diverged(const S* s, S reach, S speed, S bound) {
+  const S *x = s + STATE_POSITION, *q = s + STATE_ORIENTATION;
+  const S *v = s + STATE_LINEAR_VELOCITY, *om = s + STATE_ANGULAR_VELOCITY;
   for (int i = 0; i < 3; ++i)
-    if (!(std::abs(s[i]) <= reach)) return 0;  // NaN fails every comparison
-  for (int i = 3; i < 7; ++i)
-    if (!std::isfinite(s[i])) return 1;
-  const S v2 = s[7] * s[7] + s[8] * s[8] + s[9] * s[9];
+    if (!(std::abs(x[i]) <= reach)) return 0;  // NaN fails every comparison
+  for (int i = 0; i < 4; ++i)
+    if (!std::isfinite(q[i])) return 1;
+  const S v2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
   if (!(v2 <= speed * speed)) return 2;
-  const S w2 = s[10] * s[10] + s[11] * s[11] + s[12] * s[12];
+  const S w2 = om[0] * om[0] + om[1] * om[1] + om[2] * om[2];
   if (!(w2 * bound * bound <= speed * speed)) return 3;
   return -1;
 }
@@ -350,7 +356,7 @@ void init_scratch(const World<S>& w, Scratch<S>& sc) {
   sc.pair_picks.resize(w.p);
   sc.rot.resize(9 * n);
   sc.wrench.resize(6 * n);
-  sc.next.resize(13 * n);
+  sc.next.resize(STATE_WIDTH * n);
   sc.key.assign(static_cast<size_t>(n) * w.k * w.s_max, -std::numeric_limits<S>::infinity());
   sc.floor.assign(static_cast<size_t>(n) * w.k, -std::numeric_limits<S>::infinity());
   sc.keymin.assign(static_cast<size_t>(n) * w.k, -std::numeric_limits<S>::infinity());
@@ -371,7 +377,7 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
                    S* rec_states, S* rec_phi, const S* limits, int64_t* status, S* trace = nullptr,
                    PickLog* log = nullptr) {
   const int n = w.n;
-  const int dim = 13 * n;
+  const int dim = STATE_WIDTH * n;
   Scratch<S> sc;
   init_scratch(w, sc);
   const int k0 = trace_first(record_every);
@@ -409,7 +415,7 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
     int bad_body = -1, bad_quantity = -1;
     if (limits) {
       for (int a = 0; a < n && bad_body < 0; ++a) {
-        bad_quantity = diverged<S>(state.data() + 13 * a, limits[0], limits[1], w.bound[a]);
+        bad_quantity = diverged<S>(state.data() + STATE_WIDTH * a, limits[0], limits[1], w.bound[a]);
         if (bad_quantity >= 0) bad_body = a;
       }
     }
@@ -437,7 +443,7 @@ void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t 
                        const S* rec_states, const S* trace, const S* grad, S* out,
                        const int32_t* counts = nullptr, const uint32_t* picks = nullptr, int64_t total = 0) {
   const int n = w.n;
-  const int dim = 13 * n;
+  const int dim = STATE_WIDTH * n;
   Scratch<S> sc;
   init_scratch(w, sc);
   const int k0 = trace_first(record_every);
@@ -623,7 +629,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
                                    std::vector<int64_t> ints, int64_t threads) {
   TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
-  TORCH_CHECK(init.dim() == 3 && init.size(2) == 13, "init must be (B, N, 13)");
+  TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH, "init must be (B, N, 13)");
   TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
   TORCH_CHECK(mode >= 0 && mode <= 2, "mode must be 0 (values), 1 (Jacobians) or 2 (trace)");
   TORCH_CHECK(init.scalar_type() == torch::kFloat64, "the native simulator runs in float64");
@@ -631,14 +637,14 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
   init = init.contiguous();
   for (auto& t : world) t = t.contiguous();
   const int64_t b = init.size(0), n = init.size(1);
-  const int64_t dim = 13 * n;
+  const int64_t dim = dv::STATE_WIDTH * n;
   const int64_t records = (steps + record_every - 1) / record_every;
   const bool with_jac = mode == 1;
   const int64_t per_step = ints[dv::schema::I_SUBSTEPS] - dv::trace_first(record_every);
-  auto states = torch::empty({b, records, n, 13}, init.options());
+  auto states = torch::empty({b, records, n, dv::STATE_WIDTH}, init.options());
   torch::Tensor extra;
   if (mode == 1) extra = torch::empty({b, records, dim, dim}, init.options());
-  else if (mode == 2) extra = torch::empty({b, steps * per_step, n, 13}, init.options());
+  else if (mode == 2) extra = torch::empty({b, steps * per_step, n, dv::STATE_WIDTH}, init.options());
   else extra = torch::empty({0}, init.options());
   auto status = torch::full({b, 4}, -1, init.options().dtype(torch::kInt64));
   std::vector<dv::PickLog> logs;
@@ -688,7 +694,7 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
                       int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
                       std::vector<double> floats, std::vector<int64_t> ints, int64_t threads,
                       torch::Tensor counts, torch::Tensor picks, torch::Tensor starts) {
-  TORCH_CHECK(init.dim() == 3 && init.size(2) == 13 && init.scalar_type() == torch::kFloat64 &&
+  TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH && init.scalar_type() == torch::kFloat64 &&
               init.device().is_cpu(), "init must be (B, N, 13) float64 on the CPU");
   init = init.contiguous();
   states = states.contiguous();
@@ -696,7 +702,7 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
   grad = grad.to(torch::kFloat64).contiguous();
   for (auto& t : world) t = t.contiguous();
   const int64_t b = init.size(0), n = init.size(1);
-  const int64_t dim = 13 * n;
+  const int64_t dim = dv::STATE_WIDTH * n;
   const int64_t records = (steps + record_every - 1) / record_every;
   dv::check_world(world, floats, ints, false);
   const int64_t per_step = ints[dv::schema::I_SUBSTEPS] - dv::trace_first(record_every);
@@ -712,7 +718,7 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
                 starts.numel() == b + 1 && starts[b].item<int64_t>() == picks.numel(),
                 "adjoint: the pick log does not match the rollout");
   }
-  auto out = torch::empty({b, n, 13}, init.options());
+  auto out = torch::empty({b, n, dv::STATE_WIDTH}, init.options());
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
