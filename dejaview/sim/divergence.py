@@ -10,7 +10,7 @@ and the quantity as soon as a body's state turns non-finite or leaves the sane r
 - angular velocity: a surface speed (|w| times the body's bounding radius) faster than that.
 
 Both engines check every step: the torch engine here (``check``), the native one in C++
-(``rollout.cpp``'s ``diverged``, given ``native_limits()``), a few comparisons per body and
+(``native/recording.h``'s ``diverged``, given ``native_limits()``), a few comparisons per body and
 step. Batched loss evaluation (inference, heatmaps) does not check: a candidate that diverges
 there gets a non-finite loss, which the optimisers treat as a bad candidate while the others go on.
 """

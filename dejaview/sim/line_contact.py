@@ -51,8 +51,8 @@ changed there.
 Static contacts only (``dejaview.sim.contacts.static_contact_wrench`` calls it after the
 friction), and not for box bodies: they meet planes and static boxes with their exact corners
 (``dejaview.sim.box_edges``), where the stick is not needed; the native engine has the same
-formula (``native/contacts.h``, ``line_roll_stick``) and its reverse mode (``native/adjoint.h``,
-``RollStick``).
+formula (``native/static_contacts.h``, ``line_roll_stick``) and its reverse mode
+(``native/adjoint_roll_stick.h``, ``RollStick``).
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
 The same model as ``dejaview.sim.contacts`` and ``dejaview.sim.integrate``,
 written once in C++ (``rollout.cpp`` with ``dual.h``, ``contacts.h``,
-``integrate.h``, ``adjoint.h``; what it reads is ``dejaview.sim.native.schema``, by name
-through the generated ``schema.h``) as templates over the number type:
+``integrate.h``, ``adjoint.h``, ``step.h``, ``recording.h`` and the files they include, listed in
+``docs/engines.md``; what it reads is ``dejaview.sim.native.schema``, by name through the
+generated ``schema.h``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
 contacts with 13 tangents, a touching body pair with 26, the integration with

@@ -26,7 +26,7 @@ void phi_update_fixed(const S* __restrict J, const S* __restrict phi, S* __restr
   }
 }
 
-// several bodies: J is block-sparse (13 x 13 blocks; body a's rows reach body b's columns only
+// several bodies: J is block-sparse (STATE_WIDTH-square blocks; body a's rows reach body b's columns only
 // through a touching pair), so only the blocks marked in blk (N x N) are multiplied
 template <typename S>
 void phi_update(int dim, const S* J, const S* phi, S* out, const std::vector<char>& blk) {

@@ -9,7 +9,7 @@
 //   body pair (a, b) W_p(s_a, s_b)     Dual<26>: d W_p / d (s_a, s_b)     (12 x 26)
 //   integration      s_a' = I(s_a, W_a) Dual<19>: d s_a' / d (s_a, W_a)   (13 x 19)
 //
-// with s = (x, q, v, w) (13 numbers) and W = (F, tau). Forward mode: the rollout carries the
+// with s = (x, q, v, w) (13 numbers: schema.h's STATE_*) and W = (F, tau). Forward mode: the rollout carries the
 // product of the substep Jacobians, Phi = d s_t / d s_0 (13N x 13N), and returns it at every
 // recorded step; a Jacobian-vector product is Phi_t v (and sum_t Phi_t^T g_t a vector-Jacobian
 // product, DEJAVIEW_NATIVE_GRADIENT=phi). Reverse mode: the rollout keeps its substep states (the

@@ -22,12 +22,12 @@ struct Scratch {
   std::vector<std::vector<PairPick>> pair_picks;  // per pair
   std::vector<S> rot;                             // (N, 9)
   std::vector<S> wrench;                          // (N, 6)
-  std::vector<S> next;                            // (N, 13)
+  std::vector<S> next;                            // (N, STATE_WIDTH)
   std::vector<S> jac, dws;                        // substep Jacobian (13N)^2, dW/ds (6N x 13N)
   std::vector<S> key;                             // (N, K, s_max) clearance bounds (select_static)
   std::vector<S> floor, keymin;                   // (N, K) ... of every sphere, the smallest key
   std::vector<S> last;                            // (N, 12) position and rotation at the last selection
-  std::vector<char> blk;                          // (N, N) nonzero 13 x 13 blocks of the Jacobian
+  std::vector<char> blk;                          // (N, N) nonzero state-row blocks of the Jacobian
   std::vector<StaticAdjoint<S>> static_adj;       // (N) static contacts' values for the way back
   std::vector<PairAdjoint<S>> pair_adj;           // (P) ... body pairs'
   std::vector<S> move;                            // (N) how far a sphere, corner or box surface point of each
