@@ -75,15 +75,15 @@ void select_contacts(const World<S>& w, const S* state, Scratch<S>& sc, const ch
     S* rot = &sc.rot[9 * a];
     S* last = &sc.last[12 * a];
     quat_to_matrix(state + STATE_WIDTH * a + STATE_ORIENTATION, rot);
-    const S* x = state + STATE_WIDTH * a + STATE_POSITION;
-    S dx = 0, dr = 0;
-    for (int i = 0; i < 3; ++i) dx += (x[i] - last[i]) * (x[i] - last[i]);
+    S dx = 0, dr = 0;  // (indexed in place: through a pointer, g++ rounds the Jacobians differently)
+    for (int i = 0; i < 3; ++i) dx += (state[STATE_WIDTH * a + STATE_POSITION + i] - last[i]) *
+                                       (state[STATE_WIDTH * a + STATE_POSITION + i] - last[i]);
     for (int i = 0; i < 9; ++i) dr += (rot[i] - last[3 + i]) * (rot[i] - last[3 + i]);
     // |p_i' - p_i| <= |x' - x| + |R' - R|_F |c_i|
     // (no previous selection: every bound is -inf, nothing to lower)
     const S move = sc.placed[a] ? std::sqrt(dx) + std::sqrt(dr) * w.reach[a] : S(0);
     sc.placed[a] = 1;
-    for (int i = 0; i < 3; ++i) last[i] = x[i];
+    for (int i = 0; i < 3; ++i) last[i] = state[STATE_WIDTH * a + STATE_POSITION + i];
     for (int i = 0; i < 9; ++i) last[3 + i] = rot[i];
     sc.move[a] = move;
     sc.travel[a] += move;
