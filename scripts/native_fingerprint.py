@@ -54,11 +54,11 @@ def record(out: Path, scenes_dir: Path) -> None:
         physics = scene.replace(inference=None).to_xml().encode()  # what the rollouts read, not the targets
         arrays[f"{name}/scene_sha256"] = np.array(hashlib.sha256(physics).hexdigest())
         world = World.from_scene(scene)
-        x0 = torch.cat(initial_state(world, scene, batch_size=2).tensors(), -1)  # (2, N, 13)
+        x0 = initial_state(world, scene, batch_size=2).flat()  # (2, N, STATE_WIDTH)
         x0[1] += 0.01 * torch.randn(x0[1].shape, generator=torch.Generator().manual_seed(1), dtype=x0.dtype)
 
         def run(x):
-            traj = rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]), steps=STEPS,
+            traj = rollout(world, State.from_flat(x), steps=STEPS,
                            record_every=RECORD_EVERY, engine="native")
             s = traj.states
             loss = (s.position ** 2).sum() + (s.linear_velocity ** 2).sum() + (s.orientation[..., 1:] ** 2).sum()
@@ -66,7 +66,7 @@ def record(out: Path, scenes_dir: Path) -> None:
 
         with torch.no_grad():
             traj, _ = run(x0)
-        arrays[f"{name}/states"] = torch.cat(traj.states.tensors(), -1).numpy()
+        arrays[f"{name}/states"] = traj.states.flat().numpy()
         x = x0.clone().requires_grad_(True)
         arrays[f"{name}/reverse"] = torch.autograd.grad(run(x)[1], x)[0].numpy()
         v = torch.randn(x0.shape, generator=torch.Generator().manual_seed(0), dtype=x0.dtype)

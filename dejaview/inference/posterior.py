@@ -48,7 +48,7 @@ import torch
 from dejaview.errors import InferenceError
 from dejaview.sim.rotation import (geodesic_angle, normalize_quat, quat_conjugate, quat_multiply, quat_rotate,
                                    quat_to_rotvec)
-from dejaview.sim.state import State
+from dejaview.sim.state import STATE_WIDTH, State
 
 DEFAULT_SIGMA = 0.005
 """Metres: default standard deviation of the observed end position (a robot's pose estimate)."""
@@ -479,7 +479,7 @@ class Posterior:
         from dejaview.sim import native
 
         bodies = self.problem.world.num_bodies
-        path = "phi" if 13 * bodies <= self.variants * self.num_observed else "adjoint"
+        path = "phi" if STATE_WIDTH * bodies <= self.variants * self.num_observed else "adjoint"
         x = x.detach().clone().requires_grad_(True)
         with torch.enable_grad(), native.preferring(path):
             r, _ = self.residuals(x, checkpoint=True)

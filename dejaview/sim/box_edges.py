@@ -38,9 +38,9 @@ rolled over the edge on those curved sides and tipped early: across its width
 rigid 49.7 (``bench/edge_tip.py``; MuJoCo 51.4), now 50.4
 (docs/physics-fidelity.md, "Static box edges against a box's faces").
 
-The native engine makes the same points and contacts (``native/contacts.h``:
+The native engine makes the same points and contacts (``native/box_edges.h``:
 ``edge_point``, ``select_edges``, ``edge_contact``) and their reverse mode
-(``native/adjoint.h``).
+(``native/adjoint_static.h``).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def static_edge_points(shape) -> torch.Tensor:
     """Points (E, 3) along the 12 edges of a static box (world frame), ``EDGE_SPACING`` apart
     (both ends included): per axis 0, 1, 2, the four edges along it at the other two axes' (-, -),
     (-, +), (+, -), (+, +) half extents, each from -half to +half. The native engine makes the same
-    points (``contacts.h``, ``edge_point``)."""
+    points (``native/box_edges.h``, ``edge_point``)."""
     half = [float(v) for v in shape.half]
     pts = []
     for axis in range(3):
@@ -89,7 +89,7 @@ def box_corners(half: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
     Corner j has sign +1 along axis i where bit i of j is set, -1 otherwise; its sphere, of radius
     r = min(BOX_CORNER_RADIUS, min(half) / 4), is centred at ``sign * (half - r)``, so its surface
-    reaches the corner. The native engine makes the same spheres (``contacts.h``, ``static_point``).
+    reaches the corner. The native engine makes the same spheres (``native/box_edges.h``, ``static_point``).
 
     Args:
         half: (N, 3) half extents (``World.box_half``; 0 for a body that is not a box: its corners

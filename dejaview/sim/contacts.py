@@ -143,6 +143,7 @@ from __future__ import annotations
 import torch
 
 from dejaview.sim.box_edges import CORNER_KINDS, box_corners, on_static_edge, static_edge_contacts
+from dejaview.sim.epsilons import NORMAL_EPS2, TINY
 from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
@@ -206,11 +207,11 @@ def friction_force(tangential_velocity: torch.Tensor, coulomb: torch.Tensor,
     Returns:
         (..., 3) friction forces opposing the tangential velocity.
     """
-    speed = torch.sqrt((tangential_velocity * tangential_velocity).sum(-1) + 1e-30)
+    speed = torch.sqrt((tangential_velocity * tangential_velocity).sum(-1) + TINY)
     b = stick * speed
     # a c / (a^p + b^p)^(1/p) on numbers scaled by max(a, b), so float32 cannot overflow
-    scale = torch.maximum(coulomb, b) + 1e-30
-    den = (((coulomb / scale) ** SMOOTH_MIN_POWER + (b / scale) ** SMOOTH_MIN_POWER + 1e-30)
+    scale = torch.maximum(coulomb, b) + TINY
+    den = (((coulomb / scale) ** SMOOTH_MIN_POWER + (b / scale) ** SMOOTH_MIN_POWER + TINY)
            ** (1.0 / SMOOTH_MIN_POWER)) * scale
     return -(coulomb * stick / den).unsqueeze(-1) * tangential_velocity
 
@@ -539,7 +540,7 @@ def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torc
     force on b (B, P, 3) (minus it on a) and the torques on a and on b (B, P, 3)."""
     pa, pb, ra, rb, mask = cand
     diff = pb - pa  # (B, P, C, 3) from a's sphere to b's
-    dist = torch.sqrt((diff * diff).sum(-1) + 1e-24)
+    dist = torch.sqrt((diff * diff).sum(-1) + NORMAL_EPS2)
     n = diff / dist.unsqueeze(-1)
     depth = torch.relu(ra + rb - dist) * mask  # (B, P, C)
     point = pa + n * ra.unsqueeze(-1)  # contact point on a's sphere

@@ -10,7 +10,7 @@ and the quantity as soon as a body's state turns non-finite or leaves the sane r
 - angular velocity: a surface speed (|w| times the body's bounding radius) faster than that.
 
 Both engines check every step: the torch engine here (``check``), the native one in C++
-(``rollout.cpp``'s ``diverged``, given ``native_limits()``), a few comparisons per body and
+(``native/recording.h``'s ``diverged``, given ``native_limits()``), a few comparisons per body and
 step. Batched loss evaluation (inference, heatmaps) does not check: a candidate that diverges
 there gets a non-finite loss, which the optimisers treat as a bad candidate while the others go on.
 """
@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 
 from dejaview.errors import SimulationError
+from dejaview.sim.state import state_offsets
 
 DIVERGED_REACH = 1e12
 """m: a coordinate beyond this is a diverged simulation."""
@@ -27,6 +28,7 @@ DIVERGED_SPEED = 299_792_458.0
 """m/s: a body (or a point of its surface) faster than light is a diverged simulation."""
 
 QUANTITIES = ("position", "orientation", "linear velocity", "angular velocity")
+"""The parts of a body's state, in ``STATE_LAYOUT`` order (a quantity's index is its part's)."""
 
 
 def native_limits() -> list[float]:
@@ -34,17 +36,17 @@ def native_limits() -> list[float]:
     return [DIVERGED_REACH, DIVERGED_SPEED]
 
 
-def describe(world, step: int, body: int, quantity: int, state13: torch.Tensor) -> SimulationError:
+def describe(world, step: int, body: int, quantity: int, row: torch.Tensor) -> SimulationError:
     """The error for ``body`` whose ``quantity`` (index into ``QUANTITIES``) diverged at ``step``.
 
     Args:
         world: the World simulated.
         step: the step (1-based) after which the state diverged.
         body, quantity: which body and which part of its state.
-        state13: (13,) that body's state, x q v w.
+        row: (STATE_WIDTH,) that body's flat state (``STATE_LAYOUT``).
     """
-    s = state13.detach().double().cpu()
-    part = {0: s[0:3], 1: s[3:7], 2: s[7:10], 3: s[10:13]}[quantity]
+    first, width = list(state_offsets().values())[quantity]
+    part = row.detach().double().cpu()[first:first + width]
     name = world.names[body]
     where = f"at step {step} (t = {step * world.dt:.6g} s)"
     if not torch.isfinite(part).all():

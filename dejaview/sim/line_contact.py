@@ -51,14 +51,15 @@ changed there.
 Static contacts only (``dejaview.sim.contacts.static_contact_wrench`` calls it after the
 friction), and not for box bodies: they meet planes and static boxes with their exact corners
 (``dejaview.sim.box_edges``), where the stick is not needed; the native engine has the same
-formula (``native/contacts.h``, ``line_roll_stick``) and its reverse mode (``native/adjoint.h``,
-``RollStick``).
+formula (``native/static_contacts.h``, ``line_roll_stick``) and its reverse mode
+(``native/adjoint_roll_stick.h``, ``RollStick``).
 """
 
 from __future__ import annotations
 
 import torch
 
+from dejaview.sim.epsilons import TINY
 from dejaview.sim.rotation import small_matmul
 
 LINE_ASPECT = 4.0
@@ -99,14 +100,14 @@ def line_roll_stick(fn: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor, n
     w = weight.unsqueeze(-1)
     centre = (w * arm).sum(-2, keepdim=True)  # (B, N, 1, 3)
     mean_n = (w * normal).sum(-2, keepdim=True)
-    z = mean_n / torch.sqrt((mean_n * mean_n).sum(-1, keepdim=True) + 1e-30)  # (B, N, 1, 3)
+    z = mean_n / torch.sqrt((mean_n * mean_n).sum(-1, keepdim=True) + TINY)  # (B, N, 1, 3)
     d = arm - centre
     p = d - (d * z).sum(-1, keepdim=True) * z  # in the set's mean plane
     second = (w.unsqueeze(-1) * p.unsqueeze(-1) * p.unsqueeze(-2)).sum(-3)  # (B, N, 3, 3)
     trace = second.diagonal(dim1=-2, dim2=-1).sum(-1)  # l1 + l2, (B, N)
-    spread = torch.sqrt(torch.relu(2.0 * (second * second).sum((-2, -1)) - trace * trace) + 1e-30)  # l1 - l2
+    spread = torch.sqrt(torch.relu(2.0 * (second * second).sum((-2, -1)) - trace * trace) + TINY)  # l1 - l2
     # relu(1 - a l2 / l1) with l2 / l1 = (T - D) / (T + D)
-    gate = torch.relu((trace + spread - LINE_ASPECT * (trace - spread)) / (trace + spread + 1e-30))
+    gate = torch.relu((trace + spread - LINE_ASPECT * (trace - spread)) / (trace + spread + TINY))
     gate = torch.where(trace > LINE_MIN_SPREAD, gate, torch.zeros_like(gate))
     if lines is not None:
         gate = torch.where(lines, gate, torch.zeros_like(gate))

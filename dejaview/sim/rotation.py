@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import torch
 
+from dejaview.sim.epsilons import small_angle
+
 
 def _product_table() -> torch.Tensor:
     """(16, 4): Hamilton product coefficients, (a outer b).flatten() @ table = a * b."""
@@ -149,7 +151,7 @@ def rotvec_to_quat(r: torch.Tensor) -> torch.Tensor:
     Returns:
         (..., 4) unit quaternions w x y z with w >= 0 for angles below pi.
     """
-    eps = 1e-4 if r.dtype == torch.float64 else 1e-2
+    eps = small_angle(r.dtype)
     sq = (r * r).sum(-1, keepdim=True)
     small = sq < eps * eps
     norm = torch.sqrt(torch.where(small, 1.0, sq))  # (_safe_norm, its square reused below)

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import torch
 
+from dejaview.sim.epsilons import GRID_OUTSIDE, NORMAL_EPS2
 
-def _safe_normalize(v: torch.Tensor, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+
+def _safe_normalize(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(..., 3) -> (unit vectors, norms (...)); zero vectors give a zero direction, no NaN."""
     sq = (v * v).sum(-1)
-    norm = torch.sqrt(sq + eps * eps)
+    norm = torch.sqrt(sq + NORMAL_EPS2)
     return v / norm.unsqueeze(-1), norm
 
 
@@ -120,6 +122,6 @@ def sdf_grid(p: torch.Tensor, values: torch.Tensor, origin: torch.Tensor,
     gz = (c * wx * wy * axis_dw[:, 2]).sum(-1)
     grad = torch.stack([gx, gy, gz], -1) / spacing
     ex_dir, ex_len = _safe_normalize(excess)
-    outside = (ex_len > 1e-9).unsqueeze(-1)
+    outside = (ex_len > GRID_OUTSIDE).unsqueeze(-1)
     grad = torch.where(outside, ex_dir, grad)
     return d + ex_len, grad

@@ -8,6 +8,28 @@ from dataclasses import dataclass, fields, replace
 import torch
 import torch.utils._pytree as pytree
 
+STATE_LAYOUT = (
+    ("position", 3, "centre of mass, world frame, m"),
+    ("orientation", 4, "unit quaternion w x y z, body axes into the world"),
+    ("linear_velocity", 3, "centre-of-mass velocity, world frame, m/s"),
+    ("angular_velocity", 3, "angular velocity, world frame, rad/s"),
+)
+"""One body's state as a row of numbers: (field, width, meaning), in ``State``'s field order. Both
+engines' flat states (the native engine's ``(B, N, STATE_WIDTH)`` arrays, ``schema.h``'s
+``STATE_*`` offsets) are this row."""
+
+STATE_WIDTH = sum(width for _, width, _ in STATE_LAYOUT)
+"""Numbers per body in a flat state."""
+
+
+def state_offsets() -> dict[str, tuple[int, int]]:
+    """Field name -> (first index, width) in a body's flat state row."""
+    out, at = {}, 0
+    for name, width, _ in STATE_LAYOUT:
+        out[name] = (at, width)
+        at += width
+    return out
+
 
 @dataclass(frozen=True)
 class State:
@@ -44,6 +66,15 @@ class State:
     def tensors(self) -> tuple[torch.Tensor, ...]:
         """The four fields in order (position, orientation, linear, angular)."""
         return tuple(getattr(self, f.name) for f in fields(self))
+
+    def flat(self) -> torch.Tensor:
+        """(..., N, STATE_WIDTH) the fields side by side, in ``STATE_LAYOUT`` order."""
+        return torch.cat(self.tensors(), -1)
+
+    @staticmethod
+    def from_flat(x: torch.Tensor) -> "State":
+        """The State of (..., N, STATE_WIDTH) flat rows (``STATE_LAYOUT``); views of ``x``."""
+        return State(*(x[..., first:first + width] for first, width in state_offsets().values()))
 
     def to(self, device=None, dtype=None) -> "State":
         return State(*(t.to(device=device, dtype=dtype) for t in self.tensors()))

@@ -49,6 +49,26 @@ def test_the_schema_covers_every_static_kind_and_the_model_constants():
         assert f"{f.name.upper()} = " in text
 
 
+def test_a_bodys_state_row_is_the_states_fields_in_order_and_the_header_names_it():
+    from dataclasses import fields
+
+    from dejaview.sim import epsilons
+    from dejaview.sim.state import STATE_LAYOUT, STATE_WIDTH, state_offsets
+
+    assert [name for name, _, _ in STATE_LAYOUT] == [f.name for f in fields(State)]
+    x = torch.arange(2 * 3 * STATE_WIDTH, dtype=torch.float64).reshape(2, 3, STATE_WIDTH)
+    state = State.from_flat(x)
+    assert [t.shape[-1] for t in state.tensors()] == [width for _, width, _ in STATE_LAYOUT]
+    assert torch.equal(state.flat(), x)
+    text = HEADER.read_text()
+    for name, (first, _) in state_offsets().items():
+        assert f"constexpr int STATE_{name.upper()} = {first};" in text
+    assert f"constexpr int STATE_WIDTH = {STATE_WIDTH};" in text
+    for name, (value, _) in schema.EPSILONS.items():
+        assert f"constexpr double {name} = {value!r};" in text
+        assert getattr(epsilons, name, value) == value  # the torch engine's value, where it has one
+
+
 def _ball_world():
     ball = BodySpec("ball", 1.0, 0.004 * np.eye(3), np.zeros(3), np.zeros((1, 3)), np.array([0.05]))
     return World.build([ball], [StaticShape.make("floor", "plane")], steps=10)

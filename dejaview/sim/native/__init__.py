@@ -2,8 +2,9 @@
 
 The same model as ``dejaview.sim.contacts`` and ``dejaview.sim.integrate``,
 written once in C++ (``rollout.cpp`` with ``dual.h``, ``contacts.h``,
-``integrate.h``, ``adjoint.h``; what it reads is ``dejaview.sim.native.schema``, by name
-through the generated ``schema.h``) as templates over the number type:
+``integrate.h``, ``adjoint.h``, ``step.h``, ``recording.h`` and the files they include, listed in
+``docs/engines.md``; what it reads is ``dejaview.sim.native.schema``, by name through the
+generated ``schema.h``) as templates over the number type:
 plain doubles for values and forward-mode dual numbers for derivatives. Each
 substep's Jacobian comes from three small dual passes per body (static
 contacts with 13 tangents, a touching body pair with 26, the integration with
@@ -59,7 +60,7 @@ import torch
 
 from dejaview.errors import SimulationError
 from dejaview.sim.native import schema
-from dejaview.sim.state import State
+from dejaview.sim.state import STATE_WIDTH, State
 
 SOURCE = Path(__file__).with_name("rollout.cpp")
 
@@ -217,8 +218,8 @@ class _Rollout(torch.autograd.Function):
                                   "Jacobians")
         (phi,) = ctx.saved_tensors
         b, r, n, _ = grad_states.shape
-        g = torch.einsum("brij,bri->bj", phi, grad_states.reshape(b, r, 13 * n))
-        return g.reshape(b, n, 13), None, None, None, None
+        g = torch.einsum("brij,bri->bj", phi, grad_states.reshape(b, r, STATE_WIDTH * n))
+        return g.reshape(b, n, STATE_WIDTH), None, None, None, None
 
     @staticmethod
     def jvp(ctx, tangent, *_):
@@ -228,7 +229,7 @@ class _Rollout(torch.autograd.Function):
         (phi,) = ctx.saved_tensors
         b, r, dim, _ = phi.shape
         out = torch.einsum("brij,bj->bri", phi, tangent.reshape(b, dim))
-        return out.reshape(b, r, dim // 13, 13), None
+        return out.reshape(b, r, dim // STATE_WIDTH, STATE_WIDTH), None
 
     @staticmethod
     def vmap(info, in_dims, init, steps, record_every, with_jac, packed):
@@ -355,7 +356,7 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
     if state.position.dtype != torch.float64 or state.position.device.type != "cpu":
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")
-    init = torch.cat(state.tensors(), -1)  # (B, N, 13)
+    init = state.flat()  # (B, N, STATE_WIDTH)
     if check_divergence:
         from dejaview.sim import divergence
 
@@ -376,8 +377,8 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
         states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
     else:
         states, _ = _Rollout.apply(init, int(steps), int(record_every), True, packed)
-    seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, 13)
-    return Trajectory(State(seq[..., :3], seq[..., 3:7], seq[..., 7:10], seq[..., 10:]),
+    seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, STATE_WIDTH)
+    return Trajectory(State.from_flat(seq),
                       record_steps(steps, record_every), world.dt)
 
 

@@ -7,29 +7,29 @@
 
 namespace dv {
 
-// one semi-implicit Euler substep of one body from its state st (13) and wrench wr (6, gravity included)
+// one semi-implicit Euler substep of one body from its state row st and wrench wr (6, gravity included)
 template <typename T, typename S>
 void integrate(const World<S>& w, int a, const T* st, const T* wr, T* out) {
-  const T* q = st + 3;
+  const T* q = st + STATE_ORIENTATION;
   T rot[9];
   quat_to_matrix(q, rot);
   const S hm = w.h / w.mass[a];
   T v[3], om[3], lw[3], gyro[3], rhs[3], acc[3], body[3], tmp[3];
-  for (int i = 0; i < 3; ++i) v[i] = st[7 + i] + hm * wr[i];
+  for (int i = 0; i < 3; ++i) v[i] = st[STATE_LINEAR_VELOCITY + i] + hm * wr[i];
   // I_w w and I_w^-1 (tau - gyro) as R (I (R^T u)): matrix-vector products only
-  matvec_t(rot, st + 10, body);
+  matvec_t(rot, st + STATE_ANGULAR_VELOCITY, body);
   matvec(w.inertia + 9 * a, body, tmp);
   matvec(rot, tmp, lw);
-  cross3(st + 10, lw, gyro);
+  cross3(st + STATE_ANGULAR_VELOCITY, lw, gyro);
   for (int i = 0; i < 3; ++i) rhs[i] = wr[3 + i] - gyro[i];
   matvec_t(rot, rhs, body);
   matvec(w.inv_inertia + 9 * a, body, tmp);
   matvec(rot, tmp, acc);
-  for (int i = 0; i < 3; ++i) om[i] = st[10 + i] + w.h * acc[i];
-  for (int i = 0; i < 3; ++i) out[i] = st[i] + w.h * v[i];
+  for (int i = 0; i < 3; ++i) om[i] = st[STATE_ANGULAR_VELOCITY + i] + w.h * acc[i];
+  for (int i = 0; i < 3; ++i) out[STATE_POSITION + i] = st[STATE_POSITION + i] + w.h * v[i];
   // rotvec_to_quat(om h) * q, renormalised
   T r[3] = {om[0] * w.h, om[1] * w.h, om[2] * w.h};
-  const S eps = sizeof(S) == 8 ? S(1e-4) : S(1e-2);
+  const S eps = sizeof(S) == 8 ? S(schema::SMALL_ANGLE_F64) : S(schema::SMALL_ANGLE_F32);
   T sq = dot3(r, r);
   T sinc, co;
   if (val(sq) < eps * eps) {
@@ -48,10 +48,10 @@ void integrate(const World<S>& w, int a, const T* st, const T* wr, T* out) {
   qn[2] = e[0] * q[2] - e[1] * q[3] + e[2] * q[0] + e[3] * q[1];
   qn[3] = e[0] * q[3] + e[1] * q[2] - e[2] * q[1] + e[3] * q[0];
   T len = sqrt(qn[0] * qn[0] + qn[1] * qn[1] + qn[2] * qn[2] + qn[3] * qn[3]);
-  for (int i = 0; i < 4; ++i) out[3 + i] = qn[i] / len;
+  for (int i = 0; i < 4; ++i) out[STATE_ORIENTATION + i] = qn[i] / len;
   for (int i = 0; i < 3; ++i) {
-    out[7 + i] = v[i];
-    out[10 + i] = om[i];
+    out[STATE_LINEAR_VELOCITY + i] = v[i];
+    out[STATE_ANGULAR_VELOCITY + i] = om[i];
   }
 }
 

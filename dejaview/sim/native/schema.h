@@ -88,6 +88,13 @@ constexpr int I_MAX_STATIC_CONTACTS = 1;
 constexpr int I_MAX_PAIR_CONTACTS = 2;
 constexpr int INT_COUNT = 3;
 
+// one body's state row (STATE): first index of each part
+constexpr int STATE_POSITION = 0;  // 3 number(s)
+constexpr int STATE_ORIENTATION = 3;  // 4 number(s)
+constexpr int STATE_LINEAR_VELOCITY = 7;  // 3 number(s)
+constexpr int STATE_ANGULAR_VELOCITY = 10;  // 3 number(s)
+constexpr int STATE_WIDTH = 13;
+
 // model constants (CONSTANTS)
 constexpr double SLIP_EPS = 0.001;  // m/s: friction direction regulariser (dejaview.sim.contacts)
 constexpr double SMOOTH_MIN_POWER = 8.0;  // power of the friction's smooth minimum
@@ -97,6 +104,14 @@ constexpr double LINE_MIN_SPREAD = 1e-12;  // m^2: a static contact set whose in
 constexpr double EDGE_SPACING = 0.005;  // m: spacing of the points along a static box's edges that meet a box body's exact faces (static_edge_points)
 constexpr double BOX_CORNER_RADIUS = 0.001;  // m: radius of the spheres at a box body's corners, which meet planes and static boxes (box_corners)
 constexpr double CLEAR_MARGIN = 1e-09;  // m: a sphere or pair whose clearance bound stays above this cannot touch and is skipped (native culling only)
+
+// numerical guards (EPSILONS)
+constexpr double TINY = 1e-30;  // guard under a square root or in a denominator that may be 0
+constexpr double NORMAL_EPS2 = 1e-24;  // m^2: added to a squared length under its root when normalising (no direction below ~1e-12 m)
+constexpr double GRID_OUTSIDE = 1e-09;  // m: beyond this outside a grid's box, the box's direction is the normal
+constexpr double SMALL_ANGLE_F64 = 0.0001;  // rad: rotvec_to_quat's series below this (double)
+constexpr double SMALL_ANGLE_F32 = 0.01;  // rad: ... (float)
+constexpr double SLAB_PARALLEL = 1e-12;  // a static box edge's direction component below this is parallel to the body box's slab (native edge selection only)
 
 }  // namespace schema
 }  // namespace dv

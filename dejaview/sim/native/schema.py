@@ -1,11 +1,11 @@
 """The one description of what the native engine reads: the World's arrays, the static shapes'
-parameters, the scalars and the model's constants, by name.
+parameters, the scalars, a body's state row and the model's constants and epsilons, by name.
 
 ``dejaview.sim.native`` packs a ``World`` from these tables (``pack``) and the C++ side reads them
 through ``schema.h``, which ``header()`` generates from the same tables (committed beside
 ``rollout.cpp``; ``tests/sim/test_native_schema.py`` fails when the two differ). So the C++
-names every field (``dv::schema::MASS``, ``dv::schema::SHAPE_RADIUS``, ...) instead of counting
-positions, and ``dv::check_world`` checks each array's dtype and shape against this description,
+names every field (``dv::schema::MASS``, ``dv::schema::SHAPE_RADIUS``,
+``dv::schema::STATE_ORIENTATION``, ...) instead of counting positions, and ``dv::check_world`` checks each array's dtype and shape against this description,
 naming the field in its error. Regenerate the header after editing this file::
 
     python -c "from dejaview.sim.native.schema import header; print(header(), end='')" \
@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import torch
 
-from dejaview.sim import box_edges, contacts, line_contact
+from dejaview.sim import box_edges, contacts, epsilons, line_contact
+from dejaview.sim.state import STATE_LAYOUT, STATE_WIDTH, state_offsets
 from dejaview.sim.world import STATIC_KINDS
 
 
@@ -106,6 +107,23 @@ CONSTANTS = {
                            "and is skipped (native culling only)"),
 }
 """Model constants the C++ reads from ``schema.h`` (the torch engine reads the same names)."""
+
+EPSILONS = {
+    "TINY": (epsilons.TINY, "guard under a square root or in a denominator that may be 0"),
+    "NORMAL_EPS2": (epsilons.NORMAL_EPS2, "m^2: added to a squared length under its root when "
+                                          "normalising (no direction below ~1e-12 m)"),
+    "GRID_OUTSIDE": (epsilons.GRID_OUTSIDE, "m: beyond this outside a grid's box, the box's direction "
+                                            "is the normal"),
+    "SMALL_ANGLE_F64": (epsilons.SMALL_ANGLE_F64, "rad: rotvec_to_quat's series below this (double)"),
+    "SMALL_ANGLE_F32": (epsilons.SMALL_ANGLE_F32, "rad: ... (float)"),
+    "SLAB_PARALLEL": (1e-12, "a static box edge's direction component below this is parallel to the "
+                             "body box's slab (native edge selection only)"),
+}
+"""The numerical guards of ``dejaview.sim.epsilons`` the C++ reads from ``schema.h``."""
+
+STATE = STATE_LAYOUT
+"""One body's state row (``dejaview.sim.state.STATE_LAYOUT``): (name, width, meaning); the native
+engine's states are (B, N, STATE_WIDTH) arrays of these rows."""
 
 
 def shape_offsets() -> dict[str, tuple[int, int]]:
@@ -224,7 +242,13 @@ def header() -> str:
     lines += [f"constexpr int FLOAT_COUNT = {len(FLOATS)};"]
     lines += [f"constexpr int I_{_cpp_name(n)} = {i};" for i, n in enumerate(INTS)]
     lines += [f"constexpr int INT_COUNT = {len(INTS)};", ""]
+    lines.append("// one body's state row (STATE): first index of each part")
+    for name, (first, width) in state_offsets().items():
+        lines.append(f"constexpr int STATE_{_cpp_name(name)} = {first};  // {width} number(s)")
+    lines += [f"constexpr int STATE_WIDTH = {STATE_WIDTH};", ""]
     lines.append("// model constants (CONSTANTS)")
     lines += [f"constexpr double {name} = {value!r};  // {doc}" for name, (value, doc) in CONSTANTS.items()]
+    lines += ["", "// numerical guards (EPSILONS)"]
+    lines += [f"constexpr double {name} = {value!r};  // {doc}" for name, (value, doc) in EPSILONS.items()]
     lines += ["", "}  // namespace schema", "}  // namespace dv", ""]
     return "\n".join(lines)

@@ -1,0 +1,54 @@
+// The World as the engine reads it (filled by make_world, read_world.h, from the arrays of
+// dejaview/sim/native/schema.py) and the offsets of a body's state row (dejaview.sim.native).
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+#include <vector>
+
+#include "schema.h"
+
+namespace dv {
+
+// a body's state row (dejaview.sim.state.STATE_LAYOUT): x, q, v, w at these offsets
+using schema::STATE_ANGULAR_VELOCITY;
+using schema::STATE_LINEAR_VELOCITY;
+using schema::STATE_ORIENTATION;
+using schema::STATE_POSITION;
+using schema::STATE_WIDTH;
+
+// ------------------------------------------------------------------ world
+template <typename S>
+struct Shape {
+  int kind;  // schema::KIND_*
+  S rot[9], trans[3], half[3], radius, half_height, origin[3], spacing, lipschitz;
+  const S* grid;
+  int64_t nx, ny, nz;
+};
+
+template <typename S>
+struct World {
+  int n, s_max, k, p;
+  std::vector<int> count;  // real spheres per body
+  std::vector<S> reach;    // largest sphere-centre distance from the centre of mass, per body, and for a
+                           // box its corners' (statics meet its corners, body pairs its surface)
+  const S *mass, *inertia, *inv_inertia, *centers, *radii, *bound, *inv_i_min;
+  std::vector<Shape<S>> shapes;
+  const S *mu_static, *unload_static;  // (N, K)
+  const int64_t* pairs;                 // (P, 2)
+  const S *mu_pair, *unload_pair, *mass_pair;
+  const S* box_half;             // (N, 3): a box body's half extents, 0 for the others
+  const int64_t* pair_surface;   // (P): the box (0: a, 1: b) whose surface the other's spheres meet, or -1
+  S gravity[3];
+  S h, omega, unload_velocity;
+  int substeps, cap_static, cap_pair;
+};
+
+// the time in which the roll stick stops a line's roll (line_contact.roll_stop_time): one substep at
+// the default step, the contact's time scale ROLL_STOP_OMEGA_T / omega at finer ones
+template <typename S>
+S roll_stop_time(const World<S>& w) {
+  return std::max(w.h, S(schema::ROLL_STOP_OMEGA_T) / w.omega);
+}
+
+}  // namespace dv
