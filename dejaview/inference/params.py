@@ -136,6 +136,15 @@ class SamplerParams:
         symmetry_moves: each tempering step moves the particles along the scene's symmetry
             (``dejaview.inference.symmetry``), where it has one.
         difference_moves: every other random-walk move is a differential-evolution step.
+        reference_df: degrees of freedom of the reference mixture's Student-t components
+            (``reference.laplace_mixture``; heavy tails: the Laplace approximation of a contact
+            landscape is only local).
+        scale_inflation: the reference components' scale over the Laplace standard deviation.
+        mode_merge: modes closer than this Mahalanobis distance (under the better one's Laplace
+            covariance) are one component.
+        orbit_draws: motions drawn per orbit in the symmetry moves' importance sampling
+            (``symmetry.orbit_walk``; each costs no rollout; docs/benchmarks.md, "Symmetry moves").
+        orbit_width: the symmetry moves' proposal spread over the tempered observation noise.
     """
 
     seed: int = 0
@@ -153,9 +162,15 @@ class SamplerParams:
     particles: int = 600
     symmetry_moves: bool = True
     difference_moves: bool = True
+    reference_df: float = 5.0
+    scale_inflation: float = 1.5
+    mode_merge: float = 3.0
+    orbit_draws: int = 128
+    orbit_width: float = 1.5
 
     def __post_init__(self):
-        check_params(self, counts=("max_stages", "max_moves", "runs", "min_run_size", "particles"),
+        check_params(self, counts=("max_stages", "max_moves", "runs", "min_run_size", "particles", "orbit_draws"),
+                     positive=("reference_df", "scale_inflation", "mode_merge", "orbit_width"),
                      naturals=("seed", "rw_moves", "final_moves"),
                      fractions=("ess_fraction", "target_acceptance", "prior_share", "distinct_fraction"),
                      choices={"population_moves": (True, False), "symmetry_moves": (True, False),

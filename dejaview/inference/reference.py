@@ -22,15 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from dejaview.errors import InferenceError
-
-DF = 5.0
-"""Degrees of freedom of the reference mixture's Student-t components (heavy tails: the Laplace
-approximation of a contact landscape is only local)."""
-SCALE_INFLATION = 1.5
-"""The reference components' scale over the Laplace standard deviation."""
-MODE_MERGE = 3.0
-"""Modes closer than this Mahalanobis distance (under the better one's Laplace covariance) are
-one mode."""
+from dejaview.inference.params import SamplerParams
 
 
 def prior_draws(post, n: int, gen: torch.Generator) -> torch.Tensor:
@@ -173,7 +165,7 @@ class Mixture:
     means: torch.Tensor
     chol: torch.Tensor
     log_weights: torch.Tensor
-    df: float = DF
+    df: float = SamplerParams.reference_df
     prior: object = None
     """Optional ``Posterior`` whose prior (``prior_draws``, ``log_prior_density``) is one more
     component, with weight ``prior_share``; the t components share the rest."""
@@ -225,14 +217,16 @@ class Mixture:
         return self.component_log_prob(x).argmax(-1)
 
 
-def laplace_mixture(post, modes: list) -> tuple[Mixture, list[int]]:
+def laplace_mixture(post, modes: list, params: SamplerParams | None = None) -> tuple[Mixture, list[int]]:
     """The reference mixture q of the module docstring at the search's modes.
 
     Args:
         post: ``Posterior``; modes: the search's ``Mode`` list (x (P,), cost), best first.
+        params: ``SamplerParams`` (``reference_df``, ``scale_inflation``, ``mode_merge``).
     Returns:
         the mixture and, per component, the index of the mode it came from.
     """
+    params = SamplerParams() if params is None else params
     finite = [i for i, m in enumerate(modes) if math.isfinite(m.cost)]
     if not finite:
         raise InferenceError("no mode with a finite posterior density to sample around")
@@ -249,7 +243,7 @@ def laplace_mixture(post, modes: list) -> tuple[Mixture, list[int]]:
         dup = False
         for j, mj in enumerate(means):
             d = xs[i] - mj
-            if float(d @ torch.linalg.solve(covs[j], d)) < MODE_MERGE ** 2:
+            if float(d @ torch.linalg.solve(covs[j], d)) < params.mode_merge ** 2:
                 dup = True
                 break
         if dup or not bool(torch.isfinite(lp[i])):
@@ -258,7 +252,7 @@ def laplace_mixture(post, modes: list) -> tuple[Mixture, list[int]]:
         covs.append(cov)
         logp.append(float(lp[i]))
         kept.append(finite[i])
-    chol = torch.linalg.cholesky(torch.stack(covs)) * SCALE_INFLATION
+    chol = torch.linalg.cholesky(torch.stack(covs)) * params.scale_inflation
     logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     lw = torch.tensor(logp, dtype=torch.float64) + logdet  # Laplace evidence
-    return Mixture(torch.stack(means), chol, lw - torch.logsumexp(lw, 0)), kept
+    return Mixture(torch.stack(means), chol, lw - torch.logsumexp(lw, 0), df=params.reference_df), kept

@@ -20,7 +20,7 @@ bridge starts from the mixture q below instead of the prior).
   are resampled (systematic) and moved by Metropolis-Hastings kernels that
   leave pi_beta invariant:
   - one independence move proposing from q, a mixture of multivariate
-    Student-t distributions (``reference.DF`` degrees of freedom) centred on the MAP
+    Student-t distributions (``SamplerParams.reference_df`` degrees of freedom) centred on the MAP
     search's distinct modes with the Laplace covariance of each
     (``(J^T J + C)^-1`` from the exact residual Jacobian J and the curvature C
     of the base measure and flat priors), weighted by its Laplace evidence
@@ -126,7 +126,7 @@ class _SMC:
         self.acceptance: list[float] = []
         self.ess_steps: list[float] = []
         self.t0 = time.perf_counter()
-        self.symmetry = FloorSymmetry.of(post) if params.symmetry_moves else None
+        self.symmetry = FloorSymmetry.of(post, params.orbit_width) if params.symmetry_moves else None
         self.orbit_scale = self.scale
         self.ends, self.ends_known = None, None
         """The compared records of the particles' rollouts, and which of them hold (``orbit_walk``)."""
@@ -233,7 +233,7 @@ class _SMC:
         """A move along each particle's orbit under the scene's symmetry (``symmetry.orbit_walk``
         without a step: its end carried onto the observed one); one rollout per particle."""
         y, lp, moved, ends = orbit_walk(self.post, self.symmetry, self.x, self.tempered, self.beta, self.gen,
-                                        known=self.known(torch.arange(self.n)))
+                                        draws=self.p.orbit_draws, known=self.known(torch.arange(self.n)))
         self.x, self.lp = y, lp
         self.lr, self.lq = self.reference(y), self.q.log_prob(y)
         self.ends, self.ends_known = ends, torch.ones(self.n, dtype=torch.bool)
@@ -266,7 +266,7 @@ class _SMC:
                 z = torch.randn((r, gr.shape[1]), generator=self.gen, dtype=torch.float64)
                 step = self.orbit_scale * (z @ chol_of(gr).T)
             y, lp, ok, ends = orbit_walk(self.post, sym, self.x[rows], self.tempered, self.beta, self.gen,
-                                         step=step, known=self.known(rows))
+                                         step=step, draws=self.p.orbit_draws, known=self.known(rows))
             self.x[rows], self.lp[rows] = y, lp
             if self.ends is not None:
                 self.ends = assign(self.ends, rows, ends)
@@ -517,7 +517,7 @@ class Sampler:
         if post.layout.size == 0:
             raise InferenceError("the posterior has no free parameter to sample: free one in <optimize>")
         rollouts0 = post.rollouts
-        q, mode_index = laplace_mixture(post, modes)
+        q, mode_index = laplace_mixture(post, modes, p)
         proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
         if proper:  # the prior is a proper distribution: temper from it, propose from it too
             q.prior, q.prior_share = post, p.prior_share

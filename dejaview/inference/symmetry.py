@@ -26,9 +26,9 @@ group adds to g and leaves r alone, and ``orbit_walk`` moves the particles in
 both (``dejaview.inference.sampling`` calls it):
 
 - along the orbit: conditional importance sampling (Andrieu, Lee and Vihola
-  2018) of g: ``DRAWS`` motions around the g that carries x's end onto the
+  2018) of g: ``SamplerParams.orbit_draws`` motions around the g that carries x's end onto the
   observed end (position and heading; the spread the tempered observation
-  noise times ``WIDTH``), each a turn drawn about the vertical through the
+  noise times ``SamplerParams.orbit_width``), each a turn drawn about the vertical through the
   end point rather than the start (an end a metre away would otherwise move
   by a metre times the turn) plus a normal translation, the current g among
   them, one drawn by the weights ``pi(r, g) / k(g)``, pi the tempered
@@ -63,15 +63,11 @@ from dataclasses import dataclass
 
 import torch
 
+from dejaview.inference.params import SamplerParams
 from dejaview.inference.reference import log_density, log_haar
 from dejaview.sim.rotation import quat_multiply, quat_rotate, quat_to_rotvec, rotvec_to_quat
 from dejaview.sim.state import State, Trajectory
 
-DRAWS = 128
-"""Motions drawn per orbit in ``orbit_walk``'s importance sampling (each costs no rollout; box_thrown
-calibrated better with 128 than 32, no better with 512: docs/benchmarks.md, "Symmetry moves")."""
-WIDTH = 1.5
-"""The importance proposal's spread over the tempered observation noise."""
 _TOL = 1e-12
 
 
@@ -103,9 +99,11 @@ class FloorSymmetry:
 
     axes: tuple[int, ...]
     rotate: bool
+    width: float = SamplerParams.orbit_width
+    """The proposal's spread over the tempered observation noise (``spreads``)."""
 
     @staticmethod
-    def of(post) -> "FloorSymmetry | None":
+    def of(post, width: float = SamplerParams.orbit_width) -> "FloorSymmetry | None":
         """The symmetry of ``post``'s scene (a ``Posterior``), or None where it has none (another
         movable body, a static shape that is not a horizontal plane, gravity not vertical, a
         position free in per-candidate boxes) or where the likelihood reads every record of each
@@ -132,7 +130,7 @@ class FloorSymmetry:
                       and (lay.free["angular_velocity"] or float(lay.base_angular[:2].abs().max()) == 0))
         if not axes and not rotate:
             return None
-        return FloorSymmetry(axes=axes, rotate=rotate)
+        return FloorSymmetry(axes=axes, rotate=rotate, width=width)
 
     def act(self, lay, x: torch.Tensor, theta: torch.Tensor, t: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -222,17 +220,17 @@ class FloorSymmetry:
 
     def spreads(self, post, beta: float) -> tuple[float, float]:
         """The proposal's standard deviations (theta in radians, t in metres) at beta: the
-        observation's noise over sqrt(beta) times ``WIDTH``, at most a half turn and the start
+        observation's noise over sqrt(beta) times ``width``, at most a half turn and the start
         area's extent. An unobserved heading (the ``position`` loss) keeps the prior's tilt."""
         s, lay = post.settings, post.layout
         b = max(beta, 1e-12)
         extent = (max(float(lay.hi[a] - lay.lo[a]) for a in self.axes) if lay.lo is not None and self.axes
                   else 10 * lay.scale["position"])
-        sd_t = min(WIDTH * s.sigma / math.sqrt(b), extent)
+        sd_t = min(self.width * s.sigma / math.sqrt(b), extent)
         if post.problem.loss_kind == "position" or post._target_q is None:
             sd_theta = math.pi if s.tilt is None else min(s.tilt, math.pi)
         else:
-            sd_theta = min(WIDTH * s.angle_sigma / math.sqrt(b), math.pi)
+            sd_theta = min(self.width * s.angle_sigma / math.sqrt(b), math.pi)
         return sd_theta, sd_t
 
     # ------------------------------------------------------------ section coordinates
@@ -479,7 +477,7 @@ def orbit_walk(post, sym: FloorSymmetry, x: torch.Tensor, tempered, beta: float,
     """
     lay = post.layout
     b = x.shape[0]
-    draws = DRAWS if draws is None else draws
+    draws = SamplerParams.orbit_draws if draws is None else draws
     r, g, _ = sym.coordinates(lay, x)
     base = ends(post, x, known)
     logw, ys, lps, rth, rt = _orbit_weights(post, sym, x, base, tempered, beta, gen, draws, keep_current=True)
