@@ -705,7 +705,7 @@ def solve_case(case: Case, uncertainty, warp: bool, print_fn=print, seed: int = 
 def _own_end(result) -> np.ndarray:
     """DejaView's end (object origin) of the answer: the last record of the solve's trajectory."""
     problem = result.problem
-    inner = getattr(problem, "inner", problem)
+    inner = problem
     src = inner.source
     pos = inner.world.object_position(_flat(result.trajectory.states))
     return pos[-1, src].numpy()

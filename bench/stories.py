@@ -527,7 +527,7 @@ def solve_story(path: Path | str) -> dict:
         "start_error_m": (float(np.linalg.norm(np.asarray(answer["position"]) - np.asarray(truth_start)))
                           if truth_start else None),
         "seconds": seconds, "rollouts": search.get("rollouts"), "jacobians": search.get("jacobians"),
-        "evaluate": getattr(getattr(result.problem, "inner", result.problem), "evaluate", ""),
+        "evaluate": getattr(result.problem, "evaluate", ""),
         "answer": json.dumps(answer),
     }
 

@@ -517,9 +517,6 @@ def with_layout(problem, layout):
     leaving ``problem`` untouched."""
     import copy
 
-    inner = getattr(problem, "inner", None)
-    if inner is not None:  # SpheresProblem: attributes live on the wrapped InferenceProblem
-        return type(problem)(replace(inner, layout=layout))
     out = copy.copy(problem)
     out.layout = layout
     return out

@@ -63,7 +63,7 @@ class SolveResult:
         """
         from dejaview.losses.targets import record_index
 
-        problem = getattr(self.problem, "inner", self.problem)
+        problem = self.problem
         sightings = list(problem.sightings)
         anchor = sightings[list(problem.targets).index(self.scene.inference.target)]
         if anchor.step is not None:
@@ -85,7 +85,7 @@ class SolveResult:
         """
         from dejaview.losses.targets import record_index
 
-        problem = getattr(self.problem, "inner", self.problem)
+        problem = self.problem
         out = []
         for s in problem.sightings:
             t = s.target
@@ -99,7 +99,7 @@ class SolveResult:
     def end_error(self) -> dict:
         """The re-simulated END against the last observation (``observations``' row of
         ``scene.inference.target`` where it has no time; else that target at its time)."""
-        problem = getattr(self.problem, "inner", self.problem)
+        problem = self.problem
         i = list(problem.targets).index(self.scene.inference.target)
         row = self.observations()[i]
         return {k: row[k] for k in ("time", "position_error", "angle_error_deg")}
@@ -108,7 +108,7 @@ class SolveResult:
         """Index of the re-simulated record that fits ``target`` best by the scene's loss."""
         from dejaview.losses import LOSSES
 
-        problem, traj = getattr(self.problem, "inner", self.problem), self.trajectory
+        problem, traj = self.problem, self.trajectory
         world = problem.frames
         kind = problem.loss_kind if target.orientation is not None else "position"
         t_pos = torch.tensor(target.position, dtype=world.dtype)
@@ -123,7 +123,7 @@ class SolveResult:
         against ``target``."""
         from dejaview.sim.rotation import geodesic_angle
 
-        problem, traj = getattr(self.problem, "inner", self.problem), self.trajectory
+        problem, traj = self.problem, self.trajectory
         world, source = problem.frames, problem.source
         with torch.no_grad():
             origin = world.object_position(traj.states)[k, 0, source]

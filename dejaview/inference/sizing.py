@@ -62,7 +62,7 @@ def check_solve_memory(scene, problem, samples: int, collision, memory_limit: in
     from dejaview.geometry.collision import SceneCollision
     from dejaview.inference.model_uncertainty import ModelVariants
 
-    inner = getattr(problem, "inner", problem)
+    inner = problem
     collision = SceneCollision(scene) if collision is None else collision
     model = ModelVariants.from_scene(scene, inner.world)
     candidate = candidate_bytes(inner, 1 if model is None else model.count,
