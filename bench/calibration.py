@@ -152,12 +152,12 @@ def run_case(name: str, index: int, samples: int) -> dict:
     from dejaview.inference.solve import SolveParams
     from dejaview.inference.posterior import Posterior, PosteriorSettings
     from dejaview.inference.posterior_report import physical, weighted_quantiles
-    from dejaview.inference.problem import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.inference.reference import log_density
 
     gen = torch.Generator().manual_seed(1000 + index)
     scene = base_scene(name)
-    prior_post = Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    prior_post = Posterior(SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
     truth = prior_post.sample(1, gen)
     observed = observe(scene, prior_post, truth, gen)
     t0 = time.perf_counter()

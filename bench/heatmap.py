@@ -56,7 +56,7 @@ def serial_seconds(scene, cells, samples, iterations, count, seed=0) -> tuple[fl
     from dejaview.backends import make_problem
     from dejaview.heatmap.search import DEFAULT_ADAM_LR, cell_boxes, with_layout
     from dejaview.inference.optimize import optimize
-    from dejaview.inference.problem import objective_to_loss
+    from dejaview.backends.base import objective_to_loss
 
     problem = make_problem(scene)
     layout = problem.layout

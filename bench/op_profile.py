@@ -41,12 +41,12 @@ def run(scene=None, steps: int | None = None, compile: bool = False, mode: str =
     import torch
     from torch.profiler import ProfilerActivity, profile
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
 
     say = print_fn or (lambda *_: None)
     sc = Scene.from_xml(scene or SCENE)
-    problem = InferenceProblem.from_scene(sc, engine="torch")
+    problem = SpheresProblem.from_scene(sc, engine="torch")
     if steps is not None:
         problem.steps = int(steps)
     problem.compile = compile

@@ -104,7 +104,8 @@ def run(print_fn=print, iterations=ITERATIONS, modes=MODES, optimizers=OPTIMIZER
     """
     import torch
 
-    from dejaview.inference import InferenceProblem, solve
+    from dejaview.backends.spheres import SpheresProblem
+    from dejaview.inference import solve
     from dejaview.inference.solve import SolveParams
     from dejaview.scene import Scene
 
@@ -117,7 +118,7 @@ def run(print_fn=print, iterations=ITERATIONS, modes=MODES, optimizers=OPTIMIZER
     if sc.inference is None:
         raise ValueError(f"{scene}: the scene has no <inference> section")
     name = Path(sc.path).name if sc.path else sc.name
-    problem = InferenceProblem.from_scene(sc)
+    problem = SpheresProblem.from_scene(sc)
     problem.value_and_grad(problem.layout.encode(), "reverse")  # warm-up outside the timings
     say(f"scene: {name} ({problem.steps} steps of {1000 * problem.world.dt:g} ms, "
         f"{problem.world.substeps} substep(s); {problem.num_params} parameters; loss "

@@ -21,7 +21,7 @@ Per N, best of ``repeats`` runs (more for short calls: ``_best_time``), B = 1:
 - ``dv rollout``: a DejaView rollout without gradient (native engine), recording what the loss
   reads (the final state, as MuJoCo's rollout);
 - ``dv loss+grad``: one exact loss + gradient of the 12 parameters (reverse mode,
-  ``InferenceProblem.value_and_grad``), and its ratio to the rollout;
+  ``SpheresProblem.value_and_grad``), and its ratio to the rollout;
 - ``mj rollout``: a MuJoCo rollout (``mj_step`` with ``nstep``, no Python per step);
 - ``mj fd grad``: MuJoCo's loss + finite-difference gradient (13 rollouts, forward
   differences), and the ratio ``mj fd grad / dv loss+grad``.
@@ -210,7 +210,7 @@ def _status_kib(key: str) -> int | None:
 def _problem(scene_text_or_path, steps: int | None = None):
     from dataclasses import replace
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
     from dejaview.scene.xml import read_scene_string
 
@@ -218,7 +218,7 @@ def _problem(scene_text_or_path, steps: int | None = None):
         scene = Scene.from_xml(scene_text_or_path)
     else:
         scene = read_scene_string(scene_text_or_path, base_dir=ROOT / "examples" / "scenes")
-    problem = InferenceProblem.from_scene(scene, engine="native")
+    problem = SpheresProblem.from_scene(scene, engine="native")
     return replace(problem, steps=steps) if steps else problem
 
 

@@ -22,7 +22,7 @@ PyTorch, ``dejaview.sim.integrate``) and ``native`` (the same model in C++,
 * one loss + gradient of all 12 parameters, forward and reverse mode, at
   B = 1 and per candidate at B = 64 (reverse mode at B = 64 is one batched
   backward): eager, native (always over the whole rollout), and compiled
-  (``InferenceProblem.compile``, where the checkout offers it) only with
+  (``SpheresProblem.compile``, where the checkout offers it) only with
   ``compile=True`` / ``--compile``, each configuration in a fresh process
   with a time limit, since the first compile takes minutes;
 * checks: eager forward vs reverse gradient, and native forward and reverse
@@ -131,12 +131,12 @@ def _load() -> str:
 
 
 def _compile_offered() -> bool:
-    """Whether InferenceProblem can run its rollouts through torch.compile."""
+    """Whether SpheresProblem can run its rollouts through torch.compile."""
     import dataclasses
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
 
-    return "compile" in {f.name for f in dataclasses.fields(InferenceProblem)}
+    return "compile" in {f.name for f in dataclasses.fields(SpheresProblem)}
 
 
 def _candidates(problem, batch: int):
@@ -182,11 +182,11 @@ def memory_probe(config: dict) -> dict:
 
     import torch
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
 
     torch.set_num_threads(int(config.get("threads", 1)))
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine=config.get("engine", "torch"))
+    problem = SpheresProblem.from_scene(Scene.from_xml(SCENE), engine=config.get("engine", "torch"))
     steps = config.get("steps") or problem.steps
     problem = replace(problem, steps=steps, checkpoint_every=config.get("checkpoint_every"))
     _, x = _candidates(problem, int(config["batch"]))
@@ -222,11 +222,11 @@ def compile_probe(config: dict) -> dict:
 
     import torch
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
 
     torch.set_num_threads(int(config.get("threads", 1)))
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
+    problem = SpheresProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
     problem = replace(problem, steps=int(config["steps"]), compile=True)
     _, x = _candidates(problem, int(config["batch"]))
     started = time.perf_counter()
@@ -263,7 +263,7 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     Args:
         print_fn: where the tables and verdicts go (None: silent).
         quick: a few steps and a batch of 4 instead of the full rollout and 64 (smoke test).
-        compile: also time compiled loss + gradients (``InferenceProblem.compile``), each
+        compile: also time compiled loss + gradients (``SpheresProblem.compile``), each
             configuration in a fresh process: the first compile takes minutes.
         compile_timeout: seconds allowed to each compiled configuration.
     Returns:
@@ -282,7 +282,7 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
 
     import torch
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
     from dejaview.sim.integrate import rollout
 
@@ -291,7 +291,7 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
     rows: list[dict] = []
     from dejaview.sim import native
 
-    problem = InferenceProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
+    problem = SpheresProblem.from_scene(Scene.from_xml(SCENE), engine="torch")
     world = problem.world
     native_ok = native.available()
     full = cfg["full_steps"] or problem.steps
@@ -405,7 +405,7 @@ def run(print_fn=print, quick: bool = False, compile: bool = False,
                         f"{window} steps, x{full / window:.1f}; first call {out['first_s']:.0f} s")
     else:
         note = ("not offered" if not _compile_offered() else
-                "offered (InferenceProblem.compile), not timed: the first compile takes minutes "
+                "offered (SpheresProblem.compile), not timed: the first compile takes minutes "
                 "(run with --compile)")
         for mode in MODES:
             rows.append({"section": "loss+grad", "name": f"{mode}, compiled", "engine": "torch", "batch": None,

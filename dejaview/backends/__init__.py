@@ -162,7 +162,7 @@ def simulate(scene, backend: str = "spheres", **options):
 
 def as_problem(problem) -> Problem:
     """``problem`` itself: every backend's problem is a ``Problem`` (the spheres backend's
-    ``InferenceProblem`` included; it used to need a wrapper).
+    ``SpheresProblem`` included; it used to need a wrapper).
 
     Raises:
         InferenceError: something that is not a ``Problem``.

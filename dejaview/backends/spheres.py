@@ -1,6 +1,6 @@
 """The ``spheres`` backend: DejaView's sphere-packing simulator behind the backend protocol.
 
-``SpheresProblem`` (also known as ``InferenceProblem``, its name in ``dejaview.inference``) ties a
+``SpheresProblem`` ties a
 World, the scene's other bodies' initial states, the source's ``ParameterLayout``, the target and
 the loss settings together. It supplies the rollout; ``Problem`` the loss, gradients and I/O.
 ``loss(x)`` maps parameters (B, P) to losses (B,) and is free of data-dependent Python branches, so
@@ -181,8 +181,6 @@ class SpheresProblem(Problem):
     def __repr__(self) -> str:
         return f"SpheresProblem({self.world.names}, source={self.source}, P={self.num_params})"
 
-
-InferenceProblem = SpheresProblem
 
 
 class SpheresBackend:

@@ -117,7 +117,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         velocity_tol, spin_tol, position_tol: deduplication tolerances.
         callback: called with a ``HeatmapProgress`` after every iteration.
         should_stop: polled every iteration; True stops the run (raises InferenceError).
-        problem: reuse a problem of this scene (``dejaview.backends``; a bare InferenceProblem is
+        problem: reuse a problem of this scene (``dejaview.backends``; a bare SpheresProblem is
             wrapped).
         backend: a backend's name (``spheres``, the default, | ``warp``) or ``BackendOptions``
             (with its own settings, e.g. the spheres backend's engine; ``dejaview.backends``); not
@@ -188,7 +188,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
 
 
 @dataclass
-class _Run:
+class _HeatmapRun:
     """The resolved settings of one ``compute_heatmap`` run, and (``_with_problem``) its problem."""
 
     scene: object
@@ -236,7 +236,7 @@ class _Candidates:
 
 
 def _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_size, workers,
-              radii, directions) -> _Run:
+              radii, directions) -> _HeatmapRun:
     """The scene (read from a path) and ``compute_heatmap``'s settings with the scene's defaults,
     checked (one-line ``InferenceError`` naming the first bad one)."""
     from dejaview.inference.optimize import OPTIMIZERS
@@ -266,12 +266,12 @@ def _settings(scene, cells, samples, sigma, iterations, optimizer, seed, batch_s
         raise InferenceError(f"robustness radii must be positive and ascending, got {radii!r}")
     if inf.start_area is None:
         raise InferenceError("a heatmap needs <start-area> in <inference>: the cells cover its x-y extent")
-    return _Run(scene=scene, nx=nx, ny=ny, samples=samples, sigma=sigma, iterations=iterations,
+    return _HeatmapRun(scene=scene, nx=nx, ny=ny, samples=samples, sigma=sigma, iterations=iterations,
                 optimizer=optimizer, seed=seed, batch_size=batch_size, workers=workers, radii=radii,
                 directions=directions, chunks=split_cells(nx * ny, samples, batch_size, workers))
 
 
-def _with_problem(run: _Run, problem, options, gradient: str | None, lr: float | None) -> _Run:
+def _with_problem(run: _HeatmapRun, problem, options, gradient: str | None, lr: float | None) -> _HeatmapRun:
     """``run`` with its problem (``problem`` reused, or built from ``BackendOptions`` ``options``),
     gradient mode and learning rate, checked."""
     from dejaview.backends import as_problem
@@ -294,7 +294,7 @@ def _with_problem(run: _Run, problem, options, gradient: str | None, lr: float |
     return replace(run, problem=problem, gradient=gradient, lr=lr)
 
 
-def _first_guesses(run: _Run, gen: torch.Generator) -> list[tuple[torch.Tensor, object, torch.Tensor]]:
+def _first_guesses(run: _HeatmapRun, gen: torch.Generator) -> list[tuple[torch.Tensor, object, torch.Tensor]]:
     """Per chunk: (cell of each candidate (K,), the chunk's layout (per-candidate cell boxes),
     first guesses x0 (K, P)). Sample 0 of a cell starts at its centre with the scene's own guess
     of orientation and velocities, the others at random."""
@@ -317,7 +317,7 @@ def _first_guesses(run: _Run, gen: torch.Generator) -> list[tuple[torch.Tensor, 
     return guesses
 
 
-def _optimise_chunks(run: _Run, guesses: list, options, callback, should_stop,
+def _optimise_chunks(run: _HeatmapRun, guesses: list, options, callback, should_stop,
                      t_start: float) -> tuple[list, list, dict]:
     """Optimise every chunk (in this process, in ``run.workers`` processes or on Ray, which build
     their problem from ``options``, ``BackendOptions``), reporting progress.
@@ -361,7 +361,7 @@ def _optimise_chunks(run: _Run, guesses: list, options, callback, should_stop,
     return results, history, state
 
 
-def _candidates(run: _Run, guesses: list, results: list) -> _Candidates:
+def _candidates(run: _HeatmapRun, guesses: list, results: list) -> _Candidates:
     """All chunks' outcomes as one batch, their start states decoded; raises ``InferenceError``
     when no loss is finite."""
     outcomes = [(g[0], r[0], r[1], g[1].lo, g[1].hi) for g, r in zip(guesses, results)]
@@ -378,7 +378,7 @@ def _candidates(run: _Run, guesses: list, results: list) -> _Candidates:
     return _Candidates(cell=cell, x=xs, loss=loss, lo=lo_all, hi=hi_all, start=start)
 
 
-def _robustness_ticks(run: _Run, callback, best_loss: float, iteration: int, t_start: float):
+def _robustness_ticks(run: _HeatmapRun, callback, best_loss: float, iteration: int, t_start: float):
     """A function reporting one robustness batch to ``callback`` (iterations counted on from
     ``iteration``), or None without a callback."""
     if callback is None:
@@ -396,7 +396,7 @@ def _robustness_ticks(run: _Run, callback, best_loss: float, iteration: int, t_s
     return tick
 
 
-def _robustness(run: _Run, cand: _Candidates, keep: torch.Tensor, gen: torch.Generator, should_stop,
+def _robustness(run: _HeatmapRun, cand: _Candidates, keep: torch.Tensor, gen: torch.Generator, should_stop,
                 tick) -> torch.Tensor:
     """Robustness levels (len(keep),) long of the kept solutions: perturbed rollouts of those the
     Gaussian does not already rule out (loss <= 3 sigma; level 0 for the others). ``tick``: called
@@ -437,7 +437,7 @@ def _robustness(run: _Run, cand: _Candidates, keep: torch.Tensor, gen: torch.Gen
     return level
 
 
-def _weigh(run: _Run, cand: _Candidates, keep: torch.Tensor, level: torch.Tensor) -> tuple[torch.Tensor, list]:
+def _weigh(run: _HeatmapRun, cand: _Candidates, keep: torch.Tensor, level: torch.Tensor) -> tuple[torch.Tensor, list]:
     """(cell probabilities (C,), one dict per kept solution) from the kept solutions' losses and
     robustness levels (``dejaview.heatmap.weighting``)."""
     from dejaview.heatmap.weighting import cell_probability, log_weights
@@ -455,7 +455,7 @@ def _weigh(run: _Run, cand: _Candidates, keep: torch.Tensor, level: torch.Tensor
     return p, solutions
 
 
-def _best_solution(run: _Run, cand: _Candidates, history: list, settings: dict):
+def _best_solution(run: _HeatmapRun, cand: _Candidates, history: list, settings: dict):
     """The best candidate overall, re-simulated, as a ``SolveResult``."""
     from dejaview.inference.optimize import OptimizationResult
     from dejaview.inference.result import SolveResult
@@ -474,7 +474,7 @@ def _best_solution(run: _Run, cand: _Candidates, history: list, settings: dict):
 def optimise_chunk(problem, x0: torch.Tensor, ci: int, opts: dict, callback, should_stop):
     """One chunk's batched optimisation: (candidate_x (K, P), candidate_loss (K,), stopped)."""
     from dejaview.inference.optimize import optimize
-    from dejaview.inference.problem import objective_to_loss
+    from dejaview.backends.base import objective_to_loss
 
     opt = optimize(problem.objective_and_grad, x0, optimizer=opts["optimizer"], iterations=opts["iterations"],
                    gradient=opts["gradient"], lr=opts["lr"], epsilon=0.0, callback=callback,

@@ -11,13 +11,12 @@ from dejaview.inference.local import LocalParams, fit_locally
 from dejaview.inference.optimize import OPTIMIZERS, OptimizationResult, Progress, make_optimizer, optimize
 from dejaview.inference.params import SamplerParams, SearchParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
-from dejaview.inference.problem import InferenceProblem
 from dejaview.inference.result import SolveResult
 from dejaview.inference.sampling import PosteriorSamples, Sampler
 from dejaview.inference.search import MapSearch, SearchResult
 from dejaview.inference.solve import SolveParams, solve
 
-__all__ = ["OPTIMIZERS", "InferenceProblem", "LocalParams", "MapSearch", "OptimizationResult", "ParameterLayout",
+__all__ = ["OPTIMIZERS", "LocalParams", "MapSearch", "OptimizationResult", "ParameterLayout",
            "Posterior", "PosteriorSamples", "PosteriorSettings", "Progress", "SamplerParams", "Sampler",
            "SearchParams", "SearchResult", "SolveParams", "SolveResult", "fit_locally", "layout_from_scene", "make_optimizer",
            "optimize", "solve"]

@@ -147,7 +147,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
              report: Callable[[float], float] | None = None) -> OptimizationResult:
     """Minimise a batched loss.
 
-    Each iteration is a fixed sequence of named steps of ``_Run``: the optimiser step, the
+    Each iteration is a fixed sequence of named steps of ``_LocalRun``: the optimiser step, the
     reset of failed line searches, the replacement of non-finite points, the stall
     bookkeeping, the epsilon-greedy restarts and the progress report.
 
@@ -170,7 +170,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         OptimizationResult with the best parameters over the whole run.
     """
     _check_settings(optimizer, gradient, iterations, epsilon, sample)
-    run = _Run(value_and_grad, x0, optimizer=optimizer, gradient=gradient, lr=lr, patience=patience,
+    run = _LocalRun(value_and_grad, x0, optimizer=optimizer, gradient=gradient, lr=lr, patience=patience,
                sample=sample, seed=seed, report=report)
     stopped = False
     for it in range(int(iterations)):
@@ -206,7 +206,7 @@ def _check_settings(optimizer: str, gradient: str, iterations: int, epsilon: flo
         raise InferenceError("restarts (epsilon > 0) need a way to sample fresh guesses")
 
 
-class _Run:
+class _LocalRun:
     """The state of one ``optimize`` run and the steps of its iterations.
 
     Attributes:

@@ -143,10 +143,10 @@ class PosteriorSettings:
 
 
 class Posterior:
-    """Negative log posterior of an ``InferenceProblem``'s parameters, as least-squares residuals.
+    """Negative log posterior of an ``SpheresProblem``'s parameters, as least-squares residuals.
 
     Args:
-        problem: the spheres backend's ``InferenceProblem`` (rollouts, layout, target, penalties).
+        problem: the spheres backend's ``SpheresProblem`` (rollouts, layout, target, penalties).
         settings: ``PosteriorSettings``.
         feasible: optional ``(position (B, 3), orientation (B, 4)) -> (B,) bool``: is the source's
             start, object-frame origin and orientation, free of interpenetration?
@@ -288,7 +288,7 @@ class Posterior:
         Returns:
             residuals (B, M_obs), the sightings' in file order (``columns`` each), and the scene's
             per-record loss (B,) in metres at the compared records (the sightings' in quadrature;
-            ``InferenceProblem.loss_of_trajectory`` without penalties and rest).
+            ``SpheresProblem.loss_of_trajectory`` without penalties and rest).
         """
         parts, losses = [], []
         for sighting, goal in zip(self.sightings, self._goals):

@@ -22,7 +22,7 @@ class SolveResult:
     Attributes:
         scene: the scene solved.
         problem: the backend's problem (``dejaview.backends``; ``SpheresProblem`` wraps an
-            ``InferenceProblem``).
+            ``SpheresProblem``).
         optimization: the raw OptimizationResult.
         initial_state: dict of the best initial state (object-frame position, orientation,
             linear_velocity, angular_velocity) as lists.

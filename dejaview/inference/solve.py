@@ -210,7 +210,7 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
 
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
-    from dejaview.inference.problem import check_inference
+    from dejaview.backends.base import check_inference
     from dejaview.inference.sizing import check_solve_memory
     from dejaview.inference.start_area import check_start_area
 

@@ -15,7 +15,7 @@ from dejaview.scene.model import (
     Optimize,
     Penalty,
     Pose,
-    PosteriorSamples,
+    PosteriorRequest,
     Prior,
     Scene,
     SceneObject,
@@ -28,6 +28,6 @@ from dejaview.scene.model import (
 __all__ = [
     "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
     "Exploration", "HeatmapSettings", "InferenceSettings", "ModelUncertainty", "Observation", "Optimize", "Penalty",
-    "Pose", "PosteriorSamples", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
+    "Pose", "PosteriorRequest", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
     "Target", "Velocity",
 ]

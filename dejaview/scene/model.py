@@ -232,7 +232,7 @@ class ModelUncertainty:
 
 
 @dataclass(frozen=True)
-class PosteriorSamples:
+class PosteriorRequest:
     """``<posterior samples>``: how many samples of the posterior a solve draws (0: the most probable
     start alone)."""
 
@@ -260,7 +260,7 @@ class InferenceSettings:
     prior: Prior | None = None
     observation: Observation | None = None
     model_uncertainty: ModelUncertainty | None = None
-    posterior: PosteriorSamples | None = None
+    posterior: PosteriorRequest | None = None
 
     @property
     def target(self) -> Target:

@@ -33,7 +33,7 @@ from dejaview.scene.model import (
     InferenceSettings,
     ModelUncertainty,
     Observation,
-    PosteriorSamples,
+    PosteriorRequest,
     Optimize,
     Penalty,
     Pose,
@@ -427,8 +427,8 @@ class _SceneReader:
         if "posterior" in groups:
             po = groups["posterior"][0]
             self.lines[("posterior",)] = po.sourceline
-            posterior = PosteriorSamples(
-                samples=self.int_attr(po, "samples", _default(PosteriorSamples, "samples")))
+            posterior = PosteriorRequest(
+                samples=self.int_attr(po, "samples", _default(PosteriorRequest, "samples")))
         return InferenceSettings(
             source=el.get("source"),
             targets=tuple(targets),

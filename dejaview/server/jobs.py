@@ -83,7 +83,7 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
         spec: ``{"kind", "text", "base_dir", "root", "filename", "overrides"}`` (``root``: the scene
             root, inside which robots' ``package://`` URIs resolve).
         out_dir: the job's folder (exists).
-        emit: called with a progress dict (fields of ``messages.Progress``), throttled here.
+        emit: called with a progress dict (fields of ``messages.ProgressData``), throttled here.
         stop: polled every iteration / step.
         progress_interval: seconds between progress reports.
         memory_limit: bytes the job may hold (None: ``dejaview.memory.limit()``); a job sized over

@@ -193,7 +193,7 @@ class AcceptedMessage(_JobMessage):
     queue_position: int | None = Field(None, description="1 = next to run; None once running")
 
 
-class Progress(BaseModel):
+class ProgressData(BaseModel):
     """Where a running job is. ``iteration`` counts optimiser iterations (solve, heatmap) or
     steps (simulate); ``total`` is their number; losses are absent for simulate jobs. ``phase``
     says which stage of a solve or heatmap runs (``search``, ``refine``, ``sample``; the basins
@@ -213,7 +213,7 @@ class Progress(BaseModel):
     fraction: float | None = None
 
 
-class ProgressMessage(_JobMessage, Progress):
+class ProgressMessage(_JobMessage, ProgressData):
     type: Literal["progress"] = "progress"
 
 
@@ -289,7 +289,7 @@ class JobStatus(BaseModel):
     started_at: float | None = None
     finished_at: float | None = None
     queue_position: int | None = None
-    progress: Progress | None = None
+    progress: ProgressData | None = None
     summary: dict | None = Field(None, description="result summary once done")
     error: ErrorInfo | None = None
     scene: dict = Field(default_factory=dict, description="where the scene came from")

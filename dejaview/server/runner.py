@@ -53,7 +53,7 @@ from dejaview.server.messages import (
     ErrorMessage,
     HeatmapMessage,
     JobStatus,
-    Progress,
+    ProgressData,
     ProgressMessage,
     ResultMessage,
     TrajectoryMessage,
@@ -397,7 +397,7 @@ class JobRunner:
         if self.closing and (kind == "crashed" or (kind == "cancelled" and not job.cancel_requested)):
             return  # stopped by the server's own shutdown: the record stays, the next server runs it
         if kind == "progress":
-            progress = Progress(**event[2])
+            progress = ProgressData(**event[2])
             job.status.progress = progress
             self._notify(job, ProgressMessage(job_id=job.id, **progress.model_dump()))
             return

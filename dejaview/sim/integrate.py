@@ -21,7 +21,7 @@ magnitude faster than eager (``docs/benchmarks.md``, "Simulator");
 ``engine="auto"`` picks it wherever it
 applies (float64 on the CPU). ``rollout`` itself defaults to this module
 (``engine="torch"``), the reference the native code is tested against;
-``InferenceProblem``, ``simulate`` and the CLI default to ``auto``.
+``SpheresProblem``, ``simulate`` and the CLI default to ``auto``.
 
 ``rollout(..., compile=True)`` runs chunks of steps through ``torch.compile``
 (one graph per World, chunk length, batch shape and grad mode, kept for the

@@ -11,7 +11,8 @@ import torch
 from dejaview.backends import BACKENDS, WARP_MISSING, Backend, Problem, as_problem, get_backend, make_problem
 from dejaview.cli import main
 from dejaview.errors import InferenceError
-from dejaview.inference import InferenceProblem, solve
+from dejaview.backends.spheres import SpheresProblem
+from dejaview.inference import solve
 from dejaview.inference.solve import SolveParams
 from dejaview.sim.trajectory_csv import read_trajectory_csv
 from dejaview.scene import Scene
@@ -36,8 +37,8 @@ def test_spheres_problem_has_the_interface():
     assert len(pos) == 3 and len(q) == 4
     csv = problem.trajectory_csv(traj)
     assert csv.splitlines()[0] == "step,time,object,x,y,z,qw,qx,qy,qz"
-    # one class: the spheres backend's problem is dejaview.inference's InferenceProblem, no wrapper
-    assert isinstance(problem, InferenceProblem) and as_problem(problem) is problem
+    # one class: the spheres backend's problem is dejaview.inference's SpheresProblem, no wrapper
+    assert isinstance(problem, SpheresProblem) and as_problem(problem) is problem
     with pytest.raises(InferenceError, match="not a backend problem"):
         as_problem(object())
 
@@ -87,8 +88,8 @@ def test_solve_reports_the_backend(tmp_path):
     result.write(tmp_path)
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["backend"] == "spheres" and data["simulation"]["steps"] == 50
-    # a bare InferenceProblem is still accepted
-    bare = InferenceProblem.from_scene(Scene.from_xml(BALL))
+    # a bare SpheresProblem is still accepted
+    bare = SpheresProblem.from_scene(Scene.from_xml(BALL))
     assert solve(BALL, SolveParams(iterations=1), problem=bare).settings["backend"] == "spheres"
     assert bare.evaluations >= 1
 

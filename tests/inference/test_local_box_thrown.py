@@ -25,7 +25,7 @@ import pytest
 import torch
 
 import dejaview
-from dejaview.inference.problem import InferenceProblem
+from dejaview.backends.spheres import SpheresProblem
 from dejaview.scene import Scene
 from dejaview.sim.rotation import quat_rotate
 
@@ -67,7 +67,7 @@ def _end_pose(problem, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def test_lbfgs_with_restarts_solves_an_own_engine_box_thrown_onto_the_floor():
     """The answer, re-simulated, ends within 1 cm and 5 degrees of the observed end."""
-    truth = InferenceProblem.from_scene(_scene(TRUTH))
+    truth = SpheresProblem.from_scene(_scene(TRUTH))
     origin, q = _end_pose(truth, truth.layout.encode().to(truth.dtype))
     scene = _scene(GUESS, (origin.tolist(), q.tolist()))
     result = dejaview.solve(scene)

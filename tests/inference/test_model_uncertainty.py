@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.inference import InferenceProblem
+from dejaview.backends.spheres import SpheresProblem
 from dejaview.inference.model_uncertainty import (HELDOUT_SEED, HELDOUT_VARIANTS, ModelVariants, design,
                                                   rank_on_heldout, vary_world)
 from dejaview.inference.params import SearchParams
@@ -32,7 +32,7 @@ def test_the_default_design_has_each_factors_mean_and_variance_and_balanced_pair
 
 def test_a_variant_world_scales_friction_restitution_and_stiffness():
     scene = shelf()
-    world = InferenceProblem.from_scene(scene).world
+    world = SpheresProblem.from_scene(scene).world
     v = vary_world(world, 1.2, 2.0, 1.44)
     assert torch.allclose(v.mu_static, 1.2 * world.mu_static)
     assert v.contact.frequency == pytest.approx(1.2 * world.contact.frequency)
@@ -46,14 +46,14 @@ def _shelf_observing_its_truth():
     """(problem, settings, x): the shelf at 0.3 s observing the truth's own end, and the truth's
     parameters x (1, P)."""
     scene = shelf(duration=0.3, evaluate="final")
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     x = truth_x(problem)
     with torch.no_grad():  # observed: the truth's end at 0.3 s
         pos, q = problem.final_pose(problem.simulate(x))
     inf = scene.inference
     seen = replace(inf.target, position=tuple(pos), orientation=tuple(q), moving=True)  # still sliding
     scene = replace(scene, inference=replace(inf, targets=(seen,)))
-    return InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene), x
+    return SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene), x
 
 
 def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more():
@@ -154,7 +154,7 @@ def test_where_no_refined_mode_explains_the_end_the_searchs_other_modes_are_refi
 
 def test_the_jacobian_with_model_uncertainty_matches_finite_differences():
     scene = shelf(duration=0.3, prior=Prior(speed=2.0))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
     post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
     r, _ = assert_jacobian_matches_finite_differences(post, truth_x(problem) + 0.05)
@@ -172,7 +172,7 @@ def test_the_jacobian_with_model_uncertainty_uses_the_carried_jacobians_and_equa
     if not native.available():
         pytest.skip("the native extension does not build here")
     scene = shelf(duration=0.3, prior=Prior(speed=2.0))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
     post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
     x = truth_x(problem) + 0.05
@@ -194,14 +194,14 @@ def test_the_jacobian_with_model_uncertainty_uses_the_carried_jacobians_and_equa
     assert single.num_observed == 18 and paths[-1] == "phi"  # the pose and its rest: 18 rows >= 13
     moving = replace(scene.inference.target, moving=True)
     scene = replace(scene, inference=replace(scene.inference, evaluate="final", targets=(moving,)))
-    single = Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    single = Posterior(SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
     single.jacobian(x)
     assert single.num_observed == 6 and paths[-1] == "adjoint"  # 6 rows: one adjoint pass each
 
 
 def test_the_scene_element_builds_the_variants_and_bad_values_are_one_line_errors():
     scene = shelf(model_uncertainty=ModelUncertainty(friction=0.1, restitution=0.3))
-    world = InferenceProblem.from_scene(scene).world
+    world = SpheresProblem.from_scene(scene).world
     model = ModelVariants.from_scene(scene, world)
     assert model.count == 4 and (model.friction, model.restitution) == (0.1, 0.3)
     js = model.to_json()

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.inference import InferenceProblem
+from dejaview.backends.spheres import SpheresProblem
 from dejaview.inference.posterior import (DEFAULT_ANGLE_SIGMA, DEFAULT_SIGMA, Posterior, PosteriorSettings,
                                           feasibility_check)
 from dejaview.scene import Observation, Prior, Scene
@@ -58,7 +58,7 @@ def test_bad_values_are_one_line_errors(settings, name):
 
 def test_the_true_start_explains_its_own_end_and_an_other_does_not():
     scene = shelf(duration=1.0)
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     x = torch.cat([truth_x(problem), problem.layout.encode().double()])
     cost, chi2, loss = post.cost(x)
@@ -79,7 +79,7 @@ def test_the_reported_loss_is_the_scenes_loss_at_one_of_the_candidates_records(e
     scene = shelf(duration=0.5, evaluate=evaluate)
     moving = replace(scene.inference.target, moving=True)  # seen in motion: evaluate decides
     scene = replace(scene, inference=replace(scene.inference, targets=(moving,)))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     x = torch.cat([truth_x(problem), problem.layout.encode().double(),
                    problem.layout.sample(3, torch.Generator().manual_seed(1)).double()])
@@ -106,7 +106,7 @@ def test_evaluate_best_compares_the_record_with_the_least_chi_square(name, veloc
     if velocity:
         target = replace(target, linear_velocity=(0.1, 0.0, 0.0))
     scene = replace(scene, inference=replace(scene.inference, targets=(target,)))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     x = torch.cat([truth_x(problem, name), problem.layout.sample(5, torch.Generator().manual_seed(2)).double()])
     traj = problem.simulate(x, record_every=5)
@@ -121,7 +121,7 @@ def test_evaluate_best_compares_the_record_with_the_least_chi_square(name, veloc
 
 def test_prior_residuals_are_velocities_over_their_deviations_and_flat_inside_the_bounds():
     scene = Scene.from_xml(SCENES / "mug_off_counter.xml")
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     lay = problem.layout
     x = lay.encode(linear_velocity=[2.0, 0.0, 0.0], angular_velocity=[0.0, 0.0, 6.0]).double()
     x[0, lay.block_slice("orientation")] = torch.tensor([0.0, 0.0, 0.4]) / lay.scale["orientation"]
@@ -136,7 +136,7 @@ def test_prior_residuals_are_velocities_over_their_deviations_and_flat_inside_th
 
 def test_prior_draws_follow_the_prior():
     scene = Scene.from_xml(SCENES / "mug_off_counter.xml")
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings(speed=0.5, spin=2.0))
     x = post.sample(4000, torch.Generator().manual_seed(0))
     d = problem.layout.decode(x)
@@ -148,7 +148,7 @@ def test_prior_draws_follow_the_prior():
 
 def test_the_residual_jacobian_matches_finite_differences():
     scene = shelf(duration=0.3, prior=Prior(speed=2.0))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     assert_jacobian_matches_finite_differences(post, truth_x(problem) + 0.05)
 
@@ -169,7 +169,7 @@ def assert_jacobian_matches_finite_differences(post, x, h=1e-6):
 
 def test_a_start_inside_the_counter_is_rejected_by_fcl_without_simulating_it():
     scene = Scene.from_xml(SCENES / "mug_off_counter.xml")
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     check = feasibility_check(scene, problem)
     post = Posterior(problem, PosteriorSettings.from_scene(scene), feasible=check)
     on_top = problem.layout.encode(position=[0.0, 0.0, 0.95]).double()

@@ -1,6 +1,6 @@
-"""InferenceProblem: parameters -> the whole initial state, in scenes with several bodies.
+"""SpheresProblem: parameters -> the whole initial state, in scenes with several bodies.
 
-Regression: ``InferenceProblem.initial_state`` used to build the source's state
+Regression: ``SpheresProblem.initial_state`` used to build the source's state
 with ``World.state``, which wants every movable body, so any scene with more
 than one movable object (``box_among_boxes``, the billiards fixture) failed
 with "expected N bodies in the state" before its first rollout.
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dejaview.inference import InferenceProblem
+from dejaview.backends.spheres import SpheresProblem
 from dejaview.losses.targets import REST_PARTS, REST_WINDOW
 from dejaview.scene import Scene
 
@@ -22,7 +22,7 @@ MUG = ROOT / "examples" / "scenes" / "mug_off_counter.xml"
 
 
 def test_only_the_source_moves_with_the_parameters_in_a_scene_of_two_bodies():
-    problem = InferenceProblem.from_scene(Scene.from_xml(BILLIARDS))
+    problem = SpheresProblem.from_scene(Scene.from_xml(BILLIARDS))
     assert problem.world.num_bodies == 2 and problem.world.names[problem.source] == "cue"
     x = torch.tensor([[-1.0], [0.0], [2.0]], dtype=torch.float64)  # three candidates of y
     state = problem.initial_state(x)
@@ -42,7 +42,7 @@ def test_the_source_state_is_its_centre_of_mass_as_world_state_gives_it():
     """Scene poses are object-frame origins; the state holds centres of mass. For the mug
     (centre of mass 1.3 cm off its origin) the problem's state must equal ``World.state``
     of the decoded pose, for turned candidates too."""
-    problem = InferenceProblem.from_scene(Scene.from_xml(MUG))
+    problem = SpheresProblem.from_scene(Scene.from_xml(MUG))
     assert problem.world.com[problem.source].norm() > 0.01
     gen = torch.Generator().manual_seed(0)
     x = problem.layout.sample(4, gen)
@@ -75,7 +75,7 @@ def test_a_final_pose_loss_records_only_what_it_reads_and_equals_the_every_step_
 
     scene = Scene.from_xml(BOX_RAMP)
     target = replace(scene.inference.target, moving=True if moving else None)
-    problem = InferenceProblem.from_scene(replace(scene, inference=replace(scene.inference, targets=(target,))))
+    problem = SpheresProblem.from_scene(replace(scene, inference=replace(scene.inference, targets=(target,))))
     assert problem.evaluate == "final" and not problem.penalties
     window = int(round(REST_WINDOW / REST_PARTS / problem.world.dt))
     assert problem.record_every == (problem.steps if moving else math.gcd(problem.steps, window))
@@ -95,11 +95,11 @@ def test_a_final_pose_loss_records_only_what_it_reads_and_equals_the_every_step_
 def test_losses_that_read_more_than_the_end_record_every_step():
     scene = Scene.from_xml(BOX_RAMP)
     moving = replace_target(scene, moving=True)
-    best = InferenceProblem.from_scene(_with_inference(BOX_RAMP, evaluate="best", targets=moving))
+    best = SpheresProblem.from_scene(_with_inference(BOX_RAMP, evaluate="best", targets=moving))
     assert best.record_every == 1
     from dejaview.scene.model import Penalty
 
-    penalised = InferenceProblem.from_scene(_with_inference(
+    penalised = SpheresProblem.from_scene(_with_inference(
         BOX_RAMP, penalties=(Penalty(between=("box", "ramp"), weight=1.0),)))
     assert penalised.record_every == 1
 
@@ -116,7 +116,7 @@ def test_decoding_every_position_axis_equals_decoding_them_one_by_one():
     frees the same three axes one column at a time gives the same numbers)."""
     from dataclasses import replace
 
-    problem = InferenceProblem.from_scene(Scene.from_xml(BOXES))
+    problem = SpheresProblem.from_scene(Scene.from_xml(BOXES))
     layout = problem.layout
     assert layout.position_axes == (0, 1, 2) and layout.lo is not None
     x = layout.sample(5, torch.Generator().manual_seed(2))

@@ -36,7 +36,7 @@ from dejaview.inference.params import SamplerParams
 from dejaview.inference.sampling import Sampler
 from dejaview.inference.sampling import PosteriorSamples as Samples
 from dejaview.inference.search import Mode
-from dejaview.scene import Optimize, PosteriorSamples, Scene
+from dejaview.scene import Optimize, PosteriorRequest, Scene
 
 SCENES = Path(__file__).resolve().parents[2] / "examples" / "scenes"
 
@@ -210,7 +210,7 @@ def test_flat_orientation_has_the_haar_density_up_to_pi():
 
 def ramp_scene(samples: int | None = None) -> Scene:
     scene = Scene.from_xml(SCENES / "ball_down_ramp.xml")
-    post = None if samples is None else PosteriorSamples(samples=samples)
+    post = None if samples is None else PosteriorRequest(samples=samples)
     return replace(scene, inference=replace(scene.inference, posterior=post))
 
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.inference import InferenceProblem, solve
+from dejaview.backends.spheres import SpheresProblem
+from dejaview.inference import solve
 from dejaview.inference.solve import SolveParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.inference.params import SearchParams
@@ -26,7 +27,7 @@ def scene():
 
 
 def posterior(scene):
-    return Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    return Posterior(SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
 
 
 def test_the_search_explains_the_end_and_reports_its_modes(scene):

@@ -10,7 +10,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from dejaview.inference import InferenceProblem, solve
+from dejaview.backends.spheres import SpheresProblem
+from dejaview.inference import solve
 from dejaview.inference.solve import SolveParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.inference.search import stages
@@ -44,13 +45,13 @@ def end_of(problem, x) -> float:
 
 @pytest.mark.parametrize("evaluate", ["best", "final"])
 def test_a_flyby_is_not_an_answer_to_a_source_seen_at_rest_but_is_to_one_seen_moving(evaluate):
-    problem = InferenceProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>', evaluate=evaluate))
+    problem = SpheresProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>', evaluate=evaluate))
     rest_x = end_of(problem, start(problem, 1.5))  # where the slow start stops
     fast = start(problem, 2.5)  # slides through rest_x at 0.1 s and on to 0.64 m
     target = f'<target position="{rest_x} 0 0.05" orientation="1 0 0 0"'
     for moving, explained in (("", False), (' moving="true"', evaluate == "best")):
         scene = slide_scene(target + moving + "/>", evaluate=evaluate)
-        problem = InferenceProblem.from_scene(scene)
+        problem = SpheresProblem.from_scene(scene)
         post = Posterior(problem, PosteriorSettings.from_scene(scene))
         x = torch.cat([start(problem, 1.5), fast])
         _, chi2, _ = post.cost(x)
@@ -59,7 +60,7 @@ def test_a_flyby_is_not_an_answer_to_a_source_seen_at_rest_but_is_to_one_seen_mo
 
 
 def test_the_solve_of_a_source_seen_at_rest_ends_there_at_rest():
-    problem = InferenceProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>'))
+    problem = SpheresProblem.from_scene(slide_scene('<target position="0.2 0 0.05"/>'))
     rest_x = end_of(problem, start(problem, 1.5))
     scene = slide_scene(f'<target position="{rest_x} 0.02 0.05" orientation="1 0 0 0"/>')
     result = solve(scene, SolveParams(seed=0))
@@ -99,7 +100,7 @@ def tracked_truth():
     """A ball tossed from (0.05, -0.03, 0.5) at (1.2, 0.4, 1.0) m/s, seen by position at 0.1 s,
     0.2 s and 0.3 s (in flight): its scene and true parameters."""
     scene = Scene.from_string(TRACKED.format(targets='<target position="0 0 0" time="0.3"/>'))
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     truth = problem.layout.encode(position=(0.05, -0.03, 0.5), linear_velocity=(1.2, 0.4, 1.0)).double()
     with torch.no_grad():
         traj = problem.simulate(truth, steps=150, record_every=50)
@@ -111,7 +112,7 @@ def tracked_truth():
 
 def test_timed_position_only_targets_each_read_their_moment():
     scene, truth = tracked_truth()
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     assert post.num_observed == 9 and problem.steps == 150 and problem.record_every == 50
     r, loss = post.observation_residuals(problem.simulate(truth))
@@ -119,14 +120,14 @@ def test_timed_position_only_targets_each_read_their_moment():
     moved = replace(scene.inference.targets[1], position=(0.0, 0.0, 0.0))
     other = replace(scene, inference=replace(scene.inference, targets=(scene.inference.targets[0], moved,
                                                                       scene.inference.targets[2])))
-    r2, _ = Posterior(InferenceProblem.from_scene(other), post.settings).observation_residuals(problem.simulate(truth))
+    r2, _ = Posterior(SpheresProblem.from_scene(other), post.settings).observation_residuals(problem.simulate(truth))
     assert r2[0, :3].abs().max() < 1e-3 and r2[0, 3:6].abs().max() > 10  # the second moment's misfit alone
     assert r2[0, 6:].abs().max() < 1e-3
 
 
 def test_a_tracked_source_is_searched_stage_by_stage_and_found():
     scene, truth = tracked_truth()
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     post = Posterior(problem, PosteriorSettings.from_scene(scene))
     assert [len(prefix) for prefix in stages(post)] == [1, 2]
     result = solve(scene, SolveParams(seed=0))

@@ -17,7 +17,8 @@ import pytest
 
 from dejaview.cli import main
 from dejaview.errors import InferenceError, SceneError
-from dejaview.inference import InferenceProblem, solve
+from dejaview.backends.spheres import SpheresProblem
+from dejaview.inference import solve
 from dejaview.inference.solve import SolveParams
 from dejaview.scene import Scene, SceneObject
 
@@ -119,7 +120,7 @@ def test_no_free_parameter():
     axis: nothing is left to optimise, which the problem (and so solve) refuses."""
     scene = pinned_scene()
     with pytest.raises(InferenceError) as err:
-        InferenceProblem.from_scene(scene)
+        SpheresProblem.from_scene(scene)
     assert_one_line(err.value, "no free parameter")
     with pytest.raises(InferenceError) as err:
         solve(scene, SolveParams(iterations=1))
@@ -129,7 +130,7 @@ def test_no_free_parameter():
 def test_scene_without_inference_cannot_be_solved():
     scene = Scene.from_string(without_inference())
     assert scene.inference is None
-    for attempt in (lambda: solve(scene), lambda: InferenceProblem.from_scene(scene)):
+    for attempt in (lambda: solve(scene), lambda: SpheresProblem.from_scene(scene)):
         with pytest.raises(InferenceError) as err:
             attempt()
         assert_one_line(err.value, "<inference>")
@@ -155,7 +156,7 @@ def test_fixed_source_built_in_code_is_an_inference_error(with_other_movable):
     not that the world has nothing to simulate)."""
     scene = fixed_source_scene(with_other_movable)
     with pytest.raises(InferenceError) as err:
-        InferenceProblem.from_scene(scene)
+        SpheresProblem.from_scene(scene)
     assert_one_line(err.value, "'ball'")
     with pytest.raises(InferenceError):
         solve(scene, SolveParams(iterations=1))
@@ -165,7 +166,7 @@ def test_unknown_source_built_in_code_is_an_inference_error():
     scene = Scene.from_xml(BALL)
     scene = replace(scene, inference=replace(scene.inference, source="ghost"))
     with pytest.raises(InferenceError) as err:
-        InferenceProblem.from_scene(scene)
+        SpheresProblem.from_scene(scene)
     assert_one_line(err.value, "'ghost'")
 
 

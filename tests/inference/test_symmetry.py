@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dejaview.inference.posterior import Posterior, PosteriorSettings
-from dejaview.inference.problem import InferenceProblem
+from dejaview.backends.spheres import SpheresProblem
 from dejaview.inference.reference import log_density, log_prior_density, prior_draws
 from dejaview.inference.symmetry import FloorSymmetry, compared_records, orbit_walk
 from dejaview.scene import (InferenceSettings, Observation, Optimize, Pose, Prior, Scene, SceneObject,
@@ -35,7 +35,7 @@ def thrown_box(duration=0.6, statics=None, loss="pose", optimize=None, speed=1.0
 
 
 def posterior_of(scene):
-    return Posterior(InferenceProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    return Posterior(SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
 
 
 def test_the_rollout_of_a_moved_start_is_the_moved_rollout():
@@ -69,7 +69,7 @@ def test_every_physics_variant_of_model_uncertainty_moves_alike():
     from dejaview.inference.model_uncertainty import ModelVariants
 
     scene = thrown_box()
-    problem = InferenceProblem.from_scene(scene)
+    problem = SpheresProblem.from_scene(scene)
     model = ModelVariants.from_world(problem.world, friction=0.2, restitution=0.2)
     post = Posterior(problem, PosteriorSettings.from_scene(scene), model=model)
     sym = FloorSymmetry.of(post)

@@ -18,7 +18,7 @@ from dejaview.scene import (
     Optimize,
     Penalty,
     Pose,
-    PosteriorSamples,
+    PosteriorRequest,
     Prior,
     Scene,
     SceneObject,
@@ -129,7 +129,7 @@ def programmatic_scene() -> Scene:
             heatmap=HeatmapSettings(cells=(1, 7), samples=1, sigma=1e-3),
             prior=Prior(speed=1.5, tilt=0.25), observation=Observation(sigma=0.004),
             model_uncertainty=ModelUncertainty(friction=0.1, restitution=0.0),
-            posterior=PosteriorSamples(samples=500),
+            posterior=PosteriorRequest(samples=500),
         ),
     )
 

@@ -307,11 +307,11 @@ def test_native_forward_mode_equals_reverse_mode():
 
 
 def test_inference_problem_gradients_agree_across_engines():
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
 
     scene = Scene.from_xml("examples/scenes/mug_thrown.xml")
-    torch_problem = replace(InferenceProblem.from_scene(scene, engine="torch"), steps=260)
+    torch_problem = replace(SpheresProblem.from_scene(scene, engine="torch"), steps=260)
     native_problem = replace(torch_problem, engine="native")
     x = torch_problem.layout.sample(2, torch.Generator().manual_seed(3))
     lt, gt = torch_problem.value_and_grad(x, "reverse")

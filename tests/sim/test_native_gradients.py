@@ -132,10 +132,10 @@ def test_adjoint_and_forward_mode_agree_with_finite_differences(monkeypatch):
 def test_adjoint_through_an_inference_problem_equals_the_jacobian_path(monkeypatch):
     from dataclasses import replace
 
-    from dejaview.inference import InferenceProblem
+    from dejaview.backends.spheres import SpheresProblem
     from dejaview.scene import Scene
 
-    problem = InferenceProblem.from_scene(Scene.from_xml("examples/scenes/box_among_boxes.xml"),
+    problem = SpheresProblem.from_scene(Scene.from_xml("examples/scenes/box_among_boxes.xml"),
                                           engine="native")
     problem = replace(problem, steps=200)
     x = problem.layout.encode().to(torch.float64)
