@@ -21,6 +21,7 @@ from pathlib import Path
 from dejaview.errors import SceneError
 from dejaview.geometry import MESH_SUFFIXES
 from dejaview.scene import bounds as B
+from dejaview.scene.inference_elements import INFERENCE_ELEMENTS
 from dejaview.scene.model import (
     EVALUATES,
     GRADIENTS,
@@ -435,11 +436,6 @@ class _Checker:
                 if bad:
                     self.report(akey, f"'min' is greater than 'max' along {', '.join(bad)}")
 
-        if inf.exploration is not None:
-            xkey = ("exploration",)
-            self.number(xkey, "epsilon", inf.exploration.epsilon, unit_interval=True)
-            self.integer(xkey, "patience", inf.exploration.patience, 1, B.MAX_ITERATIONS)
-
         for j, pen in enumerate(inf.penalties):
             pkey = ("penalty", j)
             if len(pen.between) != 2:
@@ -458,24 +454,24 @@ class _Checker:
                                       + ", ".join(repr(x) for x in missing))
                 elif a == b:
                     self.report(pkey, f"'between' names {a!r} twice; give two distinct objects")
-            self.number(pkey, "weight", pen.weight, nonnegative=True, limit=B.MAX_PENALTY_WEIGHT)
 
         if inf.heatmap is not None:
             self.heatmap(area)
-        if inf.prior is not None:
-            for name in ("speed", "spin", "tilt"):
-                self.number(("prior",), name, getattr(inf.prior, name), positive=True, optional=True)
-        if inf.observation is not None:
-            for attr, name in (("sigma", "sigma"), ("angle-sigma", "angle_sigma"), ("rest-speed", "rest_speed"),
-                               ("rest-spin", "rest_spin")):
-                self.number(("observation",), attr, getattr(inf.observation, name), positive=True,
-                            optional=True)
-        if inf.model_uncertainty is not None:
-            for name in ("friction", "restitution"):
-                self.number(("model-uncertainty",), name, getattr(inf.model_uncertainty, name),
-                            nonnegative=True, optional=True, limit=B.MAX_RELATIVE_UNCERTAINTY)
-        if inf.posterior is not None:
-            self.integer(("posterior",), "samples", inf.posterior.samples, 0, B.MAX_POSTERIOR_SAMPLES)
+        self.ranges(inf)
+
+    def ranges(self, inf) -> None:
+        """The plain numbers of ``<inference>``'s children, each held to its row's range in
+        ``INFERENCE_ELEMENTS`` (``check``: ``number``'s keywords, or an integer's (min, max))."""
+        for spec in INFERENCE_ELEMENTS:
+            value = getattr(inf, spec.field)
+            items = list(enumerate(value)) if spec.repeated else ([] if value is None else [(None, value)])
+            for j, item in items:
+                key = (spec.tag,) if j is None else (spec.tag, j)
+                for a in spec.attributes:
+                    if isinstance(a.check, tuple):
+                        self.integer(key, a.xml, getattr(item, a.field), *a.check)
+                    elif a.check is not None:
+                        self.number(key, a.xml, getattr(item, a.field), **a.check)
 
     def targets(self, inf) -> None:
         """Each ``<target>`` (key ``("target", j)``), and how several go together: every one of

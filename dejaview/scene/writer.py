@@ -6,6 +6,7 @@ from __future__ import annotations
 from lxml import etree
 
 from dejaview.errors import SceneError
+from dejaview.scene.inference_elements import INFERENCE_ELEMENTS
 from dejaview.scene.model import InferenceSettings, Optimize, Scene, SceneObject, Velocity
 
 
@@ -107,6 +108,12 @@ def _object_element(obj: SceneObject) -> etree._Element:
     return el
 
 
+_WRITE = {"vector": lambda v: _v(v), "quat": lambda v: _v(v), "float": lambda v: _f(v),
+          "int": lambda v: str(int(v)), "bool": lambda v: _b(v), "cells": lambda v: " ".join(str(int(c)) for c in v),
+          "ids": lambda v: " ".join(v)}
+"""How each kind of ``INFERENCE_ELEMENTS`` attribute is written."""
+
+
 def _inference_element(inf: InferenceSettings) -> etree._Element:
     el = etree.Element("inference")
     el.set("source", inf.source)
@@ -120,54 +127,14 @@ def _inference_element(inf: InferenceSettings) -> etree._Element:
     el.set("evaluate", inf.evaluate)
     el.set("seed", str(int(inf.seed)))
 
-    for t in inf.targets:
-        target = etree.SubElement(el, "target")
-        target.set("position", _v(t.position))
-        if t.orientation is not None:
-            target.set("orientation", _v(t.orientation))
-        if t.linear_velocity is not None:
-            target.set("linear-velocity", _v(t.linear_velocity))
-        if t.angular_velocity is not None:
-            target.set("angular-velocity", _v(t.angular_velocity))
-        if t.time is not None:
-            target.set("time", _f(t.time))
-        if t.moving is not None:
-            target.set("moving", _b(t.moving))
-
-    if inf.optimize != Optimize():
-        o = etree.SubElement(el, "optimize")
-        o.set("position", _b(inf.optimize.position))
-        o.set("orientation", _b(inf.optimize.orientation))
-        o.set("linear-velocity", _b(inf.optimize.linear_velocity))
-        o.set("angular-velocity", _b(inf.optimize.angular_velocity))
-    if inf.start_area is not None:
-        s = etree.SubElement(el, "start-area")
-        s.set("min", _v(inf.start_area.min))
-        s.set("max", _v(inf.start_area.max))
-    if inf.exploration is not None:
-        x = etree.SubElement(el, "exploration")
-        x.set("epsilon", _f(inf.exploration.epsilon))
-        x.set("patience", str(int(inf.exploration.patience)))
-    for pen in inf.penalties:
-        p = etree.SubElement(el, "penalty")
-        p.set("between", " ".join(pen.between))
-        p.set("weight", _f(pen.weight))
-    if inf.heatmap is not None:
-        h = etree.SubElement(el, "heatmap")
-        h.set("cells", " ".join(str(int(c)) for c in inf.heatmap.cells))
-        h.set("samples", str(int(inf.heatmap.samples)))
-        h.set("sigma", _f(inf.heatmap.sigma))
-    for tag, value, attrs in (("prior", inf.prior, (("speed", "speed"), ("spin", "spin"), ("tilt", "tilt"))),
-                              ("observation", inf.observation,
-                               (("sigma", "sigma"), ("angle-sigma", "angle_sigma"), ("rest-speed", "rest_speed"),
-                                ("rest-spin", "rest_spin"))),
-                              ("model-uncertainty", inf.model_uncertainty,
-                               (("friction", "friction"), ("restitution", "restitution")))):
-        if value is not None:
-            e = etree.SubElement(el, tag)
-            for attr, name in attrs:
-                if getattr(value, name) is not None:
-                    e.set(attr, _f(getattr(value, name)))
-    if inf.posterior is not None:
-        etree.SubElement(el, "posterior").set("samples", str(int(inf.posterior.samples)))
+    for spec in INFERENCE_ELEMENTS:  # one table for the reader, the writer and the validator
+        value = getattr(inf, spec.field)
+        items = value if spec.repeated else (() if value is None or (spec.cls is Optimize and value == Optimize())
+                                             else (value,))
+        for item in items:
+            child = etree.SubElement(el, spec.tag)
+            for a in spec.attributes:
+                v = getattr(item, a.field)
+                if v is not None:
+                    child.set(a.xml, _WRITE[a.kind](v))
     return el

@@ -26,23 +26,16 @@ from pathlib import Path
 
 from dejaview.errors import SceneError
 from dejaview.scene.parsing import DEFAULT_MAX_BYTES, SCENE_VERSION, _XML_SPACE, check_structure, load_schema
+from dejaview.scene.inference_elements import INFERENCE_ELEMENTS
 from dejaview.scene.model import (
     DEFAULT_GRAVITY,
-    Exploration,
-    HeatmapSettings,
     InferenceSettings,
-    ModelUncertainty,
-    Observation,
-    PosteriorRequest,
     Optimize,
-    Penalty,
     Pose,
-    Prior,
     Scene,
     SceneObject,
     SimulationSettings,
     StartArea,
-    Target,
     Velocity,
 )
 from dejaview.scene.writer import _default, scene_to_xml
@@ -63,8 +56,7 @@ __all__ = [
 # Counts that XML Schema 1.0 cannot express together with free element order.
 _AT_MOST_ONCE = {
     "scene": ("simulation", "inference"),
-    "inference": ("optimize", "start-area", "exploration", "heatmap", "prior", "observation",
-                  "model-uncertainty", "posterior"),
+    "inference": tuple(e.tag for e in INFERENCE_ELEMENTS if not e.repeated),
 }
 _REQUIRED_CHILDREN = {"inference": ("target",)}
 
@@ -352,99 +344,49 @@ class _SceneReader:
     def read_inference(self, el) -> InferenceSettings:
         self.lines[("inference",)] = el.sourceline
         groups = self.grouped(el)
-
-        targets = []
-        for j, t in enumerate(groups["target"]):
-            self.lines[("target", j)] = t.sourceline
-            targets.append(Target(
-                position=self.vector_attr(t, "position", 3),
-                orientation=self.quat_attr(t, "orientation"),
-                linear_velocity=self.vector_attr(t, "linear-velocity", 3),
-                angular_velocity=self.vector_attr(t, "angular-velocity", 3),
-                time=self.float_attr(t, "time"),
-                moving=self.bool_attr(t, "moving", None),
-            ))
-        optimize = Optimize()
-        if "optimize" in groups:
-            o = groups["optimize"][0]
-            self.lines[("optimize",)] = o.sourceline
-            optimize = Optimize(
-                position=self.bool_attr(o, "position", True),
-                orientation=self.bool_attr(o, "orientation", True),
-                linear_velocity=self.bool_attr(o, "linear-velocity", True),
-                angular_velocity=self.bool_attr(o, "angular-velocity", True),
-            )
-        start_area = None
-        if "start-area" in groups:
-            s = groups["start-area"][0]
-            self.lines[("start-area",)] = s.sourceline
-            start_area = StartArea(min=self.vector_attr(s, "min", 3), max=self.vector_attr(s, "max", 3),
-                                   line=s.sourceline)
-        exploration = None
-        if "exploration" in groups:
-            x = groups["exploration"][0]
-            self.lines[("exploration",)] = x.sourceline
-            de = Exploration()
-            exploration = Exploration(epsilon=self.float_attr(x, "epsilon", de.epsilon),
-                                      patience=self.int_attr(x, "patience", de.patience))
-        penalties = []
-        for j, p in enumerate(groups.get("penalty", ())):
-            self.lines[("penalty", j)] = p.sourceline
-            between = p.get("between").split()
-            if len(between) != 2:
-                raise self.error(p, f"attribute 'between' needs two object ids, got {len(between)}")
-            penalties.append(Penalty(between=(between[0], between[1]),
-                                     weight=self.float_attr(p, "weight", _default(Penalty, "weight"))))
-        heatmap = None
-        if "heatmap" in groups:
-            h = groups["heatmap"][0]
-            self.lines[("heatmap",)] = h.sourceline
-            dh = HeatmapSettings()
-            heatmap = HeatmapSettings(cells=self.ints_attr(h, "cells", 2, dh.cells),
-                                      samples=self.int_attr(h, "samples", dh.samples),
-                                      sigma=self.float_attr(h, "sigma", dh.sigma))
-        prior = None
-        if "prior" in groups:
-            pr = groups["prior"][0]
-            self.lines[("prior",)] = pr.sourceline
-            prior = Prior(speed=self.float_attr(pr, "speed"), spin=self.float_attr(pr, "spin"),
-                          tilt=self.float_attr(pr, "tilt"))
-        observation = None
-        if "observation" in groups:
-            ob = groups["observation"][0]
-            self.lines[("observation",)] = ob.sourceline
-            observation = Observation(sigma=self.float_attr(ob, "sigma"),
-                                      angle_sigma=self.float_attr(ob, "angle-sigma"),
-                                      rest_speed=self.float_attr(ob, "rest-speed"),
-                                      rest_spin=self.float_attr(ob, "rest-spin"))
-        model_uncertainty = None
-        if "model-uncertainty" in groups:
-            mu = groups["model-uncertainty"][0]
-            self.lines[("model-uncertainty",)] = mu.sourceline
-            model_uncertainty = ModelUncertainty(friction=self.float_attr(mu, "friction"),
-                                                 restitution=self.float_attr(mu, "restitution"))
-        posterior = None
-        if "posterior" in groups:
-            po = groups["posterior"][0]
-            self.lines[("posterior",)] = po.sourceline
-            posterior = PosteriorRequest(
-                samples=self.int_attr(po, "samples", _default(PosteriorRequest, "samples")))
+        children = {}
+        for spec in INFERENCE_ELEMENTS:  # one table for the reader, the writer and the validator
+            found = [self.read_element(spec, child, j if spec.repeated else None)
+                     for j, child in enumerate(groups.get(spec.tag, ()))]
+            if spec.repeated:
+                children[spec.field] = tuple(found)
+            else:
+                children[spec.field] = found[0] if found else (spec.cls() if spec.cls is Optimize else None)
         return InferenceSettings(
             source=el.get("source"),
-            targets=tuple(targets),
             iterations=self.int_attr(el, "iterations", _default(InferenceSettings, "iterations")),
             seed=self.int_attr(el, "seed", _default(InferenceSettings, "seed")),
             optimizer=el.get("optimizer", _default(InferenceSettings, "optimizer")),
             gradient=el.get("gradient", _default(InferenceSettings, "gradient")),
             loss=el.get("loss", _default(InferenceSettings, "loss")),
             evaluate=el.get("evaluate", _default(InferenceSettings, "evaluate")),
-            optimize=optimize,
-            start_area=start_area,
-            exploration=exploration,
-            penalties=tuple(penalties),
-            heatmap=heatmap,
-            prior=prior,
-            observation=observation,
-            model_uncertainty=model_uncertainty,
-            posterior=posterior,
+            **children,
         )
+
+    def read_element(self, spec, el, index: int | None):
+        """One child of ``<inference>`` by its row of ``INFERENCE_ELEMENTS`` (``index``: which of a
+        repeated element, for its line's key)."""
+        self.lines[(spec.tag,) if index is None else (spec.tag, index)] = el.sourceline
+        values = {}
+        for a in spec.attributes:
+            default = spec.default(a)
+            if a.kind == "vector":
+                values[a.field] = self.vector_attr(el, a.xml, 3, default)
+            elif a.kind == "quat":
+                values[a.field] = self.quat_attr(el, a.xml, default)
+            elif a.kind == "float":
+                values[a.field] = self.float_attr(el, a.xml, default)
+            elif a.kind == "int":
+                values[a.field] = self.int_attr(el, a.xml, default)
+            elif a.kind == "bool":
+                values[a.field] = self.bool_attr(el, a.xml, default)
+            elif a.kind == "cells":
+                values[a.field] = self.ints_attr(el, a.xml, 2, default)
+            else:  # "ids": two object ids
+                ids = (el.get(a.xml) or "").split()
+                if len(ids) != 2:
+                    raise self.error(el, f"attribute '{a.xml}' needs two object ids, got {len(ids)}")
+                values[a.field] = (ids[0], ids[1])
+        if spec.cls is StartArea:
+            values["line"] = el.sourceline
+        return spec.cls(**values)
