@@ -11,60 +11,12 @@ The default search (``optimizer="auto"``) is ``dejaview.inference.search.MapSear
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference.optimize import OPTIMIZERS, optimize
-from dejaview.inference.params import check_params
+from dejaview.inference.params import LocalParams
 from dejaview.backends.base import objective_to_loss
-
-
-@dataclass(frozen=True)
-class LocalParams:
-    """How the local pipeline runs (``fit_locally``); frozen, checked.
-
-    Attributes:
-        optimizer: ``gd|adam|lbfgs|bfgs``.
-        iterations, seed: budget and seed.
-        tolerance: end once the loss (metres) is at or below this (None: no).
-        gradient: ``forward|reverse`` (None: ``default_gradient``); lr: step size (None: the
-            optimiser's default).
-        multistart: K guesses optimised as one batch.
-        screen: random guesses ranked by loss first (0: none); screen_rounds: 1 + cross-entropy
-            refinements of the screening.
-        screen_near: fraction of the first screening round drawn near the scene's own guess. 0:
-            near draws rank high together, so the best start and the restarts after it all tell
-            one story, and the search loses the diversity of the prior.
-        screen_sigma: standard deviation of those draws in scaled parameters (0.1 m / 0.5 rad /
-            1 m/s / 5 rad/s; positions in the start area's logit coordinates).
-        screen_batch: candidates per batch while screening (bounds memory; batching amortises the
-            per-op overhead).
-        epsilon, patience: a start that has not improved for ``patience`` iterations hops to a
-            fresh guess with probability ``epsilon`` (``optimize``).
-    """
-
-    optimizer: str = "lbfgs"
-    iterations: int = 100
-    seed: int = 0
-    tolerance: float | None = None
-    gradient: str | None = None
-    lr: float | None = None
-    multistart: int = 1
-    screen: int = 0
-    screen_rounds: int = 1
-    screen_near: float = 0.0
-    screen_sigma: float = 1.0
-    screen_batch: int = 64
-    epsilon: float = 0.0
-    patience: int = 25
-
-    def __post_init__(self):
-        check_params(self, counts=("iterations", "multistart", "screen_rounds", "screen_batch", "patience"),
-                     naturals=("seed", "screen"), nonnegative=("tolerance", "lr"), positive=("screen_sigma",),
-                     fractions=("screen_near", "epsilon"),
-                     choices={"optimizer": OPTIMIZERS, "gradient": (None, "forward", "reverse")})
 
 
 def _check_count(value, what: str, minimum: int) -> None:
@@ -254,6 +206,6 @@ def fit_locally(problem, params: LocalParams, x0: torch.Tensor | None = None, *,
     opt = optimize(problem.objective_and_grad, x0, optimizer=s.optimizer, iterations=s.iterations,
                    gradient=gradient, lr=s.lr, epsilon=s.epsilon, patience=s.patience, sample=sample,
                    seed=s.seed, callback=callback, should_stop=should_stop, tolerance=s.tolerance,
-                   report=objective_to_loss)
+                   report=objective_to_loss, constants=s)
     return opt, {"gradient": gradient, "multistart": s.multistart, "epsilon": s.epsilon,
                  "patience": s.patience, "screened": screened}

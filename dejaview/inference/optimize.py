@@ -22,13 +22,13 @@ not improved for ``patience`` iterations, with probability
 candidate restarts from a fresh random guess inside the start area and the
 velocity bounds (explore); otherwise it hops (exploit): it restarts from its
 own best point so far plus Gaussian noise in the scaled parameters, with a
-standard deviation drawn log-uniformly from ``HOP_SCALE`` (basin hopping: a
+standard deviation drawn log-uniformly from ``LocalParams.hop_scale`` (basin hopping: a
 stalled local search cannot leave its basin, a hop of the right size lands in
 a neighbouring one). Either way the optimiser state is reset, the iteration
 is flagged ``restarted`` and the global best is kept. ``epsilon = 0`` switches
 exploration off: a stalled candidate carries on.
 "Improved" means the candidate's best objective fell by more than
-``STALL_RATIO`` (relative) in that iteration: an L-BFGS run creeping along the
+``LocalParams.stall_ratio`` (relative) in that iteration: an L-BFGS run creeping along the
 floor of a wrong basin (a small relative gain every iteration) counts as
 stalled, not as progress. So does an L-BFGS/BFGS batch whose line search
 failed twice in a row (spent its whole budget without improving), which
@@ -60,24 +60,19 @@ from dataclasses import dataclass, field
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.scene.model import OPTIMIZERS as ALL_OPTIMIZERS
+from dejaview.inference.params import LOCAL_OPTIMIZERS, LocalParams
 
-OPTIMIZERS = tuple(o for o in ALL_OPTIMIZERS if o != "auto")
+OPTIMIZERS = LOCAL_OPTIMIZERS
 """The local optimisers this loop runs (``auto`` is the search of ``dejaview.inference.search``)."""
-# on the 0.5 * loss^2 objective in scaled parameters (see dejaview.inference.params)
-DEFAULT_LR = {"gd": 1.0, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}
-STALL_RATIO = 1e-3
-"""An iteration improves a candidate when its best objective falls by more than this fraction."""
-LINE_SEARCH_EVALS = 10
-"""Most objective evaluations one L-BFGS/BFGS line search may spend in one iteration."""
-HOP_SCALE = (0.02, 0.5)
-"""Range of a hop's standard deviation (scaled parameters, drawn log-uniformly per hop): from
-1 mm / 0.6 degrees / 2 cm/s fine-tuning to 5 cm / 14 degrees / 0.5 m/s jumps (default scales)."""
 
 
-def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: float | None = None):
-    """The torch.optim optimiser called ``name`` (see module docstring)."""
-    lr = DEFAULT_LR.get(name) if lr is None else lr
+def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: float | None = None,
+                   line_search_evals: int = LocalParams.line_search_evals):
+    """The torch.optim optimiser called ``name`` (see module docstring); ``lr`` None: its default
+    (``LocalParams.step_size``)."""
+    if name not in LOCAL_OPTIMIZERS:
+        raise InferenceError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
+    lr = LocalParams(optimizer=name).step_size if lr is None else lr
     if name == "gd":
         return torch.optim.SGD(params, lr=lr)
     if name == "adam":
@@ -88,7 +83,7 @@ def make_optimizer(name: str, params: list[torch.Tensor], num_params: int, lr: f
         # max_iter=1 is 1, which leaves no line search at all (a rejected first trial step = no move).
         # No gradient/change tolerances: torch's absolute 1e-7 / 1e-9 stop a squared-metres objective
         # (|g|^2 ~ 1e-9 at a 1 cm loss) for good; this loop stops by iterations and ``tolerance``
-        return torch.optim.LBFGS(params, lr=lr, max_iter=1, max_eval=1 + LINE_SEARCH_EVALS,
+        return torch.optim.LBFGS(params, lr=lr, max_iter=1, max_eval=1 + line_search_evals,
                                  tolerance_grad=0.0, tolerance_change=0.0,
                                  history_size=history, line_search_fn="strong_wolfe")
     raise InferenceError(f"unknown optimizer {name!r}; choose one of {', '.join(OPTIMIZERS)}")
@@ -144,7 +139,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
              seed: int = 0, callback: Callable[[Progress], None] | None = None,
              should_stop: Callable[[], bool] | None = None,
              tolerance: float | None = None,
-             report: Callable[[float], float] | None = None) -> OptimizationResult:
+             report: Callable[[float], float] | None = None,
+             constants: LocalParams | None = None) -> OptimizationResult:
     """Minimise a batched loss.
 
     Each iteration is a fixed sequence of named steps of ``_LocalRun``: the optimiser step, the
@@ -164,6 +160,8 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
         callback: called with a ``Progress`` after every iteration.
         should_stop: polled every iteration; True stops the run (cancellation).
         tolerance: stop once the best reported loss is at or below this (None: run all iterations).
+        constants: ``LocalParams`` whose ``stall_ratio``, ``line_search_evals`` and ``hop_scale``
+            the loop runs with (None: the defaults).
         report: maps objective values to the losses reported in ``Progress`` and the
             result (e.g. ``sqrt(2 v)`` for a squared objective; default: identity).
     Returns:
@@ -171,7 +169,7 @@ def optimize(value_and_grad: Callable[[torch.Tensor, str], tuple[torch.Tensor, t
     """
     _check_settings(optimizer, gradient, iterations, epsilon, sample)
     run = _LocalRun(value_and_grad, x0, optimizer=optimizer, gradient=gradient, lr=lr, patience=patience,
-               sample=sample, seed=seed, report=report)
+                    sample=sample, seed=seed, report=report, constants=constants or LocalParams())
     stopped = False
     for it in range(int(iterations)):
         if should_stop is not None and should_stop():
@@ -215,7 +213,7 @@ class _LocalRun:
         opts: the optimisers (one, or K with ``each``).
         best_x, best_loss, best_index: best point over every evaluation (objective units).
         cand_best: (K,) each candidate's best objective since its last restart.
-        since_improved: (K,) iterations since each candidate last improved (``STALL_RATIO``).
+        since_improved: (K,) iterations since each candidate last improved (``LocalParams.stall_ratio``).
         failed_before: (K,) whether each candidate's line search failed in the previous iteration.
         keep_x, keep_loss: (K, P), (K,) each candidate's best point over the whole run (never reset).
         evaluations: batched evaluations so far.
@@ -224,7 +222,8 @@ class _LocalRun:
     """
 
     def __init__(self, value_and_grad, x0: torch.Tensor, *, optimizer: str, gradient: str,
-                 lr: float | None, patience: int, sample, seed: int, report) -> None:
+                 lr: float | None, patience: int, sample, seed: int, report, constants: LocalParams) -> None:
+        self.c = constants  # stall_ratio, line_search_evals, hop_scale
         self.value_and_grad = value_and_grad
         self.optimizer = optimizer
         self.gradient = gradient
@@ -239,7 +238,7 @@ class _LocalRun:
         self.each = optimizer in ("lbfgs", "bfgs") and k > 1
         self.xs = ([torch.nn.Parameter(x.detach()[i:i + 1].clone()) for i in range(k)]
                    if self.each else [x])
-        self.opts = [make_optimizer(optimizer, [xi], p, lr) for xi in self.xs]
+        self.opts = [make_optimizer(optimizer, [xi], p, lr, self.c.line_search_evals) for xi in self.xs]
         self.best_x = x.detach()[0].clone()
         self.best_loss = math.inf
         self.best_index = 0
@@ -311,7 +310,7 @@ class _LocalRun:
         # drop the curvature history so the next step starts from steepest descent
         for i in range(len(self.opts)):
             if torch.equal(self.xs[i].detach(), x_before[i:i + 1] if self.each else x_before):
-                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], self.p, self.lr)
+                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], self.p, self.lr, self.c.line_search_evals)
 
     def replace_non_finite(self) -> None:
         """Restart the candidates whose parameters are not finite from a fresh draw."""
@@ -323,12 +322,12 @@ class _LocalRun:
 
     def update_stalls(self, before: torch.Tensor, calls: torch.Tensor) -> None:
         """Count iterations without improvement; ``before``: (K,) ``cand_best`` before the step."""
-        improved = self.cand_best < before * (1.0 - STALL_RATIO)
+        improved = self.cand_best < before * (1.0 - self.c.stall_ratio)
         since = torch.where(improved, torch.zeros_like(self.since_improved), self.since_improved + 1)
         # a line search that spent its whole budget without improving anything failed (torch's
         # strong Wolfe search may still nudge x by a hair, so "x did not move" misses most);
         # a shared one fails for all candidates, one of a candidate's own for that candidate
-        failed = ((calls >= LINE_SEARCH_EVALS) & ~(improved if self.each else improved.any())
+        failed = ((calls >= self.c.line_search_evals) & ~(improved if self.each else improved.any())
                   if self.optimizer in ("lbfgs", "bfgs") else torch.zeros(self.k, dtype=torch.bool))
         # two in a row: a kink of the loss (a contact that starts or ends) where more line
         # searches only burn evaluations; the candidate is stalled now
@@ -343,7 +342,7 @@ class _LocalRun:
         fresh = stale & (torch.rand(k, generator=gen) < eps_t)
         if not stale.any():
             return False
-        lo, hi = (math.log(v) for v in HOP_SCALE)
+        lo, hi = (math.log(v) for v in self.c.hop_scale)
         sigma = torch.exp(lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=dtype))
         hop = self.keep_x + sigma * torch.randn(k, p, generator=gen, dtype=dtype)
         with torch.no_grad():
@@ -356,7 +355,7 @@ class _LocalRun:
         # a restarted candidate starts a fresh optimiser (the shared one: all of them)
         for i in range(len(self.opts)):
             if not self.each or stale[i]:
-                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], p, self.lr)
+                self.opts[i] = make_optimizer(self.optimizer, [self.xs[i]], p, self.lr, self.c.line_search_evals)
         return True
 
     def share_points(self) -> None:

@@ -14,6 +14,10 @@ import math
 from dataclasses import dataclass, fields
 
 from dejaview.errors import InferenceError
+from dejaview.scene.model import OPTIMIZERS
+
+LOCAL_OPTIMIZERS = tuple(o for o in OPTIMIZERS if o != "auto")
+"""The local optimisers (``auto`` is ``dejaview.inference.search.MapSearch``)."""
 
 
 def check_params(params, *, counts=(), naturals=(), nonnegative=(), positive=(), fractions=(),
@@ -178,3 +182,69 @@ class SamplerParams:
         if not 0.0 < self.ess_fraction < 1.0:
             raise InferenceError(f"SamplerParams.ess_fraction must lie strictly between 0 and 1, "
                                  f"got {self.ess_fraction!r}")
+
+
+@dataclass(frozen=True)
+class LocalParams:
+    """How the local pipeline runs (``fit_locally``); frozen, checked.
+
+    Attributes:
+        optimizer: ``gd|adam|lbfgs|bfgs``.
+        iterations, seed: budget and seed.
+        tolerance: end once the loss (metres) is at or below this (None: no).
+        gradient: ``forward|reverse`` (None: ``default_gradient``); lr: step size (None: the
+            optimiser's default).
+        multistart: K guesses optimised as one batch.
+        screen: random guesses ranked by loss first (0: none); screen_rounds: 1 + cross-entropy
+            refinements of the screening.
+        screen_near: fraction of the first screening round drawn near the scene's own guess. 0:
+            near draws rank high together, so the best start and the restarts after it all tell
+            one story, and the search loses the diversity of the prior.
+        screen_sigma: standard deviation of those draws in scaled parameters (0.1 m / 0.5 rad /
+            1 m/s / 5 rad/s; positions in the start area's logit coordinates).
+        screen_batch: candidates per batch while screening (bounds memory; batching amortises the
+            per-op overhead).
+        epsilon, patience: a start that has not improved for ``patience`` iterations hops to a
+            fresh guess with probability ``epsilon`` (``optimize``).
+        stall_ratio: an iteration improves a candidate when its best objective falls by more than
+            this fraction.
+        line_search_evals: most objective evaluations one L-BFGS/BFGS line search may spend in one
+            iteration.
+        hop_scale: range of a hop's standard deviation (scaled parameters, drawn log-uniformly per
+            hop): from 1 mm / 0.6 degrees / 2 cm/s fine-tuning to 5 cm / 14 degrees / 0.5 m/s
+            jumps (default scales).
+    """
+
+    optimizer: str = "lbfgs"
+    iterations: int = 100
+    seed: int = 0
+    tolerance: float | None = None
+    gradient: str | None = None
+    lr: float | None = None
+    multistart: int = 1
+    screen: int = 0
+    screen_rounds: int = 1
+    screen_near: float = 0.0
+    screen_sigma: float = 1.0
+    screen_batch: int = 64
+    epsilon: float = 0.0
+    patience: int = 25
+    stall_ratio: float = 1e-3
+    line_search_evals: int = 10
+    hop_scale: tuple[float, float] = (0.02, 0.5)
+
+    @property
+    def step_size(self) -> float:
+        """``lr``, else the optimiser's default on the 0.5 * loss^2 objective in scaled parameters."""
+        return self.lr if self.lr is not None else {"gd": 1.0, "adam": 0.05, "lbfgs": 1.0, "bfgs": 1.0}[self.optimizer]
+
+    def __post_init__(self):
+        if not (isinstance(self.hop_scale, tuple) and len(self.hop_scale) == 2
+                and 0 < self.hop_scale[0] <= self.hop_scale[1] < math.inf):
+            raise InferenceError(f"LocalParams.hop_scale must be two increasing positive numbers, "
+                                 f"got {self.hop_scale!r}")
+        check_params(self, counts=("iterations", "multistart", "screen_rounds", "screen_batch", "patience",
+                                   "line_search_evals"),
+                     naturals=("seed", "screen"), nonnegative=("tolerance", "lr"), positive=("screen_sigma",),
+                     fractions=("screen_near", "epsilon", "stall_ratio"),
+                     choices={"optimizer": LOCAL_OPTIMIZERS, "gradient": (None, "forward", "reverse")})

@@ -217,17 +217,17 @@ def creeping_slope(x, mode=None):
 
 
 def test_creeping_counts_as_a_stall_and_triggers_restarts():
-    """A candidate whose best loss falls by less than STALL_RATIO per iteration is
+    """A candidate whose best loss falls by less than LocalParams.stall_ratio per iteration is
     stalled: with patience 3 and epsilon 1 it restarts. Without the ratio (every
     decrease an improvement) it would creep on and never restart."""
-    from dejaview.inference.optimize import STALL_RATIO
+    from dejaview.inference.params import LocalParams
 
     x0 = torch.zeros(1, 2, **F64)
     res = optimize(creeping_slope, x0, optimizer="gd", iterations=12, lr=1.0, epsilon=1.0,
                    patience=3, sample=sample_box(-1.0, 0.0), seed=0)
     losses = [p.best_loss for p in res.history]
     assert all(b < a for a, b in zip(losses, losses[1:4]))  # it does go down...
-    assert (losses[0] - losses[3]) / losses[0] < STALL_RATIO  # ...by too little
+    assert (losses[0] - losses[3]) / losses[0] < LocalParams().stall_ratio  # ...by too little
     assert any(p.restarted for p in res.history[:5])
 
 
