@@ -1,7 +1,7 @@
 """How much memory a process may use, and the check that refuses a request sized over it.
 
 Every command and job sizes what it was asked before it runs (the posterior sampler:
-``dejaview.inference.sampling.sampler_bytes``; a simulation's records:
+``dejaview.inference.sizing.sampler_bytes``; a simulation's records:
 ``dejaview.sim.simulate``) and calls ``check``: what the process holds now plus the request's
 estimate must fit the limit, else a ``ResourceError`` names the request, the estimate and the
 limit in one line (``dejaview`` exits with status 2; the service's job fails with

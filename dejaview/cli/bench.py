@@ -545,16 +545,21 @@ def load(clients, url, workers, executor, csv_path, check):
 @click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1),
               help="Worker processes of the server.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seeds the kill moments and the clients.")
+@click.option("--disk-mib", default=256, show_default=True, type=click.IntRange(min=0),
+              help="The results dir is a tmpfs of this size (a mount namespace of the bench's own), filled "
+                   "and freed once during the run; 0: no tmpfs, the disk is not filled.")
 @csv_option
 @check_option
-def soak(minutes, clients, kills, workers, seed, csv_path, check):
-    """Service soak: clients submit jobs for MINUTES while the server is killed -9 and restarted;
-    accepted, finished, failed by code, lost (must be 0), duplicated (must be 0), peak memory
-    (--check: exit 1 if a job was lost or duplicated). Loopback only."""
+def soak(minutes, clients, kills, workers, seed, disk_mib, csv_path, check):
+    """Service soak: clients submit jobs for MINUTES while the server is killed -9 and restarted and
+    its disk fills and is freed once; accepted, finished, failed by code, lost (must be 0),
+    duplicated (must be 0), peak memory (--check: exit 1 if a job was lost or duplicated). Loopback
+    only."""
     row = bench_module("soak").run(print_fn=click.echo, minutes=minutes, clients=clients, kills=kills,
-                                   workers=workers, seed=seed)
-    _finish([{**row, "failed": json.dumps(row["failed"]), "refused": json.dumps(row["refused"])}], csv_path,
-            check, [row["lost"] == 0 and row["duplicated"] == 0])
+                                   workers=workers, seed=seed, disk_mib=disk_mib)
+    dicts = ("failed", "refused", "answers_while_full", "failed_while_full")
+    _finish([{**row, **{key: json.dumps(row[key]) for key in dicts}}], csv_path, check,
+            [row["lost"] == 0 and row["duplicated"] == 0])
 
 
 def _finish(rows, csv_path, check, verdicts):

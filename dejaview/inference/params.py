@@ -149,6 +149,9 @@ class SamplerParams:
         orbit_draws: motions drawn per orbit in the symmetry moves' importance sampling
             (``symmetry.orbit_walk``; each costs no rollout; docs/benchmarks.md, "Symmetry moves").
         orbit_width: the symmetry moves' proposal spread over the tempered observation noise.
+        kde_rows: the population move's kernel density estimate is computed for this many
+            particles at a time (a (rows, guides) matrix instead of (particles, guides): the same
+            numbers in less memory; ``dejaview.inference.sizing.kde_rows``); 0: all at once.
     """
 
     seed: int = 0
@@ -171,11 +174,12 @@ class SamplerParams:
     mode_merge: float = 3.0
     orbit_draws: int = 128
     orbit_width: float = 1.5
+    kde_rows: int = 0
 
     def __post_init__(self):
         check_params(self, counts=("max_stages", "max_moves", "runs", "min_run_size", "particles", "orbit_draws"),
                      positive=("reference_df", "scale_inflation", "mode_merge", "orbit_width"),
-                     naturals=("seed", "rw_moves", "final_moves"),
+                     naturals=("seed", "rw_moves", "final_moves", "kde_rows"),
                      fractions=("ess_fraction", "target_acceptance", "prior_share", "distinct_fraction"),
                      choices={"population_moves": (True, False), "symmetry_moves": (True, False),
                               "difference_moves": (True, False)})

@@ -411,15 +411,20 @@ class _SMC:
             inv = torch.linalg.inv(chol)  # (K, P, P)
             logdet = torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (K,)
 
-            def log_kde(w, inv=inv, own=own, g=g, logdet=logdet):
-                """(R,) log density (up to a constant) of the estimate at walk coordinates w (R, P)."""
-                out = torch.full((w.shape[0], g.shape[0]), -math.inf, dtype=w.dtype)
-                for c in range(inv.shape[0]):
-                    mine = own == c
-                    if bool(mine.any()):  # the kernels of component c's guides, whitened by its factor
-                        d = torch.cdist(w @ inv[c].T, g[mine] @ inv[c].T)
-                        out[:, mine] = -0.5 * d * d - logdet[c]
-                return torch.logsumexp(out, -1)
+            def log_kde(w, inv=inv, own=own, g=g, logdet=logdet, chunk=self.p.kde_rows):
+                """(R,) log density (up to a constant) of the estimate at walk coordinates w (R, P),
+                ``chunk`` rows at a time (0: all): each row's sum is its own, so chunks change
+                no number beyond round-off."""
+                parts = []
+                for wc in w.split(chunk or max(w.shape[0], 1)):
+                    out = torch.full((wc.shape[0], g.shape[0]), -math.inf, dtype=w.dtype)
+                    for c in range(inv.shape[0]):
+                        mine = own == c
+                        if bool(mine.any()):  # the kernels of component c's guides, whitened by its factor
+                            d = torch.cdist(wc @ inv[c].T, g[mine] @ inv[c].T)
+                            out[:, mine] = -0.5 * d * d - logdet[c]
+                    parts.append(torch.logsumexp(out, -1))
+                return torch.cat(parts)
 
             r = rows.shape[0]
             pick = torch.randint(m, (r,), generator=self.gen)

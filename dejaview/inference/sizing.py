@@ -2,8 +2,10 @@
 
 A solve's memory grows with its posterior samples: the sampler simulates a run's particles as one
 batch, and its population move weighs half of them against the other half (a kernel density
-estimate: quadratic in the particles). ``check_solve_memory`` refuses samples the limit cannot
-hold in one line, before the search. The constants are measured peaks (docs/benchmarks.md, "Sized
+estimate: quadratic in the particles). Where that estimate does not fit but the rest does, it is
+computed a chunk of particles at a time (``kde_rows``: the same numbers, linear in the
+particles); ``check_solve_memory`` refuses samples the limit cannot hold even so, in one line,
+before the search. The constants are measured peaks (docs/benchmarks.md, "Sized
 before run"), rounded up.
 """
 
@@ -35,26 +37,45 @@ def candidate_bytes(problem, variants: int = 1, start_bytes: int = 0) -> int:
     return ROLLOUT_COPIES * records * problem.world.num_bodies * 13 * 8 * variants + start_bytes
 
 
-def sampler_bytes(n: int, candidate: int) -> int:
+MIN_KDE_ROWS = 64
+"""Fewest particles a chunk of the kernel density estimate holds: below it, refused."""
+
+
+def sampler_bytes(n: int, candidate: int, kde_rows: int = 0) -> int:
     """Bytes ``sample_posterior`` for n samples holds at its peak beyond what its process held before,
     ``candidate`` bytes per candidate rollout (``candidate_bytes``): one run's particles, each with
     a rollout and ``PARTICLE_BYTES``, and the kernel density estimate of half of them against the
-    other half (``KDE_COPIES`` matrices: quadratic in the particles)."""
+    other half (``KDE_COPIES`` matrices: quadratic in the particles), ``kde_rows`` particles of
+    the half at a time (0: all)."""
     size = max(particles(n))
     half = size - size // 2
-    return size * (candidate + PARTICLE_BYTES) + KDE_COPIES * 8 * half * half
+    rows = min(kde_rows, half) if kde_rows else half
+    return size * (candidate + PARTICLE_BYTES) + KDE_COPIES * 8 * rows * half
+
+
+def kde_rows(n: int, candidate: int, room: int) -> int:
+    """Particles the kernel density estimate of a sampler for n samples takes at a time so that the
+    sampler fits in ``room`` bytes (``sampler_bytes``): 0 (all at once) where it fits whole, else
+    the most that fit, at least ``MIN_KDE_ROWS``."""
+    if sampler_bytes(n, candidate) <= room:
+        return 0
+    size = max(particles(n))
+    row = KDE_COPIES * 8 * (size - size // 2)  # one particle's row of the estimate
+    return max(MIN_KDE_ROWS, (room - sampler_bytes(n, candidate, kde_rows=1) + row) // row)
 
 
 def check_solve_memory(scene, problem, samples: int, collision, memory_limit: int | None):
     """Refuse a solve (the default search, then ``samples`` posterior samples) that the memory limit
-    (``memory_limit`` bytes, None: ``dejaview.memory.limit()``) cannot hold, before it runs.
+    (``memory_limit`` bytes, None: ``dejaview.memory.limit()``) cannot hold even with its kernel
+    density estimate in chunks (``kde_rows``), before it runs.
 
     Args:
         scene: the Scene; problem: its built spheres problem; samples: posterior samples (>= 1);
         collision: the scene's ``SceneCollision`` if one was built (else built here to size the
             interpenetration checks).
     Returns:
-        The scene's ``SceneCollision`` (for the search to reuse).
+        The scene's ``SceneCollision`` (for the search to reuse), and the sampler's
+        ``SamplerParams.kde_rows`` (0: the estimate fits whole).
     Raises:
         ResourceError: one line naming the samples, the estimate and the limit.
     """
@@ -67,5 +88,8 @@ def check_solve_memory(scene, problem, samples: int, collision, memory_limit: in
     model = ModelVariants.from_scene(scene, inner.world)
     candidate = candidate_bytes(inner, 1 if model is None else model.count,
                                 collision.query_bytes(scene.inference.source))
-    memory.check(f"{samples} posterior samples", SEARCH_BYTES + sampler_bytes(samples, candidate), memory_limit)
-    return collision
+    room = (memory.limit()[0] if memory_limit is None else memory_limit) - memory.resident() - SEARCH_BYTES
+    rows = kde_rows(samples, candidate, room)
+    memory.check(f"{samples} posterior samples", SEARCH_BYTES + sampler_bytes(samples, candidate, rows),
+                 memory_limit)
+    return collision, rows

@@ -226,16 +226,17 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
     if settings.optimizer != "auto" and mu is not None and ((mu.friction or 0) > 0 or (mu.restitution or 0) > 0):
         raise InferenceError(f"<model-uncertainty> needs the default search (optimizer auto on the spheres "
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
-    samples_drawn = None
+    samples_drawn, kde_rows = None, 0
     if settings.optimizer == "auto":
         if settings.samples:
-            collision = check_solve_memory(scene, problem, settings.samples, collision, params.memory_limit)
+            collision, kde_rows = check_solve_memory(scene, problem, settings.samples, collision,
+                                                     params.memory_limit)
         post = Posterior.from_scene(scene, problem=problem, collision=collision)
         search = settings.search_params()
         opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
         extra = _search_report(post, opt, search, problem.layout)
         if settings.samples and not opt.stopped and math.isfinite(opt.loss):
-            samples_drawn = _sample(post, opt, settings, callback, should_stop)
+            samples_drawn = _sample(post, opt, settings, callback, should_stop, kde_rows)
             from dejaview.inference.posterior_report import summary
 
             extra["posterior"] = summary(samples_drawn, problem.layout, opt.modes)
@@ -302,8 +303,9 @@ def _search_report(post, opt, params: SearchParams, layout) -> dict:
                   for m in opt.modes]}}
 
 
-def _sample(post, opt, settings: SolveSettings, callback, should_stop):
-    """Posterior samples around the search's modes, reporting progress as phase ``sample``."""
+def _sample(post, opt, settings: SolveSettings, callback, should_stop, kde_rows: int = 0):
+    """Posterior samples around the search's modes, reporting progress as phase ``sample``;
+    ``kde_rows``: ``SamplerParams.kde_rows`` (``sizing.check_solve_memory``)."""
     last = opt.history[-1] if opt.history else None
     it = last.iteration if last is not None else 0
 
@@ -312,5 +314,5 @@ def _sample(post, opt, settings: SolveSettings, callback, should_stop):
             callback(Progress(iteration=it, loss=opt.cost, best_loss=opt.cost, duration_s=0.0,
                               elapsed_s=(last.elapsed_s if last else 0.0) + d["elapsed_s"], restarted=False,
                               evaluations=post.rollouts, phase="sample", fraction=d["fraction"]))
-    return Sampler(settings.sampler_params()).sample(post, opt.modes, settings.samples, callback=report,
-                                                     should_stop=should_stop)
+    params = replace(settings.sampler_params(), kde_rows=kde_rows)
+    return Sampler(params).sample(post, opt.modes, settings.samples, callback=report, should_stop=should_stop)

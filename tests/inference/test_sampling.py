@@ -450,3 +450,25 @@ def test_the_population_move_rebalances_basins_the_particles_hold():
             assert float(smc.x[~heavy, 1].std()) == pytest.approx(0.05, rel=0.15)
     assert shares["population_move"] == pytest.approx(0.7, abs=0.06), shares
     assert shares["random_walk_move"] < 0.3, shares  # the walk stays in its basin
+
+
+def test_the_kernel_density_estimate_in_chunks_gives_the_same_samples():
+    """``SamplerParams.kde_rows``: the population move's estimate 7 particles at a time (of some
+    200 a half) draws the same samples, with the same weights, as all at once (round-off aside)."""
+    m = torch.tensor([-1.0, 1.5], dtype=torch.float64)
+    s = torch.tensor([0.05, 0.2], dtype=torch.float64)
+
+    def neg_log(x):
+        z = (x[:, :1] - m) / s
+        return -torch.logsumexp(torch.log(0.5 / s) - 0.5 * z * z, -1)
+
+    def res(x):
+        k = ((x[:, :1] - m).abs() / s).argmin(-1)
+        return (x[:, :1] - m[k, None]) / s[k, None]
+
+    post = FakePosterior(1, neg_log, res)
+    modes = [Mode(m[i:i + 1].clone(), float(neg_log(m[i:i + 1, None])), 0.0, 0.0) for i in range(2)]
+    whole = Sampler(SamplerParams(seed=2)).sample(post, modes, 400)
+    chunked = Sampler(SamplerParams(seed=2, kde_rows=7)).sample(post, modes, 400)
+    assert torch.allclose(chunked.x, whole.x, rtol=1e-12, atol=0.0)
+    assert torch.allclose(chunked.weights, whole.weights, rtol=1e-12, atol=0.0)
