@@ -33,7 +33,7 @@ K variants it is refined on, and where the end hinges on the contacts (a box
 tumbling over its edges) a 12-parameter start can fit four fixed physics at
 once by chance: a winner's curse, the fitted cost is the best of many
 tries, not what the physics' uncertainty leaves of it. So the refined modes
-are ranked by their negative log posterior under ``HELDOUT_VARIANTS`` other
+are ranked by their negative log posterior under ``ModelParams.heldout_variants`` other
 variants, drawn (seeded, standardised) at the same standard deviations, that
 no mode was fitted to: an estimate of the averaged likelihood free of that
 selection bias. It costs H rollouts per mode, no Jacobians. Measured on the
@@ -55,34 +55,10 @@ from dataclasses import dataclass, replace
 import torch
 
 from dejaview.errors import InferenceError
+from dejaview.inference.params import ModelParams
 
-STIFFNESS_SD = 0.25
-"""Relative standard deviation of the contact stiffness (k = m omega_0^2) when any model uncertainty
-is asked for: the penalty stiffness is a numerical choice, not a measured property (MuJoCo's
-contact, a real table), so the answer should not hinge on it."""
-DEFAULT_VARIANTS = 4
 DESIGN4 = ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))
 """The 2^(3-1) design: (friction, restitution, stiffness) levels in standard deviations."""
-HELDOUT_VARIANTS = 64
-"""Physics variants, drawn apart from the design's, that rank the refined modes
-(``rank_on_heldout``). The ranking is an estimate of each mode's mean cost over the physics'
-uncertainty, and its noise is what decides between modes whose costs are close: with 8 variants a
-tumbling box's true start cost 1.3, 2.9, 4.3 or 4.9 by the draw, and the first mode of the
-cross-engine benchmark's box-tumble changed with the held-out seed (docs/physics-fidelity.md,
-"64 held-out variants"). 64 rollouts of a few modes cost about a second, against a minute for the
-search."""
-HELDOUT_SEED = 7919
-"""Added to the solve's seed for the held-out variants' draws (another stream than ``design``'s)."""
-UNEXPLAINED_P = 1e-3
-"""Goodness of fit of the answer under model uncertainty (``explains_end``): a refined mode whose
-held-out variants' mean end is off the observation by more than the ``1 - UNEXPLAINED_P`` quantile
-of its chi-square (22.5 for a pose's 6 residuals) does not explain the end once the physics varies
-(a needle fitted on the scene's own physics), and ``search.refine_under_variants`` then refines the
-search's other modes that fit best under the variants (docs/physics-fidelity.md, "When no refined
-mode explains the end")."""
-MIN_FACTOR = 0.05
-"""A variant's friction or stiffness is at least this fraction of the scene's value (a 100 %
-standard deviation would otherwise give zero or negative values)."""
 
 
 def design(count: int, seed: int = 0) -> torch.Tensor:
@@ -117,7 +93,7 @@ class ModelVariants:
 
     @staticmethod
     def from_world(world, friction: float = 0.0, restitution: float = 0.0,
-                   stiffness: float = STIFFNESS_SD, count: int = DEFAULT_VARIANTS,
+                   stiffness: float = ModelParams.stiffness_sd, count: int = ModelParams.variants,
                    seed: int = 0) -> "ModelVariants":
         """Variants of ``world``: each pair's friction times ``1 + friction z_f``, restitution times
         ``1 + restitution z_e`` (clipped to [0, 1]), contact frequency times ``sqrt(1 + stiffness
@@ -130,14 +106,14 @@ class ModelVariants:
                                   1.0 + stiffness * float(z[2])) for z in levels)
         return ModelVariants(float(friction), float(restitution), float(stiffness), levels, worlds)
 
-    def heldout(self, world, seed: int = 0, count: int = HELDOUT_VARIANTS) -> "ModelVariants":
+    def heldout(self, world, seed: int = 0, count: int = ModelParams.heldout_variants) -> "ModelVariants":
         """``count`` variants of ``world`` (the scene's physics) at these standard deviations, drawn
-        from another stream than this design's (``HELDOUT_SEED + seed``)."""
+        from another stream than this design's (``ModelParams.heldout_seed + seed``)."""
         return ModelVariants.from_world(world, self.friction, self.restitution, self.stiffness,
-                                        count=count, seed=HELDOUT_SEED + int(seed))
+                                        count=count, seed=ModelParams.heldout_seed + int(seed))
 
     @staticmethod
-    def from_scene(scene, world, count: int = DEFAULT_VARIANTS) -> "ModelVariants | None":
+    def from_scene(scene, world, count: int = ModelParams.variants) -> "ModelVariants | None":
         """The scene's ``<model-uncertainty>`` as variants of ``world``; None where absent or zero."""
         mu = scene.inference.model_uncertainty if scene.inference is not None else None
         if mu is None or not ((mu.friction or 0.0) > 0 or (mu.restitution or 0.0) > 0):
@@ -165,8 +141,8 @@ def vary_world(world, friction_factor: float, restitution_factor: float, stiffne
     """
     from dejaview.sim.world import remap_unloading
 
-    f = max(friction_factor, MIN_FACTOR)
-    k = max(stiffness_factor, MIN_FACTOR)
+    f = max(friction_factor, ModelParams.min_factor)
+    k = max(stiffness_factor, ModelParams.min_factor)
     h = world.dt / world.substeps
     omega = world.contact.frequency * math.sqrt(k)
     omega_h0, omega_h = world.contact.frequency * h, omega * h
@@ -212,7 +188,7 @@ def rank_on_heldout(post, modes: list, seed: int = 0) -> tuple[list, int]:
 def explains_end(post, mode) -> bool:
     """Whether ``mode``'s end fits the observation under the physics' uncertainty: the end its
     held-out variants reach on average (``rank_on_heldout``'s ``heldout_mean_chi2``) within the
-    observation's noise, its chi-square at most the ``1 - UNEXPLAINED_P`` quantile of a chi-square
+    observation's noise, its chi-square at most the ``1 - ModelParams.unexplained_p`` quantile of a chi-square
     with ``post.num_observed`` degrees of freedom. The variants' spread about that mean is left
     out: the physics' uncertainty spreads every past's end, the truth's too, and a needle's mean
     end is off where its variants fall the other way. A mode never ranked counts as explaining
@@ -221,4 +197,4 @@ def explains_end(post, mode) -> bool:
 
     if mode.heldout_mean_chi2 is None:
         return True
-    return mode.heldout_mean_chi2 <= float(chi2.ppf(1.0 - UNEXPLAINED_P, max(1, post.num_observed)))
+    return mode.heldout_mean_chi2 <= float(chi2.ppf(1.0 - ModelParams.unexplained_p, max(1, post.num_observed)))

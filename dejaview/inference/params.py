@@ -252,3 +252,33 @@ class LocalParams:
                      naturals=("seed", "screen"), nonnegative=("tolerance", "lr"), positive=("screen_sigma",),
                      fractions=("screen_near", "epsilon", "stall_ratio"),
                      choices={"optimizer": LOCAL_OPTIMIZERS, "gradient": (None, "forward", "reverse")})
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """How ``<model-uncertainty>``'s physics variants are drawn and judged
+    (``dejaview.inference.model_uncertainty``).
+
+    Attributes:
+        stiffness_sd: relative standard deviation of the contact stiffness (k = m omega_0^2) when
+            any model uncertainty is asked for: the penalty stiffness is a numerical choice, not a
+            measured property (MuJoCo's contact, a real table), so the answer should not hinge on it.
+        variants: physics variants the likelihood averages over (4: the 2^(3-1) design).
+        heldout_variants: variants, drawn apart from the design's, that rank the refined modes
+            (``rank_on_heldout``): an estimate of each mode's mean cost over the physics'
+            uncertainty whose noise decides between close modes (docs/physics-fidelity.md,
+            "64 held-out variants"); 64 rollouts of a few modes cost about a second.
+        heldout_seed: added to the solve's seed for the held-out draws (another stream).
+        unexplained_p: a refined mode whose held-out variants' mean end is off the observation by
+            more than the ``1 - unexplained_p`` quantile of its chi-square (22.5 for a pose's 6
+            residuals) does not explain the end (``explains_end``; docs/physics-fidelity.md,
+            "When no refined mode explains the end").
+        min_factor: a variant's friction or stiffness is at least this fraction of the scene's.
+    """
+
+    stiffness_sd: float = 0.25
+    variants: int = 4
+    heldout_variants: int = 64
+    heldout_seed: int = 7919
+    unexplained_p: float = 1e-3
+    min_factor: float = 0.05

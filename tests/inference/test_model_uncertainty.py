@@ -12,9 +12,9 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.backends.spheres import SpheresProblem
-from dejaview.inference.model_uncertainty import (HELDOUT_SEED, HELDOUT_VARIANTS, ModelVariants, design,
+from dejaview.inference.model_uncertainty import (ModelVariants, design,
                                                   rank_on_heldout, vary_world)
-from dejaview.inference.params import SearchParams
+from dejaview.inference.params import ModelParams, SearchParams
 from dejaview.inference.posterior import Posterior, PosteriorSettings
 from dejaview.scene import ModelUncertainty, Prior
 from dejaview.sim.world import _discrete_restitution
@@ -84,7 +84,7 @@ def test_model_uncertainty_makes_a_start_whose_end_hinges_on_friction_cost_more(
 
 
 def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fitted_to():
-    """``rank_on_heldout``: each mode's negative log posterior under ``HELDOUT_VARIANTS`` variants drawn
+    """``rank_on_heldout``: each mode's negative log posterior under ``ModelParams.heldout_variants`` variants drawn
     apart from the design (the same standard deviations, another stream), lowest first, whatever the order and
     costs the refinement gave them: a start fitted to the design's four physics by chance (here a
     worse start handed the lower cost) does not win on that."""
@@ -98,7 +98,7 @@ def test_the_modes_are_ranked_on_held_out_variants_not_on_the_ones_they_were_fit
     ranked, rollouts = rank_on_heldout(post, modes, seed=3)
     assert torch.equal(ranked[0].x, x[0]) and torch.equal(ranked[1].x, worse)
     assert [m.cost for m in ranked] == [5.0, 1.0]  # the fitted costs kept, the order the held-out one's
-    held = ModelVariants.from_world(problem.world, 0.2, 0.2, count=HELDOUT_VARIANTS, seed=HELDOUT_SEED + 3)
+    held = ModelVariants.from_world(problem.world, 0.2, 0.2, count=ModelParams.heldout_variants, seed=ModelParams.heldout_seed + 3)
     assert not any(torch.allclose(h, d) for h in held.levels for d in model.levels)
     expected = Posterior(problem, settings, model=held).cost(torch.stack([x[0], worse]))[0]
     assert [m.heldout for m in ranked] == pytest.approx(expected.tolist(), rel=1e-12)
