@@ -26,7 +26,7 @@ samples crowd the densest regions and miss the posterior's thinner bulk, at 0
 in the opposite case), the sharpness (mean 90 % interval width over the
 prior's 90 % width: 1 means the end taught nothing), on how many truths the
 sampler's two independent runs disagreed (``max_rhat`` per truth over
-``posterior_report.RHAT_LIMIT``: the warning a user sees), and a 10-bin rank
+``ReportParams.rhat_limit``: the warning a user sees), and a 10-bin rank
 histogram (``--plot``: a PNG of them). The scenes (built in code from bundled
 ones; the files are not touched), each observed at its last record
 (``evaluate="final"``, the generative model of the observation):
@@ -204,9 +204,9 @@ def summarize(rows: list[dict]) -> dict:
     for r in rows:
         if r.get("density_rank") is not None:
             density[min(int(r["density_rank"] * len(density)), len(density) - 1)] += 1
-    from dejaview.inference.posterior_report import RHAT_LIMIT
+    from dejaview.inference.params import ReportParams
 
-    flagged = sum(1 for r in rows if r.get("max_rhat") is not None and r["max_rhat"] > RHAT_LIMIT)
+    flagged = sum(1 for r in rows if r.get("max_rhat") is not None and r["max_rhat"] > ReportParams.rhat_limit)
     return {"cover50": sum(c50) / len(c50), "cover90": sum(c90) / len(c90), "n": len(c90), "flagged": flagged,
             "sharpness": sum(sharp) / len(sharp), "histogram": hist, "density_histogram": density,
             "seconds": sum(r["seconds"] for r in rows) / len(rows)}

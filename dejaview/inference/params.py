@@ -282,3 +282,52 @@ class ModelParams:
     heldout_seed: int = 7919
     unexplained_p: float = 1e-3
     min_factor: float = 0.05
+
+
+@dataclass(frozen=True)
+class ReportParams:
+    """What a solve reports of its answer and its samples (``posterior_report``, ``rest``).
+
+    Attributes:
+        intervals: central credible intervals reported for every free parameter.
+        min_mode_mass: modes holding less posterior mass are left out of the summary.
+        rhat_limit: the runs agree when every parameter's rank-normalised R-hat is at most this
+            (Gelman and Rubin's threshold; measured in docs/inference.md: 1.05 flagged 5 of 50
+            calibrated ball_off_table truths, all with every 90 % interval holding the truth; 1.1
+            flags 1 of them, and 9 of 50 box_thrown truths, whose intervals hold the truth less often).
+        paths: samples whose trajectories ``posterior_paths.csv`` holds (drawn faintly by the viewer).
+        path_records: about how many records each of those trajectories keeps.
+        rest_level: mean speeds (and spins) above this many ``rest_speed`` (``rest_spin``) count as
+            moving (``rest.duration_warnings``).
+        extend_factor: how far past the start a rest is looked for, in scene durations.
+        max_checked: most posterior samples (the heaviest distinct ones) checked for rest.
+    """
+
+    intervals: tuple[float, ...] = (0.5, 0.9)
+    min_mode_mass: float = 1e-3
+    rhat_limit: float = 1.1
+    paths: int = 8
+    path_records: int = 60
+    rest_level: float = 2.0
+    extend_factor: float = 4.0
+    max_checked: int = 64
+
+
+@dataclass(frozen=True)
+class StartAreaParams:
+    """How hard ``start_area.check_start_area`` looks for a start the area can hold.
+
+    Attributes:
+        draws: random starts tried after the scene's own and the box's centre.
+        orientations: random orientations tried at each cell's centre (besides the ``<pose>`` one).
+        budget: most placements tried (about 0.2 s for primitives, a few seconds for a concave
+            mesh; only an area with no free start found runs that far).
+        batch: cells evaluated together (one collision query each).
+        recheck: placements with the least depth bounds whose full depth is measured for the message.
+    """
+
+    draws: int = 256
+    orientations: int = 7
+    budget: int = 4096
+    batch: int = 32
+    recheck: int = 8

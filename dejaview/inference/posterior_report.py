@@ -15,24 +15,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dejaview.inference.params import ReportParams
+
 CSV_HEADER = ("sample", "weight", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
 """``posterior.csv``'s header (scene-format spec, "Additions to version 1")."""
-INTERVALS = (0.5, 0.9)
-"""Central credible intervals reported for every free parameter."""
-MIN_MODE_MASS = 1e-3
-"""Modes holding less posterior mass than this are left out of the summary."""
-RHAT_LIMIT = 1.1
-"""The runs agree when every parameter's rank-normalised R-hat is at most this (``rhat``): the
-classic threshold of Gelman and Rubin. Measured (docs/inference.md): the stricter 1.05 flagged 5
-of 50 calibrated ball_off_table truths, all 5 with every 90 % interval holding the truth; 1.1
-flags 1 of them, and 9 of 50 box_thrown truths, whose intervals hold the truth less often (0.414 /
-0.808 at 50 / 90 % against 0.446 / 0.860 for the other 41)."""
 PATHS_HEADER = ("sample", "step", "time", "x", "y", "z")
 """``posterior_paths.csv``'s header: the source's object-frame origin along a few samples' pasts."""
-PATHS = 8
-"""How many samples' trajectories ``posterior_paths.csv`` holds (the viewer draws them faintly)."""
-PATH_RECORDS = 60
-"""About how many records each of those trajectories keeps."""
 
 
 def physical(layout, x: torch.Tensor) -> torch.Tensor:
@@ -98,7 +86,7 @@ def summary(samples, layout, modes) -> dict:
     w = samples.weights
     values = physical(layout, samples.x)
     qs = [0.5]
-    for level in INTERVALS:
+    for level in ReportParams.intervals:
         qs += [(1 - level) / 2, (1 + level) / 2]
     quant = weighted_quantiles(values, w, qs)
     intervals = {}
@@ -107,12 +95,12 @@ def summary(samples, layout, modes) -> dict:
     for j, name in enumerate(layout.names()):
         intervals[name] = {"median": float(quant[0, j]),
                            **{f"{int(level * 100)}%": [float(quant[1 + 2 * i, j]), float(quant[2 + 2 * i, j])]
-                              for i, level in enumerate(INTERVALS)},
+                              for i, level in enumerate(ReportParams.intervals)},
                            **({"rhat": float(r[j])} if bool(torch.isfinite(r[j])) else {})}
     found = []
     for k, index in enumerate(samples.mode_index):
         mass = float(w[samples.component == k].sum())
-        if mass < MIN_MODE_MASS:
+        if mass < ReportParams.min_mode_mass:
             continue
         mode = modes[index]
         with torch.no_grad():
@@ -122,7 +110,7 @@ def summary(samples, layout, modes) -> dict:
     found.sort(key=lambda m: -m["probability"])
     finite = r[torch.isfinite(r)]
     agreement = None if finite.numel() == 0 else {
-        "max_rhat": float(finite.max()), "limit": RHAT_LIMIT, "runs_agree": bool(finite.max() <= RHAT_LIMIT)}
+        "max_rhat": float(finite.max()), "limit": ReportParams.rhat_limit, "runs_agree": bool(finite.max() <= ReportParams.rhat_limit)}
     return {"samples": int(samples.x.shape[0]), "sampler": samples.stats, "modes": found,
             "intervals": intervals, "agreement": agreement}
 
@@ -181,7 +169,7 @@ def write_csv(path, samples, layout) -> Path:
     return path
 
 
-def path_samples(samples, count: int = PATHS, seed: int = 0) -> list[int]:
+def path_samples(samples, count: int = ReportParams.paths, seed: int = 0) -> list[int]:
     """Indices of up to ``count`` distinct samples drawn by weight (systematic resampling over
     the distinct samples, so a mode holding 40 % of the mass gets about 40 % of the paths),
     sorted."""
@@ -199,10 +187,10 @@ def path_samples(samples, count: int = PATHS, seed: int = 0) -> list[int]:
     return sorted({int(first[i]) for i in picks.tolist()})
 
 
-def write_paths(path, problem, samples, count: int = PATHS, seed: int = 0) -> Path:
+def write_paths(path, problem, samples, count: int = ReportParams.paths, seed: int = 0) -> Path:
     """``posterior_paths.csv``: the source's trajectory (object-frame origin, ``PATHS_HEADER``)
     from a few samples (``path_samples``), re-simulated together; ``sample`` is the row of
-    ``posterior.csv`` it starts from. About ``PATH_RECORDS`` records each, the last step
+    ``posterior.csv`` it starts from. About ``ReportParams.path_records`` records each, the last step
     included."""
     from dejaview.sim.trajectory_csv import trajectory_rows
 
@@ -212,7 +200,7 @@ def write_paths(path, problem, samples, count: int = PATHS, seed: int = 0) -> Pa
         writer = csv.writer(fh, lineterminator="\n")
         writer.writerow(PATHS_HEADER)
         if chosen:
-            every = max(1, int(problem.duration_steps) // PATH_RECORDS)
+            every = max(1, int(problem.duration_steps) // ReportParams.path_records)
             with torch.no_grad():
                 traj = problem.simulate(samples.x[chosen].to(problem.dtype), record_every=every)
             source = problem.frames.names[problem.source]

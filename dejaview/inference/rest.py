@@ -4,7 +4,7 @@ A target seen at rest (``dejaview.losses.targets``) asks the past to bring the s
 the observed pose within the scene's duration. Where the duration is too short for that (the true
 past slides for 2 s, the scene simulates 1.5 s), no start explains the observation: the answer
 ends still moving, off the observed rest. ``duration_warnings`` finds such answers (and samples),
-simulates them on until they rest (at most ``EXTEND_FACTOR`` times the duration) and names the
+simulates them on until they rest (at most ``ReportParams.extend_factor`` times the duration) and names the
 duration the scene would need.
 """
 
@@ -14,14 +14,9 @@ import math
 
 import torch
 
+from dejaview.inference.params import ReportParams
 from dejaview.losses.targets import REST_WINDOW, rest_time
 
-REST_LEVEL = 2.0
-"""Mean speeds (and spins) above this many ``rest_speed`` (``rest_spin``) count as moving here."""
-EXTEND_FACTOR = 4.0
-"""How far past the start a rest is looked for: this many times the scene's duration."""
-MAX_CHECKED = 64
-"""Most posterior samples (the heaviest distinct ones) checked for rest."""
 
 
 def needs_rest(problem) -> bool:
@@ -31,7 +26,7 @@ def needs_rest(problem) -> bool:
 
 def rest_times(problem, x: torch.Tensor, settings, steps: int | None = None) -> list[float | None]:
     """When each start of x (B, P) comes to rest (``dejaview.losses.targets.rest_time`` at
-    ``REST_LEVEL`` x the rest noise), simulating ``steps`` steps (default the scene's duration).
+    ``ReportParams.rest_level`` x the rest noise), simulating ``steps`` steps (default the scene's duration).
 
     Returns:
         seconds per start, None where it still moves at the end.
@@ -39,7 +34,7 @@ def rest_times(problem, x: torch.Tensor, settings, steps: int | None = None) -> 
     steps = problem.duration_steps if steps is None else int(steps)
     with torch.no_grad():
         traj = problem.simulate(x.to(problem.dtype), steps=steps, record_every=1)
-    return [rest_time(traj, problem.source, REST_LEVEL * settings.rest_speed, REST_LEVEL * settings.rest_spin,
+    return [rest_time(traj, problem.source, ReportParams.rest_level * settings.rest_speed, ReportParams.rest_level * settings.rest_spin,
                       index=i) for i in range(x.shape[0])]
 
 
@@ -70,12 +65,12 @@ def suggested_duration(rest_s: float) -> float:
 
 
 def _later_rests(problem, x: torch.Tensor, settings) -> list[float | None]:
-    """Rest times of starts x (B, P) simulated for ``EXTEND_FACTOR`` durations (within the scene
+    """Rest times of starts x (B, P) simulated for ``ReportParams.extend_factor`` durations (within the scene
     bounds' step budget)."""
     from dejaview.scene.bounds import max_steps
 
     budget = max_steps() // (2 * max(x.shape[0], 1))  # integration steps at the default 2 substeps
-    steps = int(min(EXTEND_FACTOR * problem.duration_steps, max(budget, problem.duration_steps)))
+    steps = int(min(ReportParams.extend_factor * problem.duration_steps, max(budget, problem.duration_steps)))
     return rest_times(problem, x, settings, steps=steps)
 
 
@@ -100,7 +95,7 @@ def duration_warnings(problem, settings, answer: torch.Tensor, samples=None) -> 
         return rest, warnings
     if t is None:
         later, = _later_rests(problem, answer, settings)
-        horizon = EXTEND_FACTOR * duration
+        horizon = ReportParams.extend_factor * duration
         if later is None:
             warnings.append(f"the answer is still moving at the end of the simulation ({duration:g} s) and does "
                             f"not come to rest within {horizon:g} s: it does not explain a source seen lying "
@@ -120,7 +115,7 @@ def duration_warnings(problem, settings, answer: torch.Tensor, samples=None) -> 
             if key not in seen:
                 seen.add(key)
                 pick.append(i)
-            if len(pick) >= MAX_CHECKED:
+            if len(pick) >= ReportParams.max_checked:
                 break
         idx = torch.as_tensor(pick, dtype=torch.long)
         times = rest_times(problem, samples.x[idx], settings)
@@ -137,5 +132,5 @@ def duration_warnings(problem, settings, answer: torch.Tensor, samples=None) -> 
                 warnings.append(f"{what}; they come to rest by {max(known):.2f} s: set <simulation "
                                 f"duration=\"{need:g}\"> or more")
             else:
-                warnings.append(f"{what} and do not come to rest within {EXTEND_FACTOR * duration:g} s")
+                warnings.append(f"{what} and do not come to rest within {ReportParams.extend_factor * duration:g} s")
     return rest, warnings

@@ -22,10 +22,10 @@ meet it here).
 
 The search (``_search``), on the exact geometry (``geometry.collision``, python-fcl):
 
-1. the scene's own start, then the box's centre and ``DRAWS`` random starts in it (random
+1. the scene's own start, then the box's centre and ``StartAreaParams.draws`` random starts in it (random
    orientations where free): the first free one ends the check (every bundled scene's own start
    is free: one query);
-2. a best-first branch and bound over the box: each cell's centre is tried (with ``ORIENTATIONS``
+2. a best-first branch and bound over the box: each cell's centre is tried (with ``StartAreaParams.orientations``
    random orientations where free), and the cell is settled when a lower bound of the depth
    there, minus the cell's half-diagonal, exceeds the margin (the depth of a translated solid
    changes no faster than the translation); else it is halved along its longest axis. The
@@ -33,7 +33,7 @@ The search (``_search``), on the exact geometry (``geometry.collision``, python-
    the largest ball about the source's origin that lies inside it (``inner_radius``), which
    every orientation contains.
 
-Every cell settled: the area cannot hold the source ("everywhere in it"). ``BUDGET`` placements
+Every cell settled: the area cannot hold the source ("everywhere in it"). ``StartAreaParams.budget`` placements
 tried without a free one and without settling every cell (a free orientation of a source whose
 origin lies outside it, like a mug's, gives no bound; an overlap everywhere only a little past
 the margin needs very small cells): the area is refused too, and the message says how many starts
@@ -49,20 +49,10 @@ import math
 import numpy as np
 
 from dejaview.errors import StartAreaError
+from dejaview.inference.params import StartAreaParams
 from dejaview.inference.posterior import FEASIBILITY_MARGIN
 from dejaview.scene import bounds
 
-DRAWS = 256
-"""Random starts tried after the scene's own and the box's centre (the most the solve screens)."""
-ORIENTATIONS = 7
-"""Random orientations tried at each cell's centre (besides the ``<pose>`` one) where free."""
-BUDGET = 4096
-"""Most placements of the source tried (about 0.2 s for primitives, a few seconds for a concave
-mesh; only an area with no free start found runs that far)."""
-BATCH = 32
-"""Cells evaluated together (one collision query each)."""
-RECHECK = 8
-"""Placements with the least depth bounds whose full depth is measured for the message."""
 _MAX_NAMES = 3
 
 
@@ -117,7 +107,7 @@ def check_start_area(scene, collision=None, margin: float = FEASIBILITY_MARGIN):
 def _search(collision, source: str, lo: np.ndarray, hi: np.ndarray, guess: np.ndarray, q0: np.ndarray,
             free_orientation: bool, margin: float):
     """None as soon as a free start is found; else ``(certified, tried, least depth, object ids)``:
-    every cell settled (``certified``) or ``BUDGET`` placements tried without a free one. Each
+    every cell settled (``certified``) or ``StartAreaParams.budget`` placements tried without a free one. Each
     placement is decided as the solve decides its candidates (``penetration(decide_only=True)``,
     whose depth is then a lower bound); the depth reported is the full one at the shallowest."""
     rng = np.random.default_rng(0)
@@ -149,23 +139,23 @@ def _search(collision, source: str, lo: np.ndarray, hi: np.ndarray, guess: np.nd
             names[name] = names.get(name, 0) + 1
         return depth[best]
 
-    per = 1 + ORIENTATIONS if free_orientation else 1
+    per = 1 + StartAreaParams.orientations if free_orientation else 1
     # 1. the scene's own start, the centre, random starts (each at a random orientation where free)
     if place(guess[None], q0[None, None]) is None:
         return None
-    draws = lo + (hi - lo) * rng.random((DRAWS + 1, 3))
+    draws = lo + (hi - lo) * rng.random((StartAreaParams.draws + 1, 3))
     draws[0] = 0.5 * (lo + hi)
-    quats = np.broadcast_to(q0, (DRAWS + 1, 1, 4)).copy()
+    quats = np.broadcast_to(q0, (StartAreaParams.draws + 1, 1, 4)).copy()
     if free_orientation:
-        quats[1:, 0] = _random_quaternions(rng, DRAWS)
+        quats[1:, 0] = _random_quaternions(rng, StartAreaParams.draws)
     if place(draws, quats) is None:
         return None
     # 2. best-first branch and bound over the box
     radius = collision.inner_radius(source) if free_orientation else 0.0
     heap = [(-math.inf, 0, 0.5 * (lo + hi), 0.5 * (hi - lo))]
     count = 1
-    while heap and tried < BUDGET:
-        cells = [heapq.heappop(heap) for _ in range(min(BATCH, len(heap)))]
+    while heap and tried < StartAreaParams.budget:
+        cells = [heapq.heappop(heap) for _ in range(min(StartAreaParams.batch, len(heap)))]
         centres = np.array([c[2] for c in cells])
         halves = np.array([c[3] for c in cells])
         depth = place(centres, orientations(len(cells), per))
@@ -192,7 +182,7 @@ def _search(collision, source: str, lo: np.ndarray, hi: np.ndarray, guess: np.nd
                 count += 1
     # the full depth of the placements whose bounds are least: the shallowest found
     bounds_, at, quats = (np.concatenate(part) for part in zip(*seen))
-    few = np.argsort(bounds_, kind="stable")[:RECHECK]
+    few = np.argsort(bounds_, kind="stable")[:StartAreaParams.recheck]
     _, depth, other = collision.penetration(source, at[few], quats[few], margin=margin)
     i = int(depth.argmin())
     ranked = sorted(names, key=lambda n: -names[n])

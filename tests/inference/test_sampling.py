@@ -18,12 +18,11 @@ import torch
 from dejaview.errors import InferenceError
 from dejaview.inference import solve
 from dejaview.inference.solve import SolveParams
+from dejaview.inference.params import ReportParams
 from dejaview.inference.posterior import PosteriorSettings
 from dejaview.inference.posterior_report import (
     CSV_HEADER,
-    PATHS,
     PATHS_HEADER,
-    RHAT_LIMIT,
     agreement_warning,
     path_samples,
     read_csv,
@@ -227,15 +226,15 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     assert post["samples"] == 200 and sum(m["probability"] for m in post["modes"]) == pytest.approx(1.0, abs=1e-3)
     # two independent runs of 100 that agree: the end pins the ramp's start
     assert post["sampler"]["runs"] == 2 and torch.bincount(result.posterior.run).tolist() == [100, 100]
-    assert post["agreement"]["runs_agree"] and post["agreement"]["max_rhat"] <= RHAT_LIMIT
-    assert all(iv["rhat"] <= RHAT_LIMIT for iv in post["intervals"].values())
+    assert post["agreement"]["runs_agree"] and post["agreement"]["max_rhat"] <= ReportParams.rhat_limit
+    assert all(iv["rhat"] <= ReportParams.rhat_limit for iv in post["intervals"].values())
     # the same samples with one run moved off: flagged
     moved = result.posterior.x.clone()
     second = result.posterior.run == 1
     moved[second, 0] += 2 * moved[:, 0].std()
     flagged = summary(replace(result.posterior, x=moved), result.problem.layout, result.optimization.modes)
-    assert not flagged["agreement"]["runs_agree"] and flagged["intervals"]["position.x"]["rhat"] > RHAT_LIMIT
-    assert flagged["intervals"]["position.y"]["rhat"] <= RHAT_LIMIT
+    assert not flagged["agreement"]["runs_agree"] and flagged["intervals"]["position.x"]["rhat"] > ReportParams.rhat_limit
+    assert flagged["intervals"]["position.y"]["rhat"] <= ReportParams.rhat_limit
     assert agreement_warning(post["agreement"], "these intervals") is None
     line = agreement_warning(flagged["agreement"], "these intervals")
     assert "disagree" in line and f"{flagged['agreement']['max_rhat']:.2f}" in line and "\n" not in line
@@ -250,7 +249,7 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     by_sample = {}
     for r in rows[1:]:
         by_sample.setdefault(int(r[0]), []).append([float(v) for v in r[1:]])
-    assert 1 <= len(by_sample) <= PATHS
+    assert 1 <= len(by_sample) <= ReportParams.paths
     chosen = sorted(by_sample)
     with torch.no_grad():
         traj = result.problem.simulate(result.posterior.x[chosen])
@@ -275,7 +274,7 @@ def test_rhat_is_one_for_runs_of_one_distribution_and_flags_runs_apart():
     apart = values.clone()
     apart[300:, 0] += 1.0
     r = rhat(apart, run)
-    assert r[0] > RHAT_LIMIT and torch.all(r[1:] < 1.02), r
+    assert r[0] > ReportParams.rhat_limit and torch.all(r[1:] < 1.02), r
     assert torch.isnan(rhat(values, torch.zeros(600, dtype=torch.long))).all()
 
 

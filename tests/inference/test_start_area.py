@@ -11,7 +11,8 @@ import pytest
 
 from dejaview import solve
 from dejaview.errors import InferenceError, SceneError, StartAreaError
-from dejaview.inference.start_area import BUDGET, check_start_area
+from dejaview.inference.params import StartAreaParams
+from dejaview.inference.start_area import check_start_area
 from dejaview.scene import Scene
 from dejaview.inference.solve import SolveParams
 
@@ -91,7 +92,7 @@ def test_an_overlap_everywhere_just_past_the_margin_is_refused_after_the_budget(
     message = str(caught.value)
     assert "cannot hold 'src' at any of the " in message and "starts tried in it" in message
     tried = int(message.split("at any of the ")[1].split()[0])
-    assert BUDGET <= tried < BUDGET + 64
+    assert StartAreaParams.budget <= tried < StartAreaParams.budget + 64
     assert "at each 'src' and 'desk' interpenetrate, by 0.0035 m at the shallowest" in message
 
 
