@@ -23,7 +23,7 @@ at random, on a counter or table top at the height where the source stands on it
 air at hand height, 0.2-0.5 m tall), then a true start drawn uniformly inside that area (the
 area is not centred on it), a random heading and velocities of the kind's ranges (``KINDS``).
 The truth is simulated by DejaView's own engine for ``HORIZON`` seconds; it is redrawn (area and
-all) when its start interpenetrates a static object by more than ``FEASIBILITY_MARGIN``, when
+all) when its start interpenetrates a static object by more than the solver's ``PosteriorSettings.feasibility_margin``, when
 it does not tell the kind's story (a mug knocked off the counter must end on the floor), when
 it leaves the room (``ROOM_HALF``) or sinks through the floor, or when it has not come to rest
 by ``MAX_REST`` seconds. At rest: the source's mean speed over ``REST_WINDOW`` (its centre of
@@ -93,8 +93,6 @@ ROOM_HALF = 3.0
 """m: a truth whose source ends (or passes) farther than this from the origin in x or y has left
 the room; one below ``-FLOOR_SINK`` has sunk through the floor."""
 FLOOR_SINK = 0.02
-FEASIBILITY_MARGIN = 0.003
-"""m: the solver's (``dejaview.inference.posterior.FEASIBILITY_MARGIN``)."""
 MAX_DRAWS = 200
 """Draws per story before giving up (RuntimeError)."""
 DEFAULT_COUNT = 7
@@ -381,6 +379,7 @@ def make_story(kind_name: str, rng, folder: Path, name: str | None = None) -> St
         RuntimeError: no draw in ``MAX_DRAWS`` made a story.
     """
     from dejaview.geometry.collision import SceneCollision
+    from dejaview.inference.posterior import PosteriorSettings
     from dejaview.scene import Target
     from dejaview.scene.xml import normalize_quaternion
 
@@ -398,7 +397,7 @@ def make_story(kind_name: str, rng, folder: Path, name: str | None = None) -> St
         if key not in collision:
             collision[key] = SceneCollision(scene)
         hit, _, _ = collision[key].penetration(kind.source, np.asarray(start["position"]),
-                                               np.asarray(start["orientation"]), margin=FEASIBILITY_MARGIN,
+                                               np.asarray(start["orientation"]), margin=PosteriorSettings.feasibility_margin,
                                                decide_only=True)
         if bool(np.asarray(hit).reshape(-1)[0]):
             reasons["start interpenetrates"] = reasons.get("start interpenetrates", 0) + 1

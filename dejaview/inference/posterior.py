@@ -23,8 +23,8 @@ dimensionless and the sum of squares is a chi-square):
   ``speed`` / ``spin`` (zero-mean normal), the orientation's rotation vector
   away from the ``<pose>`` orientation over ``tilt``. The start position is
   uniform in the start area (the layout keeps it inside). An attribute left out
-  is a flat prior within the bounds ``SPEED_BOUND`` / ``SPIN_BOUND``: a
-  residual ``(|v| - bound) / (BOUND_SOFTNESS * bound)`` beyond them, zero
+  is a flat prior within the bounds ``speed_bound`` / ``spin_bound``: a
+  residual ``(|v| - bound) / (bound_softness * bound)`` beyond them, zero
   inside, so the search stays in a plausible range without preferring any
   value in it. Orientation without ``tilt`` is flat on SO(3).
 
@@ -50,48 +50,39 @@ from dejaview.sim.rotation import (geodesic_angle, normalize_quat, quat_conjugat
                                    quat_to_rotvec)
 from dejaview.sim.state import STATE_WIDTH, State
 
-DEFAULT_SIGMA = 0.005
-"""Metres: default standard deviation of the observed end position (a robot's pose estimate)."""
-DEFAULT_ANGLE_SIGMA = 0.05
-"""Radians (2.9 degrees): default standard deviation of the observed end orientation."""
-DEFAULT_REST_SPEED = 0.02
-"""m/s: default standard deviation with which "at rest" observes the source's mean speed
-(``dejaview.losses.targets``): a tracker sees 2 mm of drift in 0.1 s."""
-DEFAULT_REST_SPIN = 0.2
-"""rad/s: default standard deviation with which "at rest" observes the source's mean spin: a mug
-settled on its side still rocks by about 0.02 rad in 0.1 s (measured on mug_off_counter's truth)."""
-SPEED_BOUND = 5.0
-"""m/s: bound of the flat prior on the start's linear speed (no ``<prior speed>``)."""
-SPIN_BOUND = 50.0
-"""rad/s: bound of the flat prior on the start's spin (no ``<prior spin>``); a ball of 5 cm rolling
-at 2.5 m/s spins at 50 rad/s."""
-BOUND_SOFTNESS = 0.05
-"""Beyond a flat prior's bound the residual grows by 1 per this fraction of the bound."""
-FEASIBILITY_MARGIN = 0.003
-"""Metres: a start whose source overlaps another object by more than this is infeasible (resting
-contact overlaps by the contact model's fraction of a millimetre)."""
-
-
 @dataclass(frozen=True)
 class PosteriorSettings:
     """The resolved ``<prior>`` and ``<observation>`` (None: flat prior within the bounds).
 
+    The defaults are the implementation's (the spec leaves them to it; each is written into
+    ``result.json``).
+
     Attributes:
-        sigma, angle_sigma: observation noise (m, rad).
-        rest_speed, rest_spin: noise of an observed rest (m/s, rad/s; ``dejaview.losses.targets``).
-        speed, spin, tilt: prior standard deviations (m/s, rad/s, rad), or None.
-        speed_bound, spin_bound: bounds of the flat priors (m/s, rad/s).
+        sigma: observation noise of a position (m; default 5 mm, a robot's pose estimate).
+        angle_sigma: of an orientation (rad; default 0.05, 2.9 degrees).
+        rest_speed: noise with which "at rest" observes the source's mean speed (m/s;
+            ``dejaview.losses.targets``; default 0.02: a tracker sees 2 mm of drift in 0.1 s).
+        rest_spin: ... its mean spin (rad/s; default 0.2: a mug settled on its side still rocks by
+            about 0.02 rad in 0.1 s, measured on mug_off_counter's truth).
+        speed, spin, tilt: prior standard deviations (m/s, rad/s, rad), or None: flat.
+        speed_bound: bound of the flat prior on the start's linear speed (m/s; default 5).
+        spin_bound: of its spin (rad/s; default 50: a 5 cm ball rolling at 2.5 m/s).
+        bound_softness: beyond a flat prior's bound the residual grows by 1 per this fraction of it.
+        feasibility_margin: a start whose source overlaps another object by more than this (m) is
+            infeasible (resting contact overlaps by the contact model's fraction of a millimetre).
     """
 
-    sigma: float = DEFAULT_SIGMA
-    angle_sigma: float = DEFAULT_ANGLE_SIGMA
-    rest_speed: float = DEFAULT_REST_SPEED
-    rest_spin: float = DEFAULT_REST_SPIN
+    sigma: float = 0.005
+    angle_sigma: float = 0.05
+    rest_speed: float = 0.02
+    rest_spin: float = 0.2
     speed: float | None = None
     spin: float | None = None
     tilt: float | None = None
-    speed_bound: float = SPEED_BOUND
-    spin_bound: float = SPIN_BOUND
+    speed_bound: float = 5.0
+    spin_bound: float = 50.0
+    bound_softness: float = 0.05
+    feasibility_margin: float = 0.003
 
     @staticmethod
     def from_scene(scene) -> "PosteriorSettings":
@@ -102,7 +93,7 @@ class PosteriorSettings:
         """
         inf = scene.inference
         prior, obs = inf.prior, inf.observation
-        sigma = DEFAULT_SIGMA
+        sigma = PosteriorSettings.sigma
         if obs is not None and obs.sigma is not None:
             sigma = obs.sigma
         elif obs is None and inf.heatmap is not None:
@@ -110,11 +101,11 @@ class PosteriorSettings:
         out = PosteriorSettings(
             sigma=float(sigma),
             angle_sigma=float(obs.angle_sigma) if obs is not None and obs.angle_sigma is not None
-            else DEFAULT_ANGLE_SIGMA,
+            else PosteriorSettings.angle_sigma,
             rest_speed=float(obs.rest_speed) if obs is not None and obs.rest_speed is not None
-            else DEFAULT_REST_SPEED,
+            else PosteriorSettings.rest_speed,
             rest_spin=float(obs.rest_spin) if obs is not None and obs.rest_spin is not None
-            else DEFAULT_REST_SPIN,
+            else PosteriorSettings.rest_spin,
             speed=None if prior is None or prior.speed is None else float(prior.speed),
             spin=None if prior is None or prior.spin is None else float(prior.spin),
             tilt=None if prior is None or prior.tilt is None else float(prior.tilt))
@@ -206,8 +197,9 @@ class Posterior:
         if problem.backend != "spheres":
             raise InferenceError(f"the posterior needs the spheres backend's residual Jacobians, not the "
                                  f"{problem.backend} backend's")
-        feasible = feasibility_check(scene, problem, collision=collision)
-        return cls(problem, PosteriorSettings.from_scene(scene), feasible=feasible,
+        settings = PosteriorSettings.from_scene(scene)
+        feasible = feasibility_check(scene, problem, margin=settings.feasibility_margin, collision=collision)
+        return cls(problem, settings, feasible=feasible,
                    model=ModelVariants.from_scene(scene, problem.world))
 
     def with_model(self, model) -> "Posterior":
@@ -384,7 +376,7 @@ class Posterior:
                 parts.append(v / sd)
             else:
                 norm = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-24)
-                parts.append(torch.relu(norm - bound) / (BOUND_SOFTNESS * bound))
+                parts.append(torch.relu(norm - bound) / (self.settings.bound_softness * bound))
         if not parts:
             return x[:, :0]
         return torch.cat(parts, -1)
@@ -503,7 +495,7 @@ def _anchor(sightings):
     return untimed[0] if untimed else max(sightings, key=lambda s: s.time)
 
 
-def feasibility_check(scene, problem, margin: float = FEASIBILITY_MARGIN, collision=None):
+def feasibility_check(scene, problem, margin: float = PosteriorSettings.feasibility_margin, collision=None):
     """``(position (B, 3), orientation (B, 4)) -> (B,) bool`` for ``Posterior``: the source, placed
     at each start, overlaps no other object (at its scene pose) by more than ``margin`` metres,
     decided on the exact geometry by python-fcl (``dejaview.geometry.collision``; ``collision``: the

@@ -2,7 +2,7 @@
 any search, sampling or heatmap work.
 
 A start is a past only where the source, placed there, overlaps no other object by more than
-``FEASIBILITY_MARGIN`` (``posterior.feasibility_check``). Where no start the prior allows is
+``PosteriorSettings.feasibility_margin`` (``posterior.feasibility_check``). Where no start the prior allows is
 free, every candidate costs infinity and a solve could only end with "every evaluation gave a
 non-finite loss"; ``check_start_area`` finds that out first and says why in one line, as
 ``dejaview validate`` does for the given poses::
@@ -50,13 +50,13 @@ import numpy as np
 
 from dejaview.errors import StartAreaError
 from dejaview.inference.params import StartAreaParams
-from dejaview.inference.posterior import FEASIBILITY_MARGIN
+from dejaview.inference.posterior import PosteriorSettings
 from dejaview.scene import bounds
 
 _MAX_NAMES = 3
 
 
-def check_start_area(scene, collision=None, margin: float = FEASIBILITY_MARGIN):
+def check_start_area(scene, collision=None, margin: float = PosteriorSettings.feasibility_margin):
     """Refuse a start area that cannot hold the source (module docstring).
 
     Args:

@@ -17,6 +17,7 @@ from lxml import etree
 
 from dejaview.cli import cli
 from dejaview.cli.bench import bench_module
+from dejaview.inference.posterior import PosteriorSettings
 from dejaview.scene import Scene
 
 stories = bench_module("stories")
@@ -123,7 +124,7 @@ def test_the_start_is_feasible_and_inside_its_area(written, index):
     hit, depth, _ = SceneCollision(scene).penetration(scene.inference.source, np.asarray(s["position"]),
                                                       np.asarray(s["orientation"]))
     hit, depth = bool(np.asarray(hit).reshape(-1)[0]), float(np.asarray(depth).reshape(-1)[0])
-    assert not hit or depth <= stories.FEASIBILITY_MARGIN
+    assert not hit or depth <= PosteriorSettings.feasibility_margin
     guess = scene.object(scene.inference.source)
     assert all(lo <= p <= hi for lo, p, hi in zip(area.min, guess.pose.position, area.max))
 

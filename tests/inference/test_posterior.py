@@ -14,7 +14,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.backends.spheres import SpheresProblem
-from dejaview.inference.posterior import (DEFAULT_ANGLE_SIGMA, DEFAULT_SIGMA, Posterior, PosteriorSettings,
+from dejaview.inference.posterior import (Posterior, PosteriorSettings,
                                           feasibility_check)
 from dejaview.scene import Observation, Prior, Scene
 
@@ -38,7 +38,7 @@ def truth_x(problem, name="box_along_shelf"):
 
 def test_defaults_fill_in_and_heatmap_sigma_stands_for_the_observation():
     s = PosteriorSettings.from_scene(shelf())
-    assert (s.sigma, s.angle_sigma) == (DEFAULT_SIGMA, DEFAULT_ANGLE_SIGMA)
+    assert (s.sigma, s.angle_sigma) == (PosteriorSettings.sigma, PosteriorSettings.angle_sigma)
     assert s.speed is s.spin is s.tilt is None
     mug = Scene.from_xml(SCENES / "mug_off_counter.xml")
     assert PosteriorSettings.from_scene(mug).sigma == mug.inference.heatmap.sigma
@@ -46,7 +46,7 @@ def test_defaults_fill_in_and_heatmap_sigma_stands_for_the_observation():
     assert PosteriorSettings.from_scene(given).sigma == 0.003
     js = PosteriorSettings.from_scene(shelf(prior=Prior(speed=1.0))).to_json()
     assert js["prior"]["speed"] == 1.0 and js["prior"]["speed_bound"] is None
-    assert js["prior"]["spin_bound"] > 0 and js["observation"]["sigma"] == DEFAULT_SIGMA
+    assert js["prior"]["spin_bound"] > 0 and js["observation"]["sigma"] == PosteriorSettings.sigma
 
 
 @pytest.mark.parametrize("settings, name", [(dict(sigma=-1.0), "sigma"), (dict(speed=0.0), "speed"),
