@@ -439,7 +439,7 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
 @csv_option
 @check_option
 def stories(seed, count, kinds, out, no_solve, csv_path, check):
-    """Random stories solved from where the source was seen lying still (issue 56).
+    """Random stories solved from where the source was seen lying still.
 
     Writes COUNT scene files of everyday kinds (a ball thrown, bounced or rolled off a table, a mug
     knocked off a counter, tossed or slid off a desk, a box thrown), each with the source's resting
@@ -470,7 +470,7 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
 @csv_option
 @check_option
 def tracked(samples, seed, csv_path, check):
-    """A tracked source against its last observation alone (issue 56).
+    """A tracked source against its last observation alone.
 
     Solves examples/scenes/box_tossed_tracked.xml (a box tossed, seen at four moments, two of them
     by position alone) with posterior samples, and the same scene with its last observation alone,
@@ -495,7 +495,7 @@ def tracked(samples, seed, csv_path, check):
 @csv_option
 @check_option
 def peers(quick, repeats, memory_batch, csv_path, check):
-    """DejaView against MuJoCo with finite differences, in one process (issue 25).
+    """DejaView against MuJoCo with finite differences, in one process.
 
     A box thrown across a table onto the floor with N - 1 boxes in its way
     (N = 1, 2, 4, 8, 16; 750 steps of 2 ms, 12 free parameters): DejaView's

@@ -16,13 +16,13 @@ contacts with 13 tangents, a touching body pair with 26, the integration with
   ``lam <- J^T lam`` back through them by hand-written vector-Jacobian
   products of the same three pieces (``adjoint.h``; the dual passes are
   their reference), without forming any Jacobian; bodies the adjoint has
-  not reached through contacts cost nothing there (``_Traced``, issue 25);
+  not reached through contacts cost nothing there (``_Traced``);
 - forward mode (``torch.func.jvp``/``jacfwd``, vmap included, or any
   ``torch.func`` transform): the rollout carries the product of the substep
   Jacobians ``Phi_t = d state_t / d state_0`` (13N x 13N) to every record and
   the tangent is ``Phi_t v`` (``_Rollout``; memory O(steps * (13N)^2)).
   ``DEJAVIEW_NATIVE_GRADIENT=phi`` sends reverse mode this way too
-  (``sum_t Phi_t^T g_t``), as before issue 25, for comparisons; a caller that
+  (``sum_t Phi_t^T g_t``), for comparisons; a caller that
   takes many reverse passes of the same rollouts asks for it with
   ``preferring("phi")`` (``Posterior.jacobian`` under model uncertainty).
 
@@ -280,8 +280,7 @@ class _Traced(torch.autograd.Function):
 GRADIENTS = ("adjoint", "phi")
 """How a native rollout differentiates (``DEJAVIEW_NATIVE_GRADIENT``): ``adjoint`` (default)
 runs reverse mode by the adjoint wherever only autograd asks for a gradient; ``phi`` carries
-the full state Jacobians (``_Rollout``) for reverse mode too (the engine before issue 25,
-kept for comparisons). Forward mode and ``torch.func`` transforms always use the Jacobians."""
+the full state Jacobians (``_Rollout``) for reverse mode too (kept for comparisons). Forward mode and ``torch.func`` transforms always use the Jacobians."""
 
 
 _PREFERRED = contextvars.ContextVar("dejaview_native_gradient", default="adjoint")
