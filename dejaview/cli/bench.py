@@ -1,8 +1,7 @@
 """``dejaview bench``: run the benchmarks of the source checkout's ``bench/`` folder.
 
-The benchmarks are scripts beside the package, not part of it (they read the
-example scenes and meshes of the checkout), so they are loaded by path from
-the checkout DejaView is installed from (``pip install -e .``).
+The benchmarks are scripts beside the package (they read the checkout's example scenes and
+meshes), loaded by path from the checkout DejaView is installed from (``pip install -e .``).
 """
 
 from __future__ import annotations
@@ -324,6 +323,37 @@ def search(scenes, seeds, pipelines, csv_path):
                                       seeds=tuple(int(s) for s in seeds.split(",")),
                                       pipelines=pipelines)
     _finish(rows, csv_path, False, [])
+
+
+def _seeds(ctx, param, value):
+    try:
+        seeds = tuple(int(v) for v in value.replace(" ", "").split(",") if v)
+    except ValueError:  # reported below
+        seeds = ()
+    if not seeds or min(seeds) < 0:
+        raise click.BadParameter(f"expected comma-separated non-negative integers, got {value!r}")
+    return seeds
+
+
+def _scenes_with_samples(ctx, param, value):
+    try:
+        return bench_module("posterior").parse_scenes(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+@command.command("posterior")
+@click.option("--scenes", default="mug_off_counter:500", show_default=True, callback=_scenes_with_samples,
+              help="Comma-separated bundled scenes, each NAME[:SAMPLES] (500 samples without).")
+@click.option("--seeds", default="0", show_default=True, callback=_seeds,
+              help="Comma-separated seeds, one solve each.")
+@csv_option
+@check_option
+def posterior(scenes, seeds, csv_path, check):
+    """The flagship posterior timed: `dejaview solve SCENE --samples N` in a fresh process, its
+    rollouts and largest R-hat against the targets (R-hat <= 1.1, <= 30 s on 2 cores)."""
+    rows = bench_module("posterior").run(print_fn=click.echo, scenes=scenes, seeds=seeds)
+    _finish(rows, csv_path, check, [r["met"] for r in rows])
 
 
 @command.command("calibration")

@@ -113,6 +113,7 @@ def test_cli_packing_writes_csv(tmp_path):
     (["sim"], ["--quick", "--compile", "--csv", "--check"]),
     (["packing"], ["--max-spheres", "--csv", "--check"]),
     (["optimizers"], ["--iterations", "--scene", "--optimizers", "--modes", "--quick", "--csv"]),
+    (["posterior"], ["--scenes", "--seeds", "--csv", "--check"]),
 ])
 def test_cli_help(args, options):
     result = CliRunner().invoke(cli, ["bench", *args, "--help"])
