@@ -6,22 +6,17 @@ The case is ``bench/crossengine.py``'s box-thrown (a 0.2 x 0.15 x 0.1 m, 1 kg bo
 ``optimizer="lbfgs"``, 300 iterations, ``<exploration epsilon="0.2" patience="25"/>``, from the
 scene's guess (the start area's centre, at rest, upright).
 
-Why it fails since befb267 (a box body meets the floor with its 8 exact corners, 1 mm spheres,
-in place of its sphere packing; before it, solver seeds 0-7 solved this scene at 7 of 8, now at
-3 of 8, the scene's seed 0 ending 61 mm and 91 deg off): at the default step (2 substeps,
-omega_0 h = 0.25) the corner contacts are under-resolved, the end's sensitivity to the start
-is spurious (it falls 2500-fold from 2 to 32 substeps at the same contact frequency, the
-packing's 23-fold) and the loss is smooth only over 1e-7 of a scaled parameter, so L-BFGS stalls
-on the way down from the guess. With 8 substeps at the same contact frequency it is solved
-exactly from the guess again.
-
-``xfail(strict=True)``: it documents the regression until the corner contacts are resolved;
-once it passes, drop the mark.
+What regressed in befb267 (a box body meets the floor with its 8 exact corners, 1 mm spheres, in
+place of its sphere packing; solver seeds 0-7 went from 7 of 8 to 0-3 of 8): at 2 substeps
+(omega_0 h = 0.25) a corner impact is under-resolved, the end's sensitivity to the start is
+spurious (it falls 2500-fold from 2 to 32 substeps at the same contact frequency, the packing's
+23-fold) and L-BFGS stalls on the way down from the guess. The fix: a scene with a movable box
+takes 4 substeps at the contact frequency of 2 (``dejaview.sim.build.step_settings``); solver
+seeds 0-7 then solve it at 7 of 8. This test fails without it.
 """
 
 import math
 
-import pytest
 import torch
 
 import dejaview
@@ -62,7 +57,6 @@ def _end_pose(problem, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         final = problem.simulate(x, steps=problem.duration_steps, record_every=problem.duration_steps).final
     com, q = final.position[0, problem.source], final.orientation[0, problem.source]
     return com - quat_rotate(q, problem.world.com[problem.source]), q
-
 
 
 def test_lbfgs_with_restarts_solves_an_own_engine_box_thrown_onto_the_floor():
