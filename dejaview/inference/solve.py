@@ -63,46 +63,25 @@ class SolveSettings:
     they share its defaults and its one-line errors.
 
     Attributes:
-        optimizer: ``auto`` (the search of ``dejaview.inference.search``) or a local optimiser.
-        iterations, seed, tolerance: budget, seed, early stop (scene loss in metres).
-        budget: rollouts of the ``auto`` search (None: ``SearchParams.budget``).
-        gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
-            optimisers' settings (``optimize``).
-        posterior: ``PosteriorSettings`` (prior and observation noise).
+        optimizer: ``auto`` (``MapSearch``) or a local optimiser (``fit_locally``).
+        iterations, seed: as resolved (``result.json`` reports them).
+        gradient: the gradient mode (``auto``: reverse; a local optimiser's: None for its default).
+        search: ``SearchParams`` of the ``auto`` search, else None.
+        local: ``LocalParams`` of a local optimiser, else None.
+        sampler: ``SamplerParams`` of the posterior sampler.
+        posterior: ``PosteriorSettings`` (prior and observation noise) of the ``auto`` search.
         samples: posterior samples to draw after the search (0: the most probable start alone).
     """
 
     optimizer: str
     iterations: int
     seed: int
-    tolerance: float | None = None
-    budget: int | None = None
-    gradient: str | None = None
-    lr: float | None = None
-    multistart: int = 1
-    screen: int = 0
-    screen_rounds: int = 1
-    screen_near: float = LocalParams.screen_near
-    epsilon: float = 0.0
-    patience: int = 25
+    gradient: str | None
+    search: SearchParams | None
+    local: LocalParams | None
+    sampler: SamplerParams
     posterior: object = None
     samples: int = 0
-
-    def search_params(self) -> SearchParams:
-        """The ``auto`` search's parameters."""
-        budget = {} if self.budget is None else {"budget": self.budget}
-        return SearchParams(iterations=self.iterations, seed=self.seed, tolerance=self.tolerance, **budget)
-
-    def sampler_params(self) -> SamplerParams:
-        """The posterior sampler's parameters."""
-        return SamplerParams(seed=self.seed)
-
-    def local_params(self) -> LocalParams:
-        """The local pipeline's parameters (``gd|adam|lbfgs|bfgs``)."""
-        return LocalParams(optimizer=self.optimizer, iterations=self.iterations, seed=self.seed,
-                           tolerance=self.tolerance, gradient=self.gradient, lr=self.lr,
-                           multistart=self.multistart, screen=self.screen, screen_rounds=self.screen_rounds,
-                           screen_near=self.screen_near, epsilon=self.epsilon, patience=self.patience)
 
     @staticmethod
     def resolve(scene, params: SolveParams | None = None) -> "SolveSettings":
@@ -147,8 +126,10 @@ class SolveSettings:
                                      f"not to the default search: drop it or choose an optimizer")
             if budget is not None:
                 _check_count(budget, "budget", 1)
-            return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed,
-                                 tolerance=tolerance, budget=budget, gradient="reverse",
+            search = SearchParams(iterations=iterations, seed=seed, tolerance=tolerance,
+                                  **({} if budget is None else {"budget": budget}))
+            return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed, gradient="reverse",
+                                 search=search, local=None, sampler=SamplerParams(seed=seed),
                                  posterior=PosteriorSettings.from_scene(scene), samples=samples)
         if budget is not None:
             raise InferenceError("budget applies to the default search (optimizer auto)")
@@ -165,12 +146,14 @@ class SolveSettings:
         gradient = given.get("gradient", inf.gradient)
         if gradient is not None and gradient not in ("forward", "reverse"):
             raise InferenceError(f"unknown gradient mode {gradient!r}; choose forward or reverse")
-        return SolveSettings(
+        local = LocalParams(
             optimizer=optimizer, iterations=iterations, seed=seed, tolerance=tolerance,
             gradient=gradient, lr=given.get("lr"), multistart=multistart, screen=screen,
             screen_rounds=screen_rounds, screen_near=screen_near,
-            epsilon=given.get("epsilon", exploration.epsilon if exploration else 0.0),
-            patience=given.get("patience", exploration.patience if exploration else 25))
+            epsilon=given.get("epsilon", exploration.epsilon if exploration else LocalParams.epsilon),
+            patience=given.get("patience", exploration.patience if exploration else LocalParams.patience))
+        return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed, gradient=gradient,
+                             search=None, local=local, sampler=SamplerParams(seed=seed))
 
 
 def solve(scene, params: SolveParams | None = None, *, callback=None, should_stop=None, backend=None,
@@ -232,7 +215,7 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
             collision, kde_rows = check_solve_memory(scene, problem, settings.samples, collision,
                                                      params.memory_limit)
         post = Posterior.from_scene(scene, problem=problem, collision=collision)
-        search = settings.search_params()
+        search = settings.search
         opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
         extra = _search_report(post, opt, search, problem.layout)
         if settings.samples and not opt.stopped and math.isfinite(opt.loss):
@@ -248,7 +231,7 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
     else:
         if truth is not None:
             raise InferenceError("a truth is placed in the posterior of the default search (optimizer auto)")
-        opt, extra = fit_locally(problem, settings.local_params(), callback=callback, should_stop=should_stop)
+        opt, extra = fit_locally(problem, settings.local, callback=callback, should_stop=should_stop)
     if not math.isfinite(opt.loss):
         if opt.stopped and not opt.history:
             raise InferenceError("stopped before the first iteration: no solution to report")
@@ -314,5 +297,5 @@ def _sample(post, opt, settings: SolveSettings, callback, should_stop, kde_rows:
             callback(Progress(iteration=it, loss=opt.cost, best_loss=opt.cost, duration_s=0.0,
                               elapsed_s=(last.elapsed_s if last else 0.0) + d["elapsed_s"], restarted=False,
                               evaluations=post.rollouts, phase="sample", fraction=d["fraction"]))
-    params = replace(settings.sampler_params(), kde_rows=kde_rows)
+    params = replace(settings.sampler, kde_rows=kde_rows)
     return Sampler(params).sample(post, opt.modes, settings.samples, callback=report, should_stop=should_stop)
