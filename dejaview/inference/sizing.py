@@ -42,7 +42,7 @@ MIN_KDE_ROWS = 64
 
 
 def sampler_bytes(n: int, candidate: int, kde_rows: int = 0) -> int:
-    """Bytes ``sample_posterior`` for n samples holds at its peak beyond what its process held before,
+    """Bytes ``Sampler.sample`` for n samples holds at its peak beyond what its process held before,
     ``candidate`` bytes per candidate rollout (``candidate_bytes``): one run's particles, each with
     a rollout and ``PARTICLE_BYTES``, and the kernel density estimate of half of them against the
     other half (``KDE_COPIES`` matrices: quadratic in the particles), ``kde_rows`` particles of
