@@ -55,3 +55,14 @@ def disk_full_at(monkeypatch):
         state["name"] = name
 
     return set_full
+
+
+def needs_mount_namespace():
+    """A skip mark for tests that mount a small tmpfs of their own (a real full disk): where this
+    process may not make a mount namespace (``unshare -rm`` fails, e.g. a container without user
+    namespaces), the same paths are tested with a patched writer instead (``disk_full_at``). One
+    check for the tests and ``dejaview bench soak`` (``bench/soak.py``'s ``can_mount``)."""
+    from dejaview.cli.bench import bench_module
+
+    return pytest.mark.skipif(not bench_module("soak").can_mount(),
+                              reason="needs a mount namespace (unshare -rm) for a small tmpfs")

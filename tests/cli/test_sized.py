@@ -2,7 +2,6 @@
 kept) and result sets written whole or not at all (a full disk mid-set)."""
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from dejaview.cli import main
+from tests.conftest import needs_mount_namespace
 
 ROOT = Path(__file__).resolve().parents[2]
 RAMP = ROOT / "examples" / "scenes" / "ball_down_ramp.xml"
@@ -103,11 +103,11 @@ def test_a_full_disk_mid_set_leaves_the_earlier_result_set_and_one_line(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no partial folder left
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(
-    ["unshare", "-rm", "true"], capture_output=True).returncode != 0,
-    reason="needs a mount namespace (unshare -rm) for a small tmpfs")
+@needs_mount_namespace()
 def test_a_real_full_disk_fails_the_solve_in_one_line_and_leaves_nothing(tmp_path):
-    """A 24 KiB tmpfs (a mount namespace of its own): result.json (13 kB) fits, the set does not."""
+    """A 24 KiB tmpfs (a mount namespace of its own): result.json (13 kB) fits, the set does not.
+    Skipped where no mount namespace can be had (``needs_mount_namespace``); the patched-writer test
+    above checks the same failure."""
     disk = tmp_path / "disk"
     disk.mkdir()
     script = (f"mount -t tmpfs -o size=24k tmpfs {disk} && {sys.executable} -m dejaview solve {RAMP} "

@@ -1,12 +1,12 @@
 """``dejaview bench soak``'s full disk: it falls between the kills, and the filler leaves no room."""
 
-import shutil
 import subprocess
 import sys
 
 import pytest
 
 from dejaview.cli.bench import bench_module
+from tests.conftest import needs_mount_namespace
 
 
 def test_the_disk_is_full_in_the_middle_of_the_longest_stretch_without_a_kill():
@@ -15,11 +15,11 @@ def test_the_disk_is_full_in_the_middle_of_the_longest_stretch_without_a_kill():
     assert soak.full_window([], 600.0) == (270.0, 330.0)  # at most FULL_S = 60 s
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(
-    ["unshare", "-rm", "true"], capture_output=True).returncode != 0,
-    reason="needs a mount namespace (unshare -rm) for a small tmpfs")
+@needs_mount_namespace()
 def test_the_filler_leaves_no_room_on_a_small_disk_and_its_removal_frees_it(tmp_path):
-    """A 1 MiB tmpfs: after ``fill_disk`` one byte more is ENOSPC; without the filler it is written."""
+    """A 1 MiB tmpfs: after ``fill_disk`` one byte more is ENOSPC; without the filler it is written.
+    Skipped where no mount namespace can be had (``needs_mount_namespace``): the soak then runs
+    without filling the disk and says so."""
     path = bench_module("soak").__file__
     code = ("import errno, importlib.util, os, sys; from pathlib import Path; "
             f"spec = importlib.util.spec_from_file_location('soak', {path!r}); "
