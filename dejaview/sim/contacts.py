@@ -150,6 +150,19 @@ from dejaview.sim.rotation import quat_to_matrix, small_matmul
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
 
 
+def candidate_material(physics: torch.Tensor, mu: torch.Tensor, unload: torch.Tensor, stiff: torch.Tensor):
+    """Each candidate's physics (``World.physics``, (B, 3) logs of factors) applied to a contact
+    law's friction, unloading factor (capped at 1) and stiffness, each with the batch first
+    (size 1 or B); the factors broadcast over the other dims."""
+    f = torch.exp(physics)
+
+    def per_candidate(column: int, like: torch.Tensor) -> torch.Tensor:
+        return f[:, column].reshape((-1,) + (1,) * (like.dim() - 1))
+
+    return (mu * per_candidate(0, mu), torch.clamp(unload * per_candidate(1, unload), max=1.0),
+            stiff * per_candidate(2, stiff))
+
+
 def deepest(depth: torch.Tensor, capacity: int) -> torch.Tensor:
     """Indices (..., capacity) of the deepest candidates along the last dim of ``depth`` (..., M).
 
@@ -381,6 +394,9 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     stiff = (m * omega ** 2)[None, :, None]  # (1, N, 1)
     unload_k, mu_k = world.unload_static[:, which], world.mu_static[:, which]  # (N, K)
     unload = unload_k[None, :, :, None].expand(b, nb, k, s).reshape(b, nb, k * s)
+    mu = mu_k[None, :, :, None]
+    if world.physics is not None:
+        mu, unload, stiff = candidate_material(world.physics, mu, unload, stiff)
     flat_depth = depth.reshape(b, nb, k * s)
     weight = depth_weights(flat_depth)
     fn = normal_force(flat_depth, weight, vn.reshape(b, nb, k * s), stiff, unload,
@@ -389,7 +405,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     inv_mass = (1.0 / m)[:, None, None] + _inverse_mass(arm, _slip_direction(vt), inv_inertia_w,
                                                        world.inv_inertia_min)
     stick = weight.reshape(b, nb, k, s) / (inv_mass * h)
-    ft = friction_force(vt, mu_k[None, :, :, None] * fn, stick)
+    ft = friction_force(vt, mu * fn, stick)
     fn = line_roll_stick(fn.reshape(b, nb, k * s), weight, arm.reshape(b, nb, k * s, 3),
                          normal.reshape(b, nb, k * s, 3), state.angular_velocity, m, inv_inertia_w,
                          roll_stop_time(h, omega), ~is_box if edges else None).reshape(b, nb, k, s)
@@ -557,6 +573,9 @@ def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torc
     omega = world.contact.frequency
     stiff = (mass_p * omega ** 2)[None, :, None]
     unload = unload_p[None, :, None]
+    mu = mu_p[None, :, None]
+    if world.physics is not None:
+        mu, unload, stiff = candidate_material(world.physics, mu, unload, stiff)
     weight = depth_weights(depth)
     fn = normal_force(depth, weight, vn, stiff, unload, world.contact.unload_velocity)
     vt = vt + h * predicted_pair_slip_change(fn, n, arm_a, arm_b, world.mass[ia], world.mass[ib],
@@ -567,7 +586,7 @@ def _pair_law(world, state, cand, ia: torch.Tensor, ib: torch.Tensor, mu_p: torc
                 + _inverse_mass(arm_a, t, inv_inertia_w[:, ia], inv_i[ia])
                 + _inverse_mass(arm_b, t, inv_inertia_w[:, ib], inv_i[ib]))
     stick = weight / (inv_mass * h)
-    ft = friction_force(vt, mu_p[None, :, None] * fn, stick)
+    ft = friction_force(vt, mu * fn, stick)
     f_b = fn.unsqueeze(-1) * n + ft  # on b, (B, P, C, 3)
     return (f_b.sum(2), torch.linalg.cross(arm_a, -f_b, dim=-1).sum(2),
             torch.linalg.cross(arm_b, f_b, dim=-1).sum(2))

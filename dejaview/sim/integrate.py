@@ -34,6 +34,7 @@ pays off for long optimisations, heatmaps and benchmarks.
 from __future__ import annotations
 
 import types
+from dataclasses import replace
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -146,7 +147,8 @@ def compiled_chunk(world: World, steps: int):
 def rollout(world: World, state: State, steps: int | None = None, record_every: int = 1,
             checkpoint_every: int | None = None, step_fn=None,
             broadphase: bool | None = None, compile: bool = False,
-            compile_chunk: int = 5, engine: str = "torch", max_steps: int | None = None) -> Trajectory:
+            compile_chunk: int = 5, engine: str = "torch", max_steps: int | None = None,
+            physics: torch.Tensor | None = None) -> Trajectory:
     """Simulate ``steps`` steps from ``state`` and record every ``record_every``-th state.
 
     Args:
@@ -167,6 +169,8 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
             ``auto`` (native where it applies). Native rollouts keep no autograd graph,
             so ``checkpoint_every``, ``compile`` and ``broadphase`` do not apply to them.
         max_steps: step budget, steps x substeps (default ``dejaview.scene.bounds.max_steps()``).
+        physics: optional (B, 3), each candidate's physics (``World.physics``): the logs of
+            factors on friction, unloading and stiffness; differentiable (native: reverse mode).
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records.
     Raises:
@@ -187,7 +191,11 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
         if native.use_native(engine, world):
             if step_fn is not None:
                 raise ValueError("step_fn replaces the torch engine's step; it needs engine='torch'")
-            return native.native_rollout(world, state, steps, record_every)
+            return native.native_rollout(world, state, steps, record_every, physics=physics)
+    if physics is not None:
+        if compile:
+            raise ValueError("a rollout with per-candidate physics does not compile")
+        world = replace(world, physics=physics)
     fn = step if step_fn is None else step_fn
     records = [state]
     record_steps = [0]

@@ -258,6 +258,9 @@ class World:
         gravity: (3,) m/s^2.
         dt: step (s); substeps: integration substeps per step; steps: default rollout length.
         contact: contact model numbers.
+        physics: (B, 3) or None: one physics per candidate of a batch, the logs of factors on
+            every pair's friction, unloading factor (capped at 1) and the contact stiffness
+            (``dejaview.sim.physics``; ``integrate.rollout``'s ``physics`` sets it).
     """
 
     names: tuple[str, ...]
@@ -285,6 +288,7 @@ class World:
     substeps: int
     steps: int
     contact: ContactSettings
+    physics: torch.Tensor | None = None
 
     # ---------------------------------------------------------------- build
     @staticmethod

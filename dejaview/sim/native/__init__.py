@@ -197,10 +197,11 @@ class _Rollout(torch.autograd.Function):
     """init (B, N, 13) -> recorded states (B, R, N, 13), Jacobians (B, R, 13N, 13N)."""
 
     @staticmethod
-    def forward(init, steps, record_every, with_jac, packed):
+    def forward(init, steps, record_every, with_jac, packed, physics=None):
         tensors, floats, ints = packed
         states, phi, _ = extension().rollout(init.detach().contiguous(), steps, record_every,
-                                             1 if with_jac else 0, tensors, floats, ints, threads())
+                                             1 if with_jac else 0, tensors, floats, ints, threads(),
+                                             _plain(physics))
         return states, phi
 
     @staticmethod
@@ -219,7 +220,7 @@ class _Rollout(torch.autograd.Function):
         (phi,) = ctx.saved_tensors
         b, r, n, _ = grad_states.shape
         g = torch.einsum("brij,bri->bj", phi, grad_states.reshape(b, r, STATE_WIDTH * n))
-        return g.reshape(b, n, STATE_WIDTH), None, None, None, None
+        return g.reshape(b, n, STATE_WIDTH), None, None, None, None, None
 
     @staticmethod
     def jvp(ctx, tangent, *_):
@@ -232,14 +233,17 @@ class _Rollout(torch.autograd.Function):
         return out.reshape(b, r, dim // STATE_WIDTH, STATE_WIDTH), None
 
     @staticmethod
-    def vmap(info, in_dims, init, steps, record_every, with_jac, packed):
+    def vmap(info, in_dims, init, steps, record_every, with_jac, packed, physics=None):
         dim = in_dims[0]
+        if physics is not None and in_dims[5] is not None:
+            raise SimulationError("native rollout: physics cannot be batched by vmap")
         if dim is None:
-            return _Rollout.apply(init, steps, record_every, with_jac, packed), (None, None)
+            return _Rollout.apply(init, steps, record_every, with_jac, packed, physics), (None, None)
         x = init.movedim(dim, 0)
         v, b = x.shape[:2]
+        ph = None if physics is None else physics.repeat(v, 1)
         states, phi = _Rollout.apply(x.reshape(v * b, *x.shape[2:]), steps, record_every, with_jac,
-                                     packed)
+                                     packed, ph)
         return (states.reshape(v, b, *states.shape[1:]), phi.reshape(v, b, *phi.shape[1:])), (0, 0)
 
 
@@ -259,22 +263,23 @@ class _Traced(torch.autograd.Function):
     # the arguments through inspect.signature (~0.1 ms a call); this Function never runs under
     # torch.func transforms (``_reverse_only``), which are what setup_context is for
     @staticmethod
-    def forward(ctx, init, steps, record_every, packed):
+    def forward(ctx, init, steps, record_every, packed, physics=None):
         tensors, floats, ints = packed
+        plain = _plain(physics)
         states, trace, _, *log = extension().rollout(init.detach().contiguous(), steps, record_every, 2,
-                                                     tensors, floats, ints, threads())
+                                                     tensors, floats, ints, threads(), plain)
         ctx.mark_non_differentiable(trace)
         ctx.steps, ctx.record_every, ctx.packed = steps, record_every, packed
-        ctx.save_for_backward(init.detach(), states, trace, *log)
+        ctx.save_for_backward(init.detach(), states, trace, plain, *log)
         return states, trace
 
     @staticmethod
     def backward(ctx, grad_states, _grad_trace):
-        init, states, trace, *log = ctx.saved_tensors
+        init, states, trace, plain, *log = ctx.saved_tensors
         tensors, floats, ints = ctx.packed
-        g = extension().adjoint(init, states, trace, grad_states, ctx.steps, ctx.record_every, tensors,
-                                floats, ints, threads(), *log)
-        return g, None, None, None
+        g, g_phys = extension().adjoint(init, states, trace, grad_states, ctx.steps, ctx.record_every,
+                                        tensors, floats, ints, threads(), *log, plain)
+        return g, None, None, None, (g_phys if g_phys.numel() else None)
 
 
 GRADIENTS = ("adjoint", "phi")
@@ -331,7 +336,7 @@ def _needs_jacobian(init: torch.Tensor) -> bool:
 
 
 def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
-                   check_divergence: bool = False, first_step: int = 0):
+                   check_divergence: bool = False, first_step: int = 0, physics: torch.Tensor | None = None):
     """``dejaview.sim.integrate.rollout`` on the native simulator.
 
     Args:
@@ -343,11 +348,15 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
             when a state turns non-finite or out of range (no gradients then). Off, a diverged
             candidate of a batch just carries its NaN or inf to its loss.
         first_step: number of the first step, for the error (simulations run in chunks).
+        physics: optional (B, 3) float64, each candidate's physics as the logs of factors on every
+            pair's friction, unloading factor (capped at 1) and the contact stiffness
+            (``dejaview.sim.physics``); differentiable in reverse mode.
     Returns:
         Trajectory with T = 1 + ceil(steps / record_every) records, differentiable with
-        respect to ``state`` in reverse and forward mode.
+        respect to ``state`` in reverse and forward mode, and to ``physics`` in reverse mode.
     Raises:
-        SimulationError: with ``check_divergence``, naming the object, the step and the quantity.
+        SimulationError: with ``check_divergence``, naming the object, the step and the quantity;
+            a forward-mode tangent of ``physics`` (reverse mode only).
     """
     from dejaview.sim.state import Trajectory
 
@@ -356,29 +365,48 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")
     init = state.flat()  # (B, N, STATE_WIDTH)
+    physics_grad = physics is not None and _physics_needs_gradient(physics)
     if check_divergence:
         from dejaview.sim import divergence
 
         tensors, floats, ints = packed
         states, _, status = extension().rollout(init.detach().contiguous(), int(steps), int(record_every),
                                                 0, tensors, floats + divergence.native_limits(), ints,
-                                                threads())
+                                                threads(), _plain(physics))
         bad = (status[:, 0] >= 0).nonzero()
         if bad.numel():
             b = int(bad[0, 0])
             step, body, quantity, record = (int(v) for v in status[b])
             raise divergence.describe(world, first_step + step, body, quantity, states[b, record, body])
-    elif not _needs_jacobian(init):  # values only: no autograd.Function to pass through
+    elif not (_needs_jacobian(init) or physics_grad):  # values only: no autograd.Function to pass through
         tensors, floats, ints = packed
         states, _, _ = extension().rollout(init.detach().contiguous(), int(steps), int(record_every), 0,
-                                           tensors, floats, ints, threads())
-    elif _reverse_only(init) and gradient_path() == "adjoint":
-        states, _ = _Traced.apply(init, int(steps), int(record_every), packed)
+                                           tensors, floats, ints, threads(), _plain(physics))
+    elif physics_grad or (_reverse_only(init) and gradient_path() == "adjoint"):
+        if not _reverse_only(init):
+            raise SimulationError("native rollout: derivatives with respect to the physics are "
+                                  "taken in reverse mode only (no forward mode or torch.func)")
+        states, _ = _Traced.apply(init, int(steps), int(record_every), packed, physics)
     else:
-        states, _ = _Rollout.apply(init, int(steps), int(record_every), True, packed)
+        states, _ = _Rollout.apply(init, int(steps), int(record_every), True, packed, physics)
     seq = torch.cat([init.unsqueeze(0), states.transpose(0, 1)], 0)  # (T, B, N, STATE_WIDTH)
     return Trajectory(State.from_flat(seq),
                       record_steps(steps, record_every), world.dt)
+
+
+def _plain(physics: torch.Tensor | None) -> torch.Tensor:
+    """``physics`` (B, 3) as the extension reads it (float64, contiguous, no autograd), or an empty
+    tensor for none."""
+    if physics is None:
+        return torch.empty(0, dtype=torch.float64)
+    return physics.detach().to(torch.float64).contiguous()
+
+
+def _physics_needs_gradient(physics: torch.Tensor) -> bool:
+    import torch._C._functorch as ft
+
+    return ((torch.is_grad_enabled() and physics.requires_grad) or ft.peek_interpreter_stack() is not None
+            or torch.autograd.forward_ad.unpack_dual(physics).tangent is not None)
 
 
 def record_steps(steps: int, record_every: int) -> torch.Tensor:

@@ -66,6 +66,8 @@ struct ContactLaw {
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
   bool b_wins;
   S f[3];
+  // the way back's cotangents of the law's material (mu, stiff, unload), for the physics' gradient
+  mutable S mub = S(0), stiffb = S(0), unloadb = S(0);
 
   // The values run forward_normal, then predict (once the set's normal forces are known), then
   // forward_friction; the way back runs backward_friction, predict_backward, then (once the
@@ -151,6 +153,7 @@ struct ContactLaw {
     const S speedb = bb * stick;
     for (int i = 0; i < 3; ++i) vtb[i] += speedb * vs[i] / speed;
     fnb += cb * mu;
+    mub = cb * fn;
     // stick = weight / (im h)
     weightb = stickb / (im * h);
     const S imb = -stickb * stick / im;
@@ -176,6 +179,15 @@ struct ContactLaw {
     for (int i = 0; i < 3; ++i) vtb[i] += tb[i] / tden - vs[i] * tv;
   }
 
+  // gp (3) += the gradient of the way back's loss with respect to the logs of the World's physics
+  // factors (mu_scale, unload_scale, stiff_scale: World), from the cotangents the two passes left
+  // (an unloading factor held at 1 by scaled_unload has none)
+  void add_material_gradient(S* gp) const {
+    gp[0] += mub * mu;
+    if (unload < S(1)) gp[1] += unloadb * unload;
+    gp[2] += stiffb * stiff;
+  }
+
   // backward_normal where y = fn n also entered the set's sums, with cotangent yb (3)
   void backward_normal_and_sum(S fnb, const S* yb, const S* vtb, S* nb, S* velb, S& depthb,
                                S& weightb) const {
@@ -189,6 +201,8 @@ struct ContactLaw {
     S vtb[3] = {vtb_in[0], vtb_in[1], vtb_in[2]};
     // fn = weight stiff depth g, g = unload + (1 - unload) sigmoid(-vn / uv)
     weightb += fnb * stiff * depth * g;
+    stiffb = fnb * weight * depth * g;
+    unloadb = fnb * weight * stiff * depth * (S(1) - loading);
     depthb = fnb * weight * stiff * g;
     const S loadingb = fnb * weight * stiff * depth * (S(1) - unload);
     S vnb = -loadingb * loading * (S(1) - loading) / unload_velocity;

@@ -93,9 +93,9 @@ struct PairAdjoint {
       cross3(st_b + STATE_ANGULAR_VELOCITY, ct.arm_b, wb);
       for (int i = 0; i < 3; ++i)
         law.vel[i] = (st_b[STATE_LINEAR_VELOCITY + i] + wb[i]) - (st_a[STATE_LINEAR_VELOCITY + i] + wa[i]);
-      law.stiff = w.mass_pair[pi] * w.omega * w.omega;
-      law.unload = w.unload_pair[pi];
-      law.mu = w.mu_pair[pi];
+      law.stiff = contact_stiffness(w, w.mass_pair[pi]);
+      law.unload = scaled_unload(w, w.unload_pair[pi]);
+      law.mu = scaled_mu(w, w.mu_pair[pi]);
       law.inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
       law.h = w.h;
       law.unload_velocity = w.unload_velocity;
@@ -147,7 +147,7 @@ struct PairAdjoint {
   }
 
   // ga, gb (STATE_WIDTH each) += (d W_p / d (st_a, st_b))^T mu, mu (12) the cotangent of (wrench on a, on b)
-  void backward(const World<S>& w, const S* st_a, const S* st_b, const S* mu, S* ga, S* gb) {
+  void backward(const World<S>& w, const S* st_a, const S* st_b, const S* mu, S* ga, S* gb, S* gp) {
     if (contacts.empty()) return;
     const S tiny = std::numeric_limits<S>::min();
     S xab[3] = {0, 0, 0}, xbb[3] = {0, 0, 0}, vab[3] = {0, 0, 0}, vbb[3] = {0, 0, 0};
@@ -218,6 +218,7 @@ struct PairAdjoint {
       S depthb;
       S weightb = ct.weightb;
       law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
+      law.add_material_gradient(gp);
       // vel = (v_b + om_b x arm_b) - (v_a + om_a x arm_a)
       for (int i = 0; i < 3; ++i) {
         vbb[i] += velb[i];

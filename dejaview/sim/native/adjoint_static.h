@@ -94,9 +94,9 @@ struct StaticAdjoint {
       S wr[3];
       cross3(om, ct.arm, wr);
       for (int i = 0; i < 3; ++i) law.vel[i] = v[i] + wr[i];
-      law.stiff = mass * w.omega * w.omega;
-      law.unload = w.unload_static[a * w.k + ct.shape];
-      law.mu = w.mu_static[a * w.k + ct.shape];
+      law.stiff = contact_stiffness(w, mass);
+      law.unload = scaled_unload(w, w.unload_static[a * w.k + ct.shape]);
+      law.mu = scaled_mu(w, w.mu_static[a * w.k + ct.shape]);
       law.inv_m = S(1) / mass;
       law.h = w.h;
       law.unload_velocity = w.unload_velocity;
@@ -159,8 +159,9 @@ struct StaticAdjoint {
       }
   }
 
-  // gs (STATE_WIDTH) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent
-  void backward(const World<S>& w, int a, const S* mu, S* gs) {
+  // gs (STATE_WIDTH) += (d W_s / d st)^T mu, mu (6) the wrench's cotangent; gp (3) += its gradient
+  // with respect to the logs of the World's physics factors (ContactLaw::add_material_gradient)
+  void backward(const World<S>& w, int a, const S* mu, S* gs, S* gp) {
     if (broken || empty) return;
     const S tiny = std::numeric_limits<S>::min();
     S xb[3] = {0, 0, 0}, rb[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, vb[3] = {0, 0, 0}, omb[3] = {0, 0, 0};
@@ -239,6 +240,7 @@ struct StaticAdjoint {
       S depthb;
       S weightb = ct.weightb;
       law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
+      law.add_material_gradient(gp);
       // vel = v + om x arm
       for (int i = 0; i < 3; ++i) vb[i] += velb[i];
       add_cross(ct.arm, velb, omb);

@@ -177,10 +177,10 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     total = total + depth[k];
   }
   const S tiny = std::numeric_limits<S>::min();
-  const S stiff = w.mass_pair[pi] * w.omega * w.omega;
-  const S unload = w.unload_pair[pi];
+  const S stiff = contact_stiffness(w, w.mass_pair[pi]);
+  const S unload = scaled_unload(w, w.unload_pair[pi]);
   const S inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
-  const S h = w.h, uv = w.unload_velocity, mu = w.mu_pair[pi];
+  const S h = w.h, uv = w.unload_velocity, mu = scaled_mu(w, w.mu_pair[pi]);
   const S imin_a = w.inv_i_min[a], imin_b = w.inv_i_min[b];
   // in stages, as static_wrench: the relative normal velocity, the loading (exp), the law
   // (vectorised for values), the sums in pick order

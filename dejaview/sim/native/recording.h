@@ -157,11 +157,13 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
 }
 
 // Reverse mode of one candidate from its rollout (init, records, trace of run_candidate):
-// grad_init = sum_t Phi_t^T grad_t, as lam <- J^T lam backwards through the substeps.
+// grad_init = sum_t Phi_t^T grad_t, as lam <- J^T lam backwards through the substeps; out_phys (3),
+// where given, the gradient with respect to the logs of w's physics factors (World::mu_scale, ...).
 template <typename S>
 void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every,
                        const S* rec_states, const S* trace, const S* grad, S* out,
-                       const int32_t* counts = nullptr, const uint32_t* picks = nullptr, int64_t total = 0) {
+                       const int32_t* counts = nullptr, const uint32_t* picks = nullptr, int64_t total = 0,
+                       S* out_phys = nullptr) {
   const int n = w.n;
   const int dim = STATE_WIDTH * n;
   Scratch<S> sc;
@@ -189,6 +191,17 @@ void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t 
     }
   }
   std::copy(lam.begin(), lam.end(), out);
+  if (out_phys != nullptr) std::copy(sc.gphys, sc.gphys + 3, out_phys);
+}
+
+// w with one candidate's physics: phys (3) the logs of its friction, unloading and stiffness factors
+template <typename S>
+World<S> with_physics(const World<S>& w, const S* phys) {
+  World<S> v = w;
+  v.mu_scale = std::exp(phys[0]);
+  v.unload_scale = std::exp(phys[1]);
+  v.stiff_scale = std::exp(phys[2]);
+  return v;
 }
 
 }  // namespace dv

@@ -65,6 +65,15 @@ void parallel_for(int64_t b, int64_t threads, F work) {
   if (error) std::rethrow_exception(error);
 }
 
+// the rows of a (B, 3) float64 CPU tensor of physics (rollout's `physics`), or null where it is empty
+inline const double* physics_of(torch::Tensor& physics, int64_t b) {
+  if (!physics.defined() || physics.numel() == 0) return nullptr;
+  TORCH_CHECK(physics.scalar_type() == torch::kFloat64 && physics.device().is_cpu() && physics.dim() == 2 &&
+              physics.size(0) == b && physics.size(1) == 3, "physics must be (B, 3) float64 on the CPU");
+  physics = physics.contiguous();
+  return physics.data_ptr<double>();
+}
+
 }  // namespace dv
 
 // threads: candidates are spread over this many threads (torch's intra-op pool is not used, so the
@@ -76,10 +85,11 @@ void parallel_for(int64_t b, int64_t threads, F work) {
 // picks (total,) int32 (shape << 16 | sphere), starts (B + 1,) int64 (candidate i's picks are
 // picks[starts[i]:starts[i + 1]]); all three empty where the scene's indices do not fit. status:
 // where a candidate diverged (run_candidate), checked only when floats carries the limits
-// {reach, speed} after the schema's FLOATS (mode 0 only).
+// {reach, speed} after the schema's FLOATS (mode 0 only). physics: (B, 3) float64, each candidate's
+// logs of its friction, unloading and stiffness factors (World::mu_scale, ...), or empty (none).
 std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, int64_t mode,
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
-                                   std::vector<int64_t> ints, int64_t threads) {
+                                   std::vector<int64_t> ints, int64_t threads, torch::Tensor physics) {
   TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
   TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH, "init must be (B, N, 13)");
   TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
@@ -89,6 +99,7 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
   init = init.contiguous();
   for (auto& t : world) t = t.contiguous();
   const int64_t b = init.size(0), n = init.size(1);
+  const double* ph = dv::physics_of(physics, b);
   const int64_t dim = dv::STATE_WIDTH * n;
   const int64_t records = (steps + record_every - 1) / record_every;
   const bool with_jac = mode == 1;
@@ -116,7 +127,8 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
     pybind11::gil_scoped_release no_gil;  // other Python threads (a server's event loop) run meanwhile
     if (mode == 2 && dv::pick_log_fits(w)) logs.resize(b);
     dv::parallel_for(b, threads, [&](int64_t i) {
-      dv::run_candidate<S>(w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
+      const dv::World<S> wp = ph ? dv::with_physics(w, ph + 3 * i) : dv::World<S>();
+      dv::run_candidate<S>(ph ? wp : w, in + i * dim, steps, record_every, with_jac, out + i * records * dim,
                            with_jac ? ex + i * ex_per : nullptr, limits, st + 4 * i,
                            mode == 2 ? ex + i * ex_per : nullptr, logs.empty() ? nullptr : &logs[i]);
     });
@@ -140,12 +152,14 @@ std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t re
 }
 
 // Reverse mode: grad (B, R, N, 13) of the records of rollout(init, ..., mode 2) (states, trace)
-// -> grad init (B, N, 13) = sum_t Phi_t^T grad_t, without forming Phi.
+// -> {grad init (B, N, 13) = sum_t Phi_t^T grad_t, without forming Phi; grad physics (B, 3), the
+// gradient with respect to the rollout's physics (empty where it had none)}.
 // counts, picks, starts: the rollout's pick log (empty: select the contacts again).
-torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor trace, torch::Tensor grad,
-                      int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
-                      std::vector<double> floats, std::vector<int64_t> ints, int64_t threads,
-                      torch::Tensor counts, torch::Tensor picks, torch::Tensor starts) {
+std::vector<torch::Tensor> adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor trace, torch::Tensor grad,
+                                   int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
+                                   std::vector<double> floats, std::vector<int64_t> ints, int64_t threads,
+                                   torch::Tensor counts, torch::Tensor picks, torch::Tensor starts,
+                                   torch::Tensor physics) {
   TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH && init.scalar_type() == torch::kFloat64 &&
               init.device().is_cpu(), "init must be (B, N, 13) float64 on the CPU");
   init = init.contiguous();
@@ -171,6 +185,8 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
                 "adjoint: the pick log does not match the rollout");
   }
   auto out = torch::empty({b, n, dv::STATE_WIDTH}, init.options());
+  const double* ph = dv::physics_of(physics, b);
+  auto out_phys = ph ? torch::empty({b, 3}, init.options()) : torch::empty({0}, init.options());
   {
     using S = double;
     const dv::World<S> w = dv::make_world<S>(world, floats, ints);
@@ -185,17 +201,25 @@ torch::Tensor adjoint(torch::Tensor init, torch::Tensor states, torch::Tensor tr
     const S* g = grad.data_ptr<S>();
     S* o = out.data_ptr<S>();
     pybind11::gil_scoped_release no_gil;
+    S* op = ph ? out_phys.data_ptr<S>() : nullptr;
     dv::parallel_for(b, threads, [&](int64_t i) {
-      dv::adjoint_candidate<S>(w, in + i * dim, steps, record_every, rs + i * records * dim,
+      const dv::World<S> wp = ph ? dv::with_physics(w, ph + 3 * i) : dv::World<S>();
+      dv::adjoint_candidate<S>(ph ? wp : w, in + i * dim, steps, record_every, rs + i * records * dim,
                                tr + i * steps * per_step * dim, g + i * records * dim, o + i * dim,
                                logged ? cn + i * per_candidate : nullptr, logged ? pk + at[i] : nullptr,
-                               logged ? at[i + 1] - at[i] : 0);
+                               logged ? at[i + 1] - at[i] : 0, ph ? op + 3 * i : nullptr);
     });
   }
-  return out;
+  return {out, out_phys};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians or trace (dejaview.sim.native)");
-  m.def("adjoint", &adjoint, "reverse-mode gradient of a traced rollout (dejaview.sim.native)");
+  namespace py = pybind11;
+  m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians or trace (dejaview.sim.native)",
+        py::arg("init"), py::arg("steps"), py::arg("record_every"), py::arg("mode"), py::arg("world"),
+        py::arg("floats"), py::arg("ints"), py::arg("threads"), py::arg("physics") = torch::Tensor());
+  m.def("adjoint", &adjoint, "reverse-mode gradient of a traced rollout (dejaview.sim.native)",
+        py::arg("init"), py::arg("states"), py::arg("trace"), py::arg("grad"), py::arg("steps"),
+        py::arg("record_every"), py::arg("world"), py::arg("floats"), py::arg("ints"), py::arg("threads"),
+        py::arg("counts"), py::arg("picks"), py::arg("starts"), py::arg("physics") = torch::Tensor());
 }

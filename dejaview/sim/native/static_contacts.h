@@ -205,7 +205,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   }
   const S tiny = std::numeric_limits<S>::min();
   const S mass = w.mass[a];
-  const S stiff = mass * w.omega * w.omega;
+  const S stiff = contact_stiffness(w, mass);
   const S inv_m = S(1) / mass;
   const S h = w.h, uv = w.unload_velocity, inv_i_min = w.inv_i_min[a];
   // the contact law in stages, each a loop over the picks (the values' loops vectorise; the
@@ -228,8 +228,8 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   const T* __restrict nr = nrm.data();
   const T* __restrict ar = arm.data();
   for (int j = 0; j < m; ++j) {
-    mu[j] = w.mu_static[a * w.k + picks[j].shape];
-    unload[j] = w.unload_static[a * w.k + picks[j].shape];
+    mu[j] = scaled_mu(w, w.mu_static[a * w.k + picks[j].shape]);
+    unload[j] = scaled_unload(w, w.unload_static[a * w.k + picks[j].shape]);
   }
   for (int j = 0; j < m; ++j) {
     const T* n = nr + 3 * j;

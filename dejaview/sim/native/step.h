@@ -37,6 +37,7 @@ struct Scratch {
   std::vector<S> pair_clear;                      // (P) clearance bound of each pair (select_pair)
   const int32_t* logged = nullptr;                // (N) picks of this substep per body (PickLog), or null
   const uint32_t* logged_picks = nullptr;         // ... and the picks themselves, body after body
+  S gphys[3] = {S(0), S(0), S(0)};                // reverse mode: the physics' gradient so far (World's factors' logs)
 };
 
 // The static picks of every substep of a traced rollout (reverse mode reads them instead of
@@ -248,7 +249,7 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
     for (int i = 0; i < 6; ++i) wr[i] = sc.wrench[6 * a + i] + (i < 3 ? w.mass[a] * w.gravity[i] : S(0));
     integrate_vjp(w, a, state + STATE_WIDTH * a, wr, lam + STATE_WIDTH * a, &sc.next[STATE_WIDTH * a],
                   &mu[6 * a]);
-    sc.static_adj[a].backward(w, a, &mu[6 * a], &sc.next[STATE_WIDTH * a]);
+    sc.static_adj[a].backward(w, a, &mu[6 * a], &sc.next[STATE_WIDTH * a], sc.gphys);
   }
   for (int pi = 0; pi < w.p; ++pi) {
     if (sc.pair_picks[pi].empty()) continue;
@@ -260,7 +261,7 @@ void substep_adjoint(const World<S>& w, const S* state, Scratch<S>& sc, S* lam) 
       m[6 + i] = mu[6 * b + i];
     }
     sc.pair_adj[pi].backward(w, state + STATE_WIDTH * a, state + STATE_WIDTH * b, m, &sc.next[STATE_WIDTH * a],
-                             &sc.next[STATE_WIDTH * b]);
+                             &sc.next[STATE_WIDTH * b], sc.gphys);
   }
   std::copy(sc.next.begin(), sc.next.end(), lam);
 }

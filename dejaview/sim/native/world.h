@@ -42,7 +42,19 @@ struct World {
   S gravity[3];
   S h, omega, unload_velocity;
   int substeps, cap_static, cap_pair;
+  // one candidate's physics, as factors on every pair's friction and unloading factor and on the
+  // contact stiffness (rollout's `physics`: their logs; 1 where none is given)
+  S mu_scale = S(1), unload_scale = S(1), stiff_scale = S(1);
 };
+
+// the contact law's material of a pair, the candidate's physics applied: friction, unloading
+// factor (kept within [0, 1]: a restitution above 1 is impossible), stiffness of a contact with
+// this (reduced) mass
+template <typename S> inline S scaled_mu(const World<S>& w, S mu) { return mu * w.mu_scale; }
+template <typename S> inline S scaled_unload(const World<S>& w, S phi) { return std::min(S(1), phi * w.unload_scale); }
+template <typename S> inline S contact_stiffness(const World<S>& w, S mass) {
+  return mass * w.omega * w.omega * w.stiff_scale;
+}
 
 // the time in which the roll stick stops a line's roll (line_contact.roll_stop_time): one substep at
 // the default step, the contact's time scale ROLL_STOP_OMEGA_T / omega at finer ones
