@@ -10,6 +10,8 @@ that ``<optimize>`` frees:
 - orientation (3): a rotation vector applied on top of the given orientation,
   ``q = exp(r) * q0``, in radians.
 - linear velocity (3), m/s, and angular velocity (3), rad/s, world frame.
+- physics (F, last): with ``<physics-prior>``, a standard normal per inferred friction,
+  restitution or stiffness (``dejaview.sim.physics``), in that order; not part of the start.
 
 Each block is scaled (``scale``) so a unit step means a comparable change in
 every block (defaults: 0.1 m, 0.5 rad, 1 m/s, 5 rad/s); plain gradient
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
+from dejaview.sim.physics import PhysicsModel
 from dejaview.sim.rotation import quat_multiply, rotvec_to_quat
 
 BLOCKS = ("position", "orientation", "linear_velocity", "angular_velocity")
@@ -43,6 +46,8 @@ class ParameterLayout:
         base_linear, base_angular: (3,) given velocities (used when not free).
         scale: per-block scale.
         max_speed, max_spin: bounds for random restarts (m/s, rad/s).
+        physics: the ``<physics-prior>``'s ``PhysicsModel`` (``dejaview.sim.physics``) or None: one
+            standard-normal column per inferred parameter after the start's.
     """
 
     free: dict
@@ -56,16 +61,36 @@ class ParameterLayout:
     scale: dict
     max_speed: float = 3.0
     max_spin: float = 10.0
+    physics: PhysicsModel | None = None
 
     @property
-    def size(self) -> int:
-        """P, the number of free parameters."""
+    def start_size(self) -> int:
+        """The free parameters of the start (P less the physics')."""
         n = 0
         if self.free["position"]:
             n += len(self.position_axes)
         for block in BLOCKS[1:]:
             n += 3 if self.free[block] else 0
         return n
+
+    @property
+    def size(self) -> int:
+        """P, the number of free parameters."""
+        return self.start_size + len(self.physics_names)
+
+    @property
+    def physics_names(self) -> tuple[str, ...]:
+        """The inferred physics parameters (``dejaview.sim.physics.NAMES``), in column order."""
+        return () if self.physics is None else self.physics.names
+
+    def physics_values(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3) friction, restitution and stiffness of parameters x (B, P)
+        (``PhysicsModel.values``); None without inferred physics."""
+        return None if self.physics is None else self.physics.values(self.physics_z(x))
+
+    def physics_z(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, F) the physics columns of parameters x (B, P)."""
+        return x[:, self.start_size:self.size]
 
     def names(self) -> list[str]:
         """Names of the P parameters, e.g. ``position.x``, ``orientation.rx``."""
@@ -78,10 +103,13 @@ class ParameterLayout:
             out += ["linear_velocity.x", "linear_velocity.y", "linear_velocity.z"]
         if self.free["angular_velocity"]:
             out += ["angular_velocity.x", "angular_velocity.y", "angular_velocity.z"]
-        return out
+        return out + [f"physics.{n}" for n in self.physics_names]
 
     def block_slice(self, block: str) -> slice:
-        """Columns of ``x`` that hold a free block (``BLOCKS``; empty when it is not free)."""
+        """Columns of ``x`` that hold a free block (``BLOCKS`` or ``physics``; empty when it is not
+        free)."""
+        if block == "physics":
+            return slice(self.start_size, self.size)
         start = 0
         for b in BLOCKS:
             width = (len(self.position_axes) if b == "position" else 3) if self.free[b] else 0
@@ -180,6 +208,7 @@ class ParameterLayout:
         if self.free["angular_velocity"]:
             w = torch.as_tensor(angular_velocity if angular_velocity is not None else self.base_angular, dtype=dt)
             parts.append(w / self.scale["angular_velocity"])
+        parts.append(torch.zeros(len(self.physics_names), dtype=dt))  # the scene's physics
         return torch.cat(parts).unsqueeze(0)
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -209,12 +238,16 @@ class ParameterLayout:
             parts.append(ball(self.max_speed) / self.scale["linear_velocity"])
         if self.free["angular_velocity"]:
             parts.append(ball(self.max_spin) / self.scale["angular_velocity"])
+        if self.physics_names:  # their prior
+            parts.append(torch.randn(n, len(self.physics_names), generator=generator, dtype=dt))
         return torch.cat(parts, -1)
 
 
 def layout_from_scene(scene, dtype=torch.float64, scale: dict | None = None,
-                      max_speed: float = 3.0, max_spin: float = 10.0) -> ParameterLayout:
-    """The parameter layout of a scene's ``<inference>`` (source, optimize, start-area)."""
+                      max_speed: float = 3.0, max_spin: float = 10.0, physics: PhysicsModel | None = None
+                      ) -> ParameterLayout:
+    """The parameter layout of a scene's ``<inference>`` (source, optimize, start-area), with
+    ``physics`` (a ``PhysicsModel``) inferred beside the start."""
     inf = scene.inference
     src = scene.object(inf.source)
     t = lambda v: torch.tensor(v, dtype=dtype)  # noqa: E731
@@ -232,4 +265,4 @@ def layout_from_scene(scene, dtype=torch.float64, scale: dict | None = None,
                            base_orientation=q0, base_linear=t(src.velocity.linear),
                            base_angular=t(src.velocity.angular),
                            scale={**DEFAULT_SCALE, **(scale or {})}, max_speed=max_speed,
-                           max_spin=max_spin)
+                           max_spin=max_spin, physics=physics)

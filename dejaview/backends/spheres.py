@@ -19,6 +19,7 @@ from dejaview.backends.base import (DEFAULT_ORIENTATION_WEIGHT, GRADIENT_MODES, 
 from dejaview.backends.params import ParameterLayout, layout_from_scene
 from dejaview.errors import InferenceError
 from dejaview.sim.integrate import rollout
+from dejaview.sim.physics import PhysicsModel
 from dejaview.sim.rotation import normalize_quat, quat_rotate
 from dejaview.sim.state import State, Trajectory
 from dejaview.sim.world import World
@@ -98,7 +99,9 @@ class SpheresProblem(Problem):
                 known = name in world.names or any(s.name == name for s in world.statics)
                 if not known:
                     raise InferenceError(f"penalty names unknown object {name!r}")
-        layout = layout_from_scene(scene, dtype=world.dtype, max_speed=max_speed, max_spin=max_spin)
+        physics = PhysicsModel.from_scene(scene, world)
+        layout = layout_from_scene(scene, dtype=world.dtype, max_speed=max_speed, max_spin=max_spin,
+                                   physics=physics)
         if layout.size == 0:
             raise InferenceError("no free parameter: the start area pins the position and nothing "
                                  "else is free")
@@ -144,12 +147,14 @@ class SpheresProblem(Problem):
 
     def simulate(self, x: torch.Tensor, steps: int | None = None, record_every: int | None = None,
                  checkpoint: bool = False) -> Trajectory:
-        """Rollout from parameters x (B, P)."""
-        compiled = self.compile and torch.is_grad_enabled()
+        """Rollout from parameters x (B, P) (with inferred physics: each candidate's own)."""
+        model = self.layout.physics
+        compiled = self.compile and torch.is_grad_enabled() and model is None
+        physics = None if model is None else model.engine_logs(self.layout.physics_z(x))
         return rollout(self.world, self.initial_state(x), steps=self.steps if steps is None else steps,
                        record_every=record_every or self.record_every,
                        checkpoint_every=self.checkpoint_every if checkpoint and not compiled else None,
-                       compile=compiled, engine="torch" if compiled else self.engine)
+                       compile=compiled, engine="torch" if compiled else self.engine, physics=physics)
 
     # ------------------------------------------------------------ backend surface
     backend = "spheres"

@@ -90,6 +90,11 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
                            f"{mu['restitution']:g}, stiffness {mu['stiffness']:g} ({mu['variants']} variants)")
         click.echo(f"  start position   {fmt(s['position'])} m")
         click.echo(f"  start velocity   {fmt(s['linear_velocity'])} m/s, spin {fmt(s['angular_velocity'])} rad/s")
+        if "physics" in result.settings:
+            ph = result.settings["physics"]["most_probable"]
+            click.echo(f"  physics          friction {ph['friction']:.3f}, restitution {ph['restitution']:.3f}, "
+                       f"stiffness {ph['stiffness']:.4g} N/m per kg (inferred: "
+                       f"{', '.join(result.settings['physics']['inferred'])})")
         for line in observation_lines(result):
             click.echo("  " + line)
         post = result.settings.get("posterior")

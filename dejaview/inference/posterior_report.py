@@ -4,7 +4,9 @@
 Parameters are reported in physical units under the layout's names
 (``ParameterLayout.names``): ``position.x`` (m, object-frame origin),
 ``orientation.rx`` (rad, rotation vector applied on top of the ``<pose>``
-orientation), ``linear_velocity.x`` (m/s), ``angular_velocity.x`` (rad/s).
+orientation), ``linear_velocity.x`` (m/s), ``angular_velocity.x`` (rad/s) and, where inferred,
+``physics.friction``, ``physics.restitution`` and ``physics.stiffness`` (their values:
+``dejaview.sim.physics``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from dejaview.inference.params import ReportParams
 
 CSV_HEADER = ("sample", "weight", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
 """``posterior.csv``'s header (scene-format spec, "Additions to version 1")."""
+PHYSICS_COLUMNS = ("friction", "restitution", "stiffness")
+"""... and its columns after ``wz`` where physics was inferred (values, ``dejaview.sim.physics``)."""
 PATHS_HEADER = ("sample", "step", "time", "x", "y", "z")
 """``posterior_paths.csv``'s header: the source's object-frame origin along a few samples' pasts."""
 
@@ -36,6 +40,10 @@ def physical(layout, x: torch.Tensor) -> torch.Tensor:
     for block in ("linear_velocity", "angular_velocity"):
         if layout.free[block]:
             cols += [dec[block][:, i] for i in range(3)]
+    if layout.physics is not None:
+        with torch.no_grad():
+            values = layout.physics_values(x.to(torch.float64))
+        cols += [values[:, i] for i in layout.physics.free]
     return torch.stack(cols, -1).to(torch.float64) if cols else x[:, :0].to(torch.float64)
 
 
@@ -115,6 +123,19 @@ def summary(samples, layout, modes) -> dict:
             "intervals": intervals, "agreement": agreement}
 
 
+def physics_report(layout, best: torch.Tensor, posterior: dict | None) -> dict:
+    """``result.json``'s ``physics``: the most probable friction, restitution and stiffness (the
+    answer's, ``best`` (1, P)), which were inferred and their prior, and, with samples, the inferred
+    ones' median and central intervals (``summary``'s ``physics.*`` entries)."""
+    with torch.no_grad():
+        values = layout.physics_values(best.to(torch.float64))[0].tolist()
+    out = {"most_probable": dict(zip(PHYSICS_COLUMNS, values)), "inferred": list(layout.physics.names),
+           "prior": layout.physics.to_json()}
+    if posterior is not None:
+        out["intervals"] = {n: posterior["intervals"][f"physics.{n}"] for n in layout.physics.names}
+    return out
+
+
 def truth_report(post, samples, layout, truth: dict, intervals: dict | None = None) -> dict:
     """Where a known true start lies in the posterior (benchmarks, the demo, the examples' truths).
 
@@ -155,15 +176,18 @@ def agreement_warning(agreement: dict | None, what: str) -> str | None:
 
 
 def write_csv(path, samples, layout) -> Path:
-    """``posterior.csv``: one row per sample, the source's initial state (spec header ``CSV_HEADER``)."""
+    """``posterior.csv``: one row per sample, the source's initial state (spec header ``CSV_HEADER``)
+    and, where physics was inferred, its friction, restitution and stiffness (``PHYSICS_COLUMNS``)."""
     with torch.no_grad():
         dec = layout.decode(samples.x.to(layout.base_position.dtype))
-    rows = torch.cat([dec["position"], dec["orientation"], dec["linear_velocity"], dec["angular_velocity"]],
-                     -1).tolist()
+        parts = [dec["position"], dec["orientation"], dec["linear_velocity"], dec["angular_velocity"]]
+        if layout.physics is not None:
+            parts.append(layout.physics_values(samples.x.to(torch.float64)))
+    rows = torch.cat(parts, -1).tolist()
     path = Path(path)
     with open(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(CSV_HEADER)
+        writer.writerow(CSV_HEADER + (PHYSICS_COLUMNS if layout.physics is not None else ()))
         for i, (w, row) in enumerate(zip(samples.weights.tolist(), rows)):
             writer.writerow([i, repr(float(w)), *(repr(float(v)) for v in row)])
     return path

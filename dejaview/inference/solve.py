@@ -209,6 +209,9 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
     if settings.optimizer != "auto" and mu is not None and ((mu.friction or 0) > 0 or (mu.restitution or 0) > 0):
         raise InferenceError(f"<model-uncertainty> needs the default search (optimizer auto on the spheres "
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
+    if settings.optimizer != "auto" and getattr(problem.layout, "physics", None) is not None:
+        raise InferenceError(f"<physics-prior> needs the default search (optimizer auto on the spheres backend), "
+                             f"not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn, kde_rows = None, 0
     if settings.optimizer == "auto":
         if settings.samples:
@@ -244,6 +247,10 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
     info = {"optimizer": settings.optimizer, "gradient": settings.gradient, "iterations": settings.iterations,
             "seed": settings.seed, "backend": problem.backend, **extra, "rest": rest,
             "warnings": warnings + extra.get("warnings", [])}
+    if getattr(problem.layout, "physics", None) is not None:
+        from dejaview.inference.posterior_report import physics_report
+
+        info["physics"] = physics_report(problem.layout, best, extra.get("posterior"))
     return SolveResult(scene=scene, problem=problem, optimization=opt, initial_state=decoded,
                        loss=opt.loss, trajectory=traj, settings=info, posterior=samples_drawn)
 

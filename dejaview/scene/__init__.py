@@ -11,6 +11,7 @@ from dejaview.scene.model import (
     HeatmapSettings,
     InferenceSettings,
     ModelUncertainty,
+    PhysicsPrior,
     Observation,
     Optimize,
     Penalty,
@@ -27,7 +28,7 @@ from dejaview.scene.model import (
 
 __all__ = [
     "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
-    "Exploration", "HeatmapSettings", "InferenceSettings", "ModelUncertainty", "Observation", "Optimize", "Penalty",
+    "Exploration", "HeatmapSettings", "InferenceSettings", "ModelUncertainty", "PhysicsPrior", "Observation", "Optimize", "Penalty",
     "Pose", "PosteriorRequest", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
     "Target", "Velocity",
 ]

@@ -63,6 +63,8 @@ MAX_POSTERIOR_SAMPLES = 1_000_000
 """Most posterior samples a solve may draw."""
 MAX_RELATIVE_UNCERTAINTY = 1.0
 """Largest relative standard deviation of a physics parameter in ``<model-uncertainty>`` (100 %)."""
+MAX_PHYSICS_PRIOR_SD = 10.0
+"""Largest relative standard deviation in ``<physics-prior>`` (a log-normal's: 10 spans e^10)."""
 MAX_SEED = 2 ** 63 - 1
 """Largest random seed (torch takes 64-bit seeds)."""
 

@@ -16,7 +16,7 @@ from dataclasses import MISSING, dataclass, fields
 
 from dejaview.scene import bounds as B
 from dejaview.scene.model import (Exploration, HeatmapSettings, ModelUncertainty, Observation, Optimize, Penalty,
-                                  PosteriorRequest, Prior, StartArea, Target)
+                                  PhysicsPrior, PosteriorRequest, Prior, StartArea, Target)
 
 KINDS = ("vector", "quat", "float", "int", "bool", "cells", "ids")
 """How an attribute is spelled: 3 numbers, a quaternion (4, normalised on reading), one number, one
@@ -99,6 +99,9 @@ INFERENCE_ELEMENTS = (
         Attribute("restitution", "restitution", "float",
                   {"nonnegative": True, "optional": True, "limit": B.MAX_RELATIVE_UNCERTAINTY}),
     )),
+    Element("physics-prior", "physics_prior", PhysicsPrior, tuple(
+        Attribute(name, name, "float", {"nonnegative": True, "optional": True, "limit": B.MAX_PHYSICS_PRIOR_SD})
+        for name in ("friction", "restitution", "stiffness"))),
     Element("posterior", "posterior", PosteriorRequest, (
         Attribute("samples", "samples", "int", (0, B.MAX_POSTERIOR_SAMPLES)),
     )),

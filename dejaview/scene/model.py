@@ -232,6 +232,17 @@ class ModelUncertainty:
 
 
 @dataclass(frozen=True)
+class PhysicsPrior:
+    """``<physics-prior friction restitution stiffness>``: relative standard deviations (0.3 = 30 %)
+    of log-normal priors around the scene's friction, restitution (kept within 0 and 1) and contact
+    stiffness, inferred with the start (``dejaview.sim.physics``). None: the parameter is known."""
+
+    friction: float | None = None
+    restitution: float | None = None
+    stiffness: float | None = None
+
+
+@dataclass(frozen=True)
 class PosteriorRequest:
     """``<posterior samples>``: how many samples of the posterior a solve draws (0: the most probable
     start alone)."""
@@ -260,6 +271,7 @@ class InferenceSettings:
     prior: Prior | None = None
     observation: Observation | None = None
     model_uncertainty: ModelUncertainty | None = None
+    physics_prior: PhysicsPrior | None = None
     posterior: PosteriorRequest | None = None
 
     @property
