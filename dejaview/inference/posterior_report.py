@@ -236,14 +236,15 @@ def write_paths(path, problem, samples, count: int = ReportParams.paths, seed: i
 
 
 def read_csv(path) -> tuple[np.ndarray, np.ndarray]:
-    """``posterior.csv`` back: weights (N,) and states (N, 13) in the header's column order."""
+    """``posterior.csv`` back: weights (N,) and states (N, 13) in ``CSV_HEADER``'s order, read by
+    name (columns after them, such as the inferred physics, are left out)."""
     with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.reader(fh)
         header = tuple(next(reader))
-        if header != CSV_HEADER:
+        if header[:len(CSV_HEADER)] != CSV_HEADER or header[len(CSV_HEADER):] not in ((), PHYSICS_COLUMNS):
             raise ValueError(f"{path}: not a posterior.csv header: {','.join(header)}")
-        data = np.array([[float(v) for v in row] for row in reader], dtype=float).reshape(-1, len(CSV_HEADER))
-    return data[:, 1], data[:, 2:]
+        data = np.array([[float(v) for v in row] for row in reader], dtype=float).reshape(-1, len(header))
+    return data[:, 1], data[:, 2:len(CSV_HEADER)]
 
 
 def position_histogram(positions: torch.Tensor, weights: torch.Tensor, lo, hi, cells) -> np.ndarray:

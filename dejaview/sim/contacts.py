@@ -145,22 +145,10 @@ import torch
 from dejaview.sim.box_edges import CORNER_KINDS, box_corners, on_static_edge, static_edge_contacts
 from dejaview.sim.epsilons import NORMAL_EPS2, TINY
 from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
+from dejaview.sim.physics import candidate_material
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
-
-
-def candidate_material(physics: torch.Tensor, mu: torch.Tensor, unload: torch.Tensor, stiff: torch.Tensor):
-    """Each candidate's physics (``World.physics``, (B, 3) logs of factors) applied to a contact
-    law's friction, unloading factor (capped at 1) and stiffness, each with the batch first
-    (size 1 or B); the factors broadcast over the other dims."""
-    f = torch.exp(physics)
-
-    def per_candidate(column: int, like: torch.Tensor) -> torch.Tensor:
-        return f[:, column].reshape((-1,) + (1,) * (like.dim() - 1))
-
-    return (mu * per_candidate(0, mu), torch.clamp(unload * per_candidate(1, unload), max=1.0),
-            stiff * per_candidate(2, stiff))
 
 
 def deepest(depth: torch.Tensor, capacity: int) -> torch.Tensor:

@@ -162,3 +162,15 @@ class PhysicsModel:
                            "stiffness": self.frequency ** 2},
                 "units": {"stiffness": "N/m per kg of body mass (contact-frequency squared)"}}
 
+
+def candidate_material(physics: torch.Tensor, mu: torch.Tensor, unload: torch.Tensor, stiff: torch.Tensor):
+    """Each candidate's physics (``World.physics``, (B, 3) logs of factors) applied to a contact
+    law's friction, unloading factor (capped at 1) and stiffness, each with the batch first
+    (size 1 or B); the factors broadcast over the other dims."""
+    f = torch.exp(physics)
+
+    def per_candidate(column: int, like: torch.Tensor) -> torch.Tensor:
+        return f[:, column].reshape((-1,) + (1,) * (like.dim() - 1))
+
+    return (mu * per_candidate(0, mu), torch.clamp(unload * per_candidate(1, unload), max=1.0),
+            stiff * per_candidate(2, stiff))

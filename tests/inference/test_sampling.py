@@ -471,3 +471,35 @@ def test_the_kernel_density_estimate_in_chunks_gives_the_same_samples():
     chunked = Sampler(SamplerParams(seed=2, kde_rows=7)).sample(post, modes, 400)
     assert torch.allclose(chunked.x, whole.x, rtol=1e-12, atol=0.0)
     assert torch.allclose(chunked.weights, whole.weights, rtol=1e-12, atol=0.0)
+
+
+def test_solve_with_a_physics_prior_writes_the_physics(tmp_path):
+    """``<physics-prior>``: the friction is inferred with the start; the CSV gains its columns by
+    name, result.json its physics section, and the physics' prior is the CSV's spread."""
+    from dejaview.scene import PhysicsPrior
+
+    scene = ramp_scene(samples=100)
+    scene = replace(scene, inference=replace(scene.inference, physics_prior=PhysicsPrior(friction=0.3)))
+    result = solve(scene)
+    assert result.problem.layout.names()[-1] == "physics.friction"
+    paths = result.write(tmp_path)
+    header = (tmp_path / "posterior.csv").read_text().splitlines()[0].split(",")
+    assert header == list(CSV_HEADER) + ["friction", "restitution", "stiffness"]
+    weights, states = read_csv(paths["posterior"])
+    assert states.shape == (100, 13) and weights.sum() == pytest.approx(1.0)
+    rows = np.loadtxt(paths["posterior"], delimiter=",", skiprows=1)
+    assert np.allclose(rows[:, -2], 0.2) and np.all(rows[:, -3] > 0)  # restitution known, friction inferred
+    assert rows[:, -3].std() > 0.01
+    physics = json.loads(paths["result"].read_text())["physics"]
+    assert physics["inferred"] == ["friction"] and physics["most_probable"]["restitution"] == pytest.approx(0.2)
+    lo, hi = physics["intervals"]["friction"]["90%"]
+    assert 0.5 * math.exp(-1.645 * 0.3) * 0.7 < lo < 0.5 < hi < 0.5 * math.exp(1.645 * 0.3) * 1.3
+
+
+def test_local_optimisers_refuse_a_physics_prior():
+    from dejaview.scene import PhysicsPrior
+
+    scene = ramp_scene()
+    scene = replace(scene, inference=replace(scene.inference, physics_prior=PhysicsPrior(friction=0.3)))
+    with pytest.raises(InferenceError, match="physics-prior"):
+        solve(scene, SolveParams(optimizer="lbfgs", iterations=2))

@@ -212,10 +212,10 @@ def _pick_log_replays(world, state, steps: int, record_every: int) -> torch.Tens
     assert counts.shape == (init.shape[0], steps * world.substeps, init.shape[1])
     assert int(counts.sum()) == picks.numel() > 0 and starts.numel() == init.shape[0] + 1
     grad = torch.randn(states.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    logged = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, counts, picks, starts)
+    logged, _ = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, counts, picks, starts)
     empty = torch.empty(0, dtype=torch.int32)
-    again = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, empty, empty,
-                        torch.empty(0, dtype=torch.int64))
+    again, _ = ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 2, empty, empty,
+                           torch.empty(0, dtype=torch.int64))
     assert torch.equal(logged, again)
     with pytest.raises(RuntimeError, match="pick log does not match"):
         ext.adjoint(init, states, trace, grad, steps, record_every, *packed, 1, counts, picks[:-1], starts)
