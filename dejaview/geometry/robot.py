@@ -5,16 +5,16 @@ A scene object ``<object id="arm" urdf="robots/arm.urdf" joints="q1 q2 ..." fixe
 or metres, in the order of the model's movable joints) relative to the object's ``<pose>``. Each
 link's collision geometry becomes one static piece of the world (``dejaview.sim.build``): boxes,
 spheres and cylinders one to one, meshes as signed distance grids, MJCF capsules as a cylinder
-and two spheres.
+and two spheres, MJCF meshes as their convex hulls (as MuJoCo collides them).
 
 Reading is in two parts so that checks stay cheap:
 
 * :func:`read_robot` parses the file (lxml, no torch): movable joints and their limits, and each
   link's collision geometry. The XML is untrusted: DOCTYPE and ENTITY declarations are refused
   before any parser sees the text, and no entity, DTD or network access is ever resolved.
-  URDF mesh names resolve against the URDF's folder, absolute paths as they stand, and
-  ``package://NAME/path`` URIs by ``dejaview.geometry.packages.resolve_package``; an MJCF robot
-  may name no file at all (``<include>``, mesh, texture...): primitives only.
+  Mesh names resolve by one rule for both formats (``dejaview.geometry.packages.resolve_mesh``):
+  relative to the file (an MJCF model's ``meshdir``), absolute, ``file://`` or ``package://``;
+  an MJCF model's includes and mesh files are read by ``dejaview.geometry.mjcf_files``.
 * :func:`robot_pieces` poses the geometry with pytorch-kinematics' forward kinematics
   (``build_chain_from_urdf`` / ``build_chain_from_mjcf``, imported here, lazily: it costs ~2 s).
 
@@ -91,8 +91,10 @@ class RobotModel:
         geometry: every link's collision geometry.
         text: what the forward kinematics reads: a URDF's links (names only) and joints (origin, parent,
             child, axis, limit), the tags pytorch-kinematics' parser knows (it prints a line for every
-            other); an MJCF file's XML as parsed (comments dropped).
-        files: files the model names (URDF meshes), resolved.
+            other); an MJCF model as ``dejaview.geometry.mjcf_files.read_mjcf`` makes it (one document).
+        files: files the model names (meshes, MJCF includes), resolved.
+        assets: an MJCF model's mesh files by the asset key ``text`` names them by
+            (``dejaview.geometry.mjcf_files``).
     """
 
     path: Path
@@ -101,6 +103,7 @@ class RobotModel:
     geometry: tuple[LinkGeometry, ...]
     text: bytes = field(repr=False)
     files: tuple[Path, ...] = ()
+    assets: tuple[tuple[str, Path], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -146,10 +149,13 @@ def read_robot(path: str | Path, format: str, root: Path | None = None) -> Robot
             root); None: anywhere on the search path (``dejaview.geometry.packages``).
     Raises:
         SceneError: naming the robot file, line and element: unreadable, hostile or malformed XML,
-            a joint type a fixed robot cannot have, geometry that is not supported, a mesh URI that
-            is not ``package://`` or a package not found on the search path.
+            a joint type a fixed robot cannot have, geometry that is not supported, a mesh URI other
+            than ``file://`` and ``package://``, or a package not found on the search path;
+            ``dejaview.geometry.mjcf_files.MeshOutsideRoot`` for an MJCF file outside ``root``.
     """
     path = Path(path)
+    if format == "mjcf":  # the model and the files it names: dejaview.geometry.mjcf_files
+        return _read_mjcf(path, root)
     try:
         with open(path, "rb") as fh:
             data = fh.read(MAX_ROBOT_BYTES + 1)
@@ -157,15 +163,11 @@ def read_robot(path: str | Path, format: str, root: Path | None = None) -> Robot
         raise SceneError(f"cannot read {format.upper()} file: {exc.strerror or exc}", str(path)) from None
     if len(data) > MAX_ROBOT_BYTES:
         raise SceneError(f"{format.upper()} file is over the {MAX_ROBOT_BYTES >> 20} MiB limit", str(path))
-    from lxml import etree
-
     from dejaview.untrusted_xml import parse_xml
 
     tree = parse_xml(data, filename=str(path), max_bytes=MAX_ROBOT_BYTES, what=f"{format.upper()} files")
     if format == "urdf":
         return _read_urdf(path, tree, root)
-    if format == "mjcf":
-        return _read_mjcf(path, tree, etree.tostring(tree))
     raise ValueError(f"unknown robot format {format!r}")
 
 
@@ -303,43 +305,26 @@ def _urdf_mesh(path: Path, g, root: Path | None) -> tuple[Path, float]:
     scale = _floats(path, g, "scale", 3, (1.0, 1.0, 1.0))
     if not (scale[0] > 0 and scale[0] == scale[1] == scale[2]):
         raise _err(path, g, f"mesh {name!r}: scale {g.get('scale')!r} must be uniform and positive")
-    if name.startswith("package://"):
-        try:
-            from dejaview.geometry.packages import resolve_package
+    from dejaview.geometry.packages import resolve_mesh
 
-            return resolve_package(name, path, root), float(scale[0])
-        except ValueError as exc:
-            raise _err(path, g, f"mesh {name!r}: {exc}") from None
-    if "://" in name:
-        raise _err(path, g, f"mesh {name!r}: URIs other than package:// are not resolved; give a path "
-                            "relative to the URDF file or a package:// URI")
-    p = Path(name)
-    return (p if p.is_absolute() else path.absolute().parent / p), float(scale[0])
+    try:
+        return resolve_mesh(name, path, root=root), float(scale[0])
+    except ValueError as exc:
+        raise _err(path, g, f"mesh {name!r}: {exc}") from None
 
 
 # MuJoCo geom types (mjtGeom) that make static pieces; others are refused.
-_MJ_PLANE, _MJ_SPHERE, _MJ_CAPSULE, _MJ_CYLINDER, _MJ_BOX = 0, 2, 3, 5, 6
+_MJ_PLANE, _MJ_SPHERE, _MJ_CAPSULE, _MJ_CYLINDER, _MJ_BOX, _MJ_MESH = 0, 2, 3, 5, 6, 7
 _MJ_NAMES = {0: "plane", 1: "hfield", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box",
              7: "mesh", 8: "sdf"}
 
 
-def _read_mjcf(path: Path, root, text: bytes) -> RobotModel:
-    if root.tag != "mujoco":
-        raise _err(path, root, f"the root element is <{root.tag}>, an MJCF model's is <mujoco>")
-    for el in root.iter():
-        if not isinstance(el.tag, str):
-            continue
-        if el.tag == "include" or el.get("file") is not None or el.get("fileback") is not None:
-            raise _err(path, el, "an MJCF robot may name no file (<include>, mesh, texture, height field): "
-                                 "primitives only; give meshes in a URDF")
-    try:
-        import mujoco
-    except ImportError:
-        raise SceneError("MJCF robots need the mujoco package: pip install mujoco", str(path)) from None
-    try:
-        model = mujoco.MjModel.from_xml_string(text.decode("utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise SceneError(f"MuJoCo cannot compile the model: {' '.join(str(exc).split())}", str(path)) from None
+def _read_mjcf(path: Path, confine: Path | None) -> RobotModel:
+    from dejaview.geometry.mjcf_files import compile_mjcf, read_mjcf
+
+    source = read_mjcf(path, confine)
+    model = compile_mjcf(source)
+    files = dict(source.meshes)
     joints = []
     for j in range(model.njnt):
         jnt = model.joint(j)
@@ -375,11 +360,34 @@ def _read_mjcf(path: Path, root, text: bytes) -> RobotModel:
                 for sign in (-1.0, 1.0):
                     geometry.append(LinkGeometry(body, "sphere", origin @ rigid_transform(None, (0, 0, sign * size[1])),
                                                  radius=float(size[0])))
+        elif kind == _MJ_MESH:
+            geometry.append(_mjcf_mesh(path, model, g, body, origin, files))
         else:
             name = model.geom(g).name or f"#{g}"
             raise SceneError(f"geom {name!r} is a {_MJ_NAMES.get(kind, kind)}: an MJCF robot's geoms are planes, "
-                             "spheres, capsules, cylinders and boxes", str(path), None, "geom")
-    return RobotModel(path=path, format="mjcf", joints=tuple(joints), geometry=tuple(geometry), text=text)
+                             "spheres, capsules, cylinders, boxes and meshes", str(path), None, "geom")
+    return RobotModel(path=path, format="mjcf", joints=tuple(joints), geometry=tuple(geometry), text=source.text,
+                      files=source.files, assets=source.assets)
+
+
+def _mjcf_mesh(path: Path, model, g: int, body: str, origin: np.ndarray, files: dict) -> LinkGeometry:
+    """A mesh geom as the mesh file, placed where MuJoCo puts it: MuJoCo moves a mesh's vertices
+    into its inertial frame (``mesh_pos``, ``mesh_quat``: v' = R^T (s v - p)) and the geom's frame
+    with them; the file's frame is the geom's times (R, p)^-1. It collides as its convex hull, as
+    in MuJoCo."""
+    m = int(model.geom_dataid[g])
+    mesh_name = model.mesh(m).name
+    name = model.geom(g).name or f"#{g}"
+    if mesh_name not in files:
+        raise SceneError(f"geom {name!r}: mesh {mesh_name!r} has no file (vertices given inline are not "
+                         "supported: give a mesh file)", str(path), None, "geom")
+    scale = np.asarray(model.mesh_scale[m], dtype=np.float64)
+    if not (scale[0] > 0 and np.allclose(scale, scale[0], rtol=1e-9, atol=0)):
+        raise SceneError(f"geom {name!r}: mesh {mesh_name!r} has scale {' '.join(map(repr, scale.tolist()))}; "
+                         "it must be uniform and positive", str(path), None, "geom")
+    inertial = rigid_transform(quat_to_matrix(model.mesh_quat[m]), model.mesh_pos[m])
+    return LinkGeometry(body, "mesh", origin @ np.linalg.inv(inertial), mesh=files[mesh_name],
+                        scale=float(scale[0]), convex_hull=True)
 
 
 def joint_problems(model: RobotModel, values) -> list[str]:
@@ -444,11 +452,12 @@ def _mjcf_chain(pk, model: RobotModel):
     joint's anchor (``pos``): a hinge turns the body about ``pos``, so the body's frame is
     ``body offset @ T(pos) @ R(q) @ T(-pos)``. Here the ``T(-pos)`` is a fixed frame after the joint's.
     """
-    import mujoco
     import torch
     from pytorch_kinematics import frame as pk_frame
 
-    m = mujoco.MjModel.from_xml_string(model.text.decode("utf-8"))
+    from dejaview.geometry.mjcf_files import MJCFSource, compile_mjcf
+
+    m = compile_mjcf(MJCFSource(model.path, model.text, model.assets))
 
     def tf(pos=None, quat=None):  # float32 like pytorch-kinematics' own builders; the chain moves to float64
         return pk.Transform3d(pos=None if pos is None else torch.tensor(np.asarray(pos), dtype=torch.float32),

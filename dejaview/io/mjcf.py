@@ -414,7 +414,9 @@ def import_mjcf(path, out_path, key: str | None = None) -> "object":
     World geoms become fixed objects; every body with a free joint (it must
     have exactly one geom) a movable object whose initial pose and velocity
     come from ``qpos0`` or the keyframe ``key``. Meshes (and capsules,
-    ellipsoids) are written as .obj files into ``meshes/`` beside the scene.
+    ellipsoids) are written as .obj files into ``meshes/`` beside the scene (a mesh
+    with holes as its convex hull, as MuJoCo collides it). Mesh files are found as a robot's
+    (``dejaview.geometry.mjcf_files``: meshdir, relative, absolute, ``file://``, ``package://``).
 
     Args:
         path: the MJCF file.
@@ -423,19 +425,22 @@ def import_mjcf(path, out_path, key: str | None = None) -> "object":
     Returns:
         The Scene written (read back and validated).
     Raises:
-        MJCFError: MuJoCo cannot load the model, an unknown keyframe, geometry
-            DejaView cannot represent; the message names the body or geom.
+        MJCFError: MuJoCo cannot load the model, a mesh file not found (where it was looked for:
+            ``dejaview.geometry.mjcf_files``), an unknown keyframe, geometry DejaView cannot
+            represent; the message names the body or geom.
     """
     import mujoco
 
     from dejaview.scene import Scene
     from dejaview.scene.model import Pose, SceneObject, SimulationSettings
 
+    from dejaview.geometry.mjcf_files import compile_mjcf, read_mjcf
+
     path, out_path = Path(path), Path(out_path)
-    try:
-        model = mujoco.MjModel.from_xml_path(str(path))
-    except Exception as exc:  # mujoco raises ValueError with its own parser message
-        raise MJCFError(f"{path}: MuJoCo cannot load it: {str(exc).strip().splitlines()[0]}") from exc
+    try:  # mesh files by the robot files' rule (meshdir, file://, package://): one reader for both
+        model = compile_mjcf(read_mjcf(path))
+    except SceneError as exc:
+        raise MJCFError(str(exc)) from None
     data = mujoco.MjData(model)
     if key is not None:
         kid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
@@ -552,6 +557,8 @@ def _geometry(model, g: int, where: str, mesh_dir: Path, oid: str, scene_dir: Pa
         fstart, fcount = int(model.mesh_faceadr[m]), int(model.mesh_facenum[m])
         mesh = trimesh.Trimesh(np.asarray(model.mesh_vert[start:start + count], dtype=np.float64),
                                np.asarray(model.mesh_face[fstart:fstart + fcount], dtype=np.int64))
+        if not mesh.is_watertight:  # holes: its convex hull, which is what MuJoCo collides anyway
+            mesh = mesh.convex_hull
     else:
         raise MJCFError(f"{where}: geom type {kind!r} has no DejaView counterpart")
     mesh_dir.mkdir(parents=True, exist_ok=True)

@@ -106,8 +106,13 @@ def _check_robot(scene, obj, root: Path, filename: str) -> None:
     """A robot's file read, the meshes it names inside ``root`` and present, its joints in limits."""
     from dejaview.geometry.robot import joint_problems, robot_model
 
+    from dejaview.geometry.mjcf_files import MeshOutsideRoot
+
     try:
         model = robot_model(scene, obj)
+    except MeshOutsideRoot as exc:  # refused unread; what it names outside is not shown
+        raise ServiceError("path_outside_root", f"{filename}: object {obj.id!r}: {obj.robot!r} names a file "
+                                                "that leads outside the scene root") from None
     except SceneError as exc:  # located in the robot file, shown relative to the root
         where = _shown(Path(exc.file), root) if exc.file else obj.robot
         where += f":{exc.line}" if exc.line else ""

@@ -286,7 +286,10 @@ def test_errors_are_one_line(tmp_path):
     broken = tmp_path / "broken.xml"
     broken.write_text("<mujoco><worldbody><geom type='box'/></worldbody>")
     result = CliRunner().invoke(cli, ["import-mjcf", str(broken), "-o", str(tmp_path / "s.xml")])
-    assert "MuJoCo cannot load it" in str(result.exception)
+    assert "broken.xml:1: not well-formed XML" in str(result.exception)
+    broken.write_text("<mujoco><worldbody><geom type='nope'/></worldbody></mujoco>")
+    result = CliRunner().invoke(cli, ["import-mjcf", str(broken), "-o", str(tmp_path / "s.xml")])
+    assert "MuJoCo cannot compile the model" in str(result.exception) and "\n" not in str(result.exception)
     static = tmp_path / "static.xml"
     static.write_text("<mujoco><worldbody><geom type='plane' size='1 1 1'/></worldbody></mujoco>")
     result = CliRunner().invoke(cli, ["import-mjcf", str(static), "-o", str(tmp_path / "s.xml")])

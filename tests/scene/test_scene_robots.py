@@ -69,8 +69,12 @@ def test_robot_problems_are_one_line_errors_with_file_and_line(tmp_path, attrs, 
     ("broken.urdf", "<robot><link name='a'>", "not well-formed XML"),
     ("package.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="package://x/a.stl"/>'
                      "</geometry></collision></link></robot>", "package 'x' not found: looked for x/a.stl in"),
-    ("file.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="file:///tmp/a.stl"/>'
-                  "</geometry></collision></link></robot>", "URIs other than package:// are not resolved"),
+    ("file.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="file:///nowhere/a.stl"/>'
+                  "</geometry></collision></link></robot>", "mesh file '/nowhere/a.stl' named by 'file.urdf' not found"),
+    ("host.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="file://host/a.stl"/>'
+                  "</geometry></collision></link></robot>", "a file:// URI names an absolute path on this machine"),
+    ("http.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="http://x/a.stl"/>'
+                  "</geometry></collision></link></robot>", "http:// URIs are not resolved"),
     ("floating.urdf", '<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="floating">'
                       '<parent link="a"/><child link="b"/></joint></robot>', "joint 'j' is floating"),
     ("nomesh.urdf", '<robot name="r"><link name="a"><collision><geometry><mesh filename="gone.obj"/>'
@@ -84,11 +88,19 @@ def test_bad_urdf_files_are_named_with_their_line(tmp_path, name, text, reason):
     assert str(info.value).startswith(f"{tmp_path / 'scene.xml'}:3:")
 
 
-def test_an_mjcf_robot_may_name_no_file(tmp_path):
-    (tmp_path / "inc.xml").write_text('<mujoco><include file="/etc/passwd"/></mujoco>')
+def test_an_mjcf_robots_files_are_named_with_their_line(tmp_path):
+    """An MJCF robot's include and mesh files are read like a URDF's meshes; what is wrong with them is
+    one line naming the MJCF file, its line and what was looked for where."""
+    (tmp_path / "inc.xml").write_text('<mujoco>\n<include file="/etc/passwd"/></mujoco>')
     with pytest.raises(SceneError) as info:
         read(tmp_path, scene_text('mjcf="inc.xml" fixed="true"'))
-    assert "an MJCF robot may name no file" in str(info.value) and "inc.xml:1:" in str(info.value)
+    assert "passwd" in str(info.value) and "not well-formed XML" in str(info.value), str(info.value)
+    (tmp_path / "gone.xml").write_text('<mujoco><compiler meshdir="meshes"/>\n<asset><mesh file="a.stl"/></asset>'
+                                       '<worldbody><geom type="mesh" mesh="a"/></worldbody></mujoco>')
+    with pytest.raises(SceneError) as info:
+        read(tmp_path, scene_text('mjcf="gone.xml" fixed="true"'))
+    assert f"gone.xml:2: <mesh> mesh 'a.stl': file not found: looked for {tmp_path / 'meshes' / 'a.stl'} " \
+           "(meshdir 'meshes')" in str(info.value) and "\n" not in str(info.value), str(info.value)
 
 
 def test_validate_command_reports_a_robot_problem_in_one_line(tmp_path):

@@ -50,13 +50,18 @@ def test_pybullet_robots_validate_as_they_ship(robots, urdf, joints, notes):
     assert len(lines) == notes + 1 and all(line.startswith("note: ") for line in lines[:-1]), result.output
 
 
-def bullet_drop(urdf: Path, joints, ball, duration: float) -> np.ndarray:
+BULLET_STEP = 1 / 2000
+
+
+def bullet_drop(urdf: Path, joints, ball, duration: float, friction: float = 0.5) -> np.ndarray:
     """Where Bullet has the ball after ``duration`` s: the same URDF on a fixed base, its movable joints
-    held at ``joints`` by stiff position motors, friction 0.5 and no restitution everywhere."""
+    held at ``joints`` by stiff position motors, at 2 kHz. Mapped fairly: Bullet multiplies two bodies'
+    friction (DejaView takes their geometric mean), so each body gets sqrt(friction); no restitution;
+    no velocity damping (Bullet damps bodies by 0.04 by default, DejaView not at all)."""
     client = pybullet.connect(pybullet.DIRECT)
     try:
         pybullet.setGravity(0, 0, -9.81, physicsClientId=client)
-        pybullet.setTimeStep(1 / 480, physicsClientId=client)
+        pybullet.setTimeStep(BULLET_STEP, physicsClientId=client)
         floor = pybullet.createMultiBody(0, pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=client),
                                          physicsClientId=client)
         robot = pybullet.loadURDF(str(urdf), useFixedBase=True, physicsClientId=client)
@@ -73,8 +78,9 @@ def bullet_drop(urdf: Path, joints, ball, duration: float) -> np.ndarray:
                                           basePosition=list(ball), physicsClientId=client)
         for body, link in [(floor, -1), (sphere, -1)] + [(robot, j) for j in range(-1, pybullet.getNumJoints(
                 robot, physicsClientId=client))]:
-            pybullet.changeDynamics(body, link, lateralFriction=0.5, restitution=0.0, physicsClientId=client)
-        for _ in range(round(duration * 480)):
+            pybullet.changeDynamics(body, link, lateralFriction=friction ** 0.5, restitution=0.0, linearDamping=0.0,
+                                    angularDamping=0.0, physicsClientId=client)
+        for _ in range(round(duration / BULLET_STEP)):
             pybullet.stepSimulation(physicsClientId=client)
         return np.array(pybullet.getBasePositionAndOrientation(sphere, physicsClientId=client)[0])
     finally:
