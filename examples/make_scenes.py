@@ -32,6 +32,7 @@ from dejaview.scene import (
     StartArea,
     Target,
     Observation,
+    PhysicsPrior,
     Velocity,
 )
 from dejaview.sim import World
@@ -226,6 +227,71 @@ def box_tossed_tracked():
     return out, record
 
 
+THROWS = (  # the true starts of the three throws: position, orientation, linear and angular velocity
+    ((-0.3, 0.0, 0.6), (0.9659, 0.0, 0.2588, 0.0), (1.6, 0.2, 0.8), (2.0, -4.0, 1.0)),
+    ((0.0, -0.3, 0.4), (0.9239, 0.3827, 0.0, 0.0), (0.4, 1.8, 1.2), (-3.0, 1.0, 2.5)),
+    ((0.2, 0.2, 0.8), (1.0, 0.0, 0.0, 0.0), (-1.2, -0.6, 0.0), (0.0, 3.0, -2.0)),
+)
+THROW_PHYSICS = {"friction": 0.38, "restitution": 0.45}
+"""The floor's true friction and restitution in the three throws; the scenes say 0.5 and 0.3."""
+THROW_TIMES = (0.1, 0.25, 0.4, 0.55, 0.7, 0.9)
+
+
+def box_throws():
+    """Three throws of the same box onto the same floor, each tracked by a camera (pose at six
+    moments, 5 mm and 0.05 rad noise) and lying still at the end: what are the floor's friction and
+    restitution? (``dejaview identify``; the scenes carry the nominal 0.5 and 0.3.)"""
+    scenes, records = [], []
+    noise = torch.Generator().manual_seed(11)  # the tracker's errors, drawn once from its noise model
+    for k, (pos, q0, lin, ang) in enumerate(THROWS):
+        truth = movable("box", "box", pos, orientation=q0, linear=lin, angular=ang, mass=0.8)
+        guess = movable("box", "box", (0.0, 0.0, 0.5), mass=0.8)
+        nominal = Scene(
+            name=f"box-throw-{k + 1}",
+            objects=(floor(), truth),
+            simulation=SimulationSettings(dt=0.002, duration=1.5, friction=0.5, restitution=0.3),
+            inference=InferenceSettings(
+                source="box", targets=(Target((0, 0, 0)),), loss="pose",
+                start_area=StartArea((-0.5, -0.5, 0.3), (0.5, 0.5, 0.9)),
+                observation=Observation(sigma=0.005, angle_sigma=0.05),
+                physics_prior=PhysicsPrior(friction=0.5, restitution=0.5)))
+        nominal = replace(nominal, base_dir=SCENES)
+        true_scene = replace(nominal.with_object(truth),
+                             simulation=replace(nominal.simulation, **THROW_PHYSICS))
+        world = World.from_scene(true_scene)
+        with torch.no_grad():
+            traj = rollout(world, initial_state(world, true_scene))
+        targets, seen = [], []
+        for t in (*THROW_TIMES, None):
+            i = -1 if t is None else int(round(t / world.dt))
+            origin = world.object_position(traj.states)[i, 0, 0]
+            q = traj.states.orientation[i, 0, 0]
+            origin = origin + 0.005 * torch.randn(3, generator=noise, dtype=origin.dtype)
+            q = quat_multiply(rotvec_to_quat(0.05 * torch.randn(3, generator=noise, dtype=q.dtype)), q)
+            targets.append(Target(position=tuple(round(v, 5) for v in origin.tolist()),
+                                  orientation=tuple(round(v, 5) for v in q.tolist()),
+                                  time=t if t is not None else nominal.simulation.duration,
+                                  moving=None if t is not None else False))
+            seen.append({"time": float(traj.steps[i]) * world.dt, "position": origin.tolist(), "orientation": q.tolist()})
+        scenes.append(replace(nominal.with_object(guess), inference=replace(nominal.inference, targets=tuple(targets))))
+        records.append({"scene": f"box_throw_{k + 1}.xml", "initial_state": {
+            "position": list(pos), "orientation": list(q0), "linear_velocity": list(lin), "angular_velocity": list(ang)},
+            "observed": seen})
+    return scenes, {"source": "box", "physics": dict(THROW_PHYSICS), "throws": records}
+
+
+def write_box_throws():
+    """examples/scenes/box_throw_{1,2,3}.xml and box_throws.truth.json."""
+    scenes, truth = box_throws()
+    for k, scene in enumerate(scenes):
+        path = SCENES / f"box_throw_{k + 1}.xml"
+        text = scene.to_xml().replace("?>\n", f"?>\n<!-- {box_throws.__doc__.strip()} -->\n", 1)
+        path.write_text(text, encoding="utf-8")
+        Scene.from_xml(path)  # validates
+        print(path)
+    (SCENES / "box_throws.truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
+
+
 RAMP_ANGLE = math.radians(20.0)
 
 
@@ -307,4 +373,7 @@ def main(names=None):
 if __name__ == "__main__":
     import sys
 
-    main(sys.argv[1:] or None)
+    if sys.argv[1:] == ["box_throws"]:
+        write_box_throws()
+    else:
+        main(sys.argv[1:] or None)

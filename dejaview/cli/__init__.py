@@ -21,6 +21,7 @@ SUBCOMMANDS = {
     "pack": "dejaview.cli.pack",
     "simulate": "dejaview.cli.simulate",
     "solve": "dejaview.cli.solve",
+    "identify": "dejaview.cli.identify",
     "heatmap": "dejaview.cli.heatmap",
     "serve": "dejaview.cli.serve",
     "client": "dejaview.cli.client",

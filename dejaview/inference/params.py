@@ -11,7 +11,7 @@ is checked when it is made: a value out of range is a one-line ``InferenceError`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from dejaview.errors import InferenceError
 from dejaview.scene.model import OPTIMIZERS
@@ -331,3 +331,32 @@ class StartAreaParams:
     budget: int = 4096
     batch: int = 32
     recheck: int = 8
+
+
+@dataclass(frozen=True)
+class IdentifyParams:
+    """Settings of ``identify`` (``dejaview.inference.identify``).
+
+    Attributes:
+        friction, restitution, stiffness: relative standard deviations of the physics prior for
+            scenes without ``<physics-prior>`` (log-normal around the scenes' values).
+        samples: importance samples of the joint posterior (0: the Laplace intervals alone).
+        seed: the searches' and the samples' seed.
+        search: each scene's ``MapSearch`` settings.
+        lm_iterations: joint Levenberg-Marquardt iterations at most.
+        min_ess_share: importance samples are kept where their effective size is at least this
+            share of their count (else the intervals are the Laplace approximation's).
+    """
+
+    friction: float = 0.5
+    restitution: float = 0.5
+    stiffness: float = 0.0
+    samples: int = 0
+    seed: int = 0
+    search: SearchParams = field(default_factory=SearchParams)
+    lm_iterations: int = 60
+    min_ess_share: float = 0.02
+
+    def __post_init__(self):
+        check_params(self, nonnegative=("friction", "restitution", "stiffness"), naturals=("samples", "seed"),
+                     counts=("lm_iterations",), fractions=("min_ess_share",))
