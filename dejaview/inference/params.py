@@ -6,6 +6,8 @@
 restarts). Their defaults are the tool's; a researcher changes one with
 ``dataclasses.replace(SearchParams(), budget=20000)`` and passes it to the object that runs. Each
 is checked when it is made: a value out of range is a one-line ``InferenceError`` naming it.
+Beside them: ``ModelParams`` (physics variants), ``ReportParams`` (what a solve reports),
+``StartAreaParams`` (the start area's check) and ``SizingParams`` (the memory a solve is sized with).
 """
 
 from __future__ import annotations
@@ -283,6 +285,10 @@ class ModelParams:
     unexplained_p: float = 1e-3
     min_factor: float = 0.05
 
+    def __post_init__(self):
+        check_params(self, counts=("variants", "heldout_variants"), naturals=("heldout_seed",),
+                     positive=("stiffness_sd",), fractions=("unexplained_p", "min_factor"))
+
 
 @dataclass(frozen=True)
 class ReportParams:
@@ -312,6 +318,13 @@ class ReportParams:
     extend_factor: float = 4.0
     max_checked: int = 64
 
+    def __post_init__(self):
+        check_params(self, counts=("paths", "path_records", "max_checked"),
+                     positive=("rhat_limit", "rest_level", "extend_factor"), fractions=("min_mode_mass",))
+        if not all(isinstance(x, float) and 0 < x < 1 for x in self.intervals):
+            raise InferenceError(f"ReportParams.intervals must be levels strictly between 0 and 1, "
+                                 f"got {self.intervals!r}")
+
 
 @dataclass(frozen=True)
 class StartAreaParams:
@@ -324,6 +337,7 @@ class StartAreaParams:
             mesh; only an area with no free start found runs that far).
         batch: cells evaluated together (one collision query each).
         recheck: placements with the least depth bounds whose full depth is measured for the message.
+        named: objects the message names (the rest are counted).
     """
 
     draws: int = 256
@@ -331,3 +345,36 @@ class StartAreaParams:
     budget: int = 4096
     batch: int = 32
     recheck: int = 8
+    named: int = 3
+
+    def __post_init__(self):
+        check_params(self, counts=("draws", "orientations", "budget", "batch", "recheck", "named"))
+
+
+@dataclass(frozen=True)
+class SizingParams:
+    """The memory a solve is sized with before it runs (``dejaview.inference.sizing``): peaks
+    measured on the bundled scenes and rounded up (docs/benchmarks.md, "Sized before run", has the
+    measurements and the commands); frozen, checked.
+
+    Attributes:
+        search_bytes: memory the default search holds at its peak beyond the built problem.
+        rollout_copies: records' worth of memory a candidate of a batch of rollouts holds at the
+            batch's peak.
+        kde_copies: (M, M) float64 matrices the sampler's population move holds at its peak for M
+            guides (the kernels, cdist's distances and their square).
+        particle_bytes: the rest a particle holds (its state, the moves' proposals,
+            ``torch.unique``'s copies).
+        min_kde_rows: fewest particles a chunk of the kernel density estimate holds: below it, the
+            request is refused.
+    """
+
+    search_bytes: int = 128 * 2 ** 20
+    rollout_copies: int = 3
+    kde_copies: int = 5
+    particle_bytes: int = 16384
+    min_kde_rows: int = 64
+
+    def __post_init__(self):
+        check_params(self, counts=("search_bytes", "rollout_copies", "kde_copies", "particle_bytes",
+                                   "min_kde_rows"))
