@@ -462,7 +462,7 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
 @click.option("--count", default=7, show_default=True, type=click.IntRange(min=1),
               help="Stories, one of each kind in turn.")
 @click.option("--kinds", default=None,
-              help="Comma-separated kinds [default: all of bench/stories.py KINDS].")
+              help="Comma-separated kinds [default: all of bench/story_scenes.py KINDS].")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out/bench/stories"),
               show_default=True, help="The stories' scene files and truths go to OUT/seed<SEED>.")
 @click.option("--no-solve", is_flag=True, help="Only write the stories.")
@@ -484,9 +484,10 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
     names = None
     if kinds is not None:
         names = [k for k in kinds.replace(" ", "").split(",") if k]
-        bad = [k for k in names if k not in module.KINDS]
+        known = module.story_scenes().KINDS
+        bad = [k for k in names if k not in known]
         if not names or bad:
-            raise click.BadParameter(f"expected a comma-separated list of {', '.join(module.KINDS)}, got {kinds!r}",
+            raise click.BadParameter(f"expected a comma-separated list of {', '.join(known)}, got {kinds!r}",
                                      param_hint="--kinds")
     rows = module.run(print_fn=click.echo, seed=seed, count=count, out=out, kinds=names, solve=not no_solve)
     solved = sum(bool(r.get("solved")) for r in rows)
