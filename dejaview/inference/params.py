@@ -298,9 +298,8 @@ class ReportParams:
         intervals: central credible intervals reported for every free parameter.
         min_mode_mass: modes holding less posterior mass are left out of the summary.
         rhat_limit: the runs agree when every parameter's rank-normalised R-hat is at most this
-            (Gelman and Rubin's threshold; measured in docs/inference.md: 1.05 flagged 5 of 50
-            calibrated ball_off_table truths, all with every 90 % interval holding the truth; 1.1
-            flags 1 of them, and 9 of 50 box_thrown truths, whose intervals hold the truth less often).
+            (Gelman and Rubin's threshold; docs/inference.md, "The posterior", has how often 1.05
+            and 1.1 flag the calibration bench's truths, and how those truths' intervals fare).
         paths: samples whose trajectories ``posterior_paths.csv`` holds (drawn faintly by the viewer).
         path_records: about how many records each of those trajectories keeps.
         rest_level: mean speeds (and spins) above this many ``rest_speed`` (``rest_spin``) count as
