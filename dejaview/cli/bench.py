@@ -263,7 +263,7 @@ def search(scenes, seeds, pipelines, csv_path):
 
     Solves each scene as shipped with `solve`'s defaults (auto) and with the settings the
     recovery suite needed before (screening, four L-BFGS candidates, restarts), in one run,
-    and prints the time ratio and the issue's targets (mug 10 s, box_among_boxes 60 s).
+    and prints the time ratio and the targets (mug 10 s, box_among_boxes 60 s).
     """
     from dejaview.cli.options import configure_torch
 
@@ -424,7 +424,7 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
     knocked off a counter, tossed or slid off a desk, a box thrown), each with the source's resting
     pose as its target, a start area and no other setting, and solves each with `solve`'s
     defaults. Solved: the answer's end within 1 cm and 5 deg of the observed pose; --check: exit 1
-    below the issue's 6 of 7.
+    below the target, 6 of 7.
     """
     from dejaview.cli.options import configure_torch
 
@@ -482,7 +482,7 @@ def peers(quick, repeats, memory_batch, csv_path, check):
     rollout and exact loss + gradient beside MuJoCo's rollout and
     finite-difference gradient (13 rollouts); the mug reference scene at B = 1
     and 64; the peak memory of a 1024-candidate mug loss + gradient; and the
-    issue's targets. A few minutes without --quick.
+    targets. A few minutes without --quick.
     """
     from dejaview.cli.options import configure_torch
 
