@@ -37,7 +37,7 @@ OPTIMIZERS = ("gd", "adam", "lbfgs", "bfgs")
 
 
 def _load() -> str:
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     return load_average()
 
@@ -149,7 +149,7 @@ def run(print_fn=print, iterations=ITERATIONS, backends=BACKENDS, optimizers=OPT
 
 def write_csv(rows: list[dict], path) -> Path:
     """Write ``run``'s rows as CSV (one column per key, blank where a row has none)."""
-    from dejaview.cli.bench import write_rows_csv
+    from dejaview.cli.bench_table import write_rows_csv
 
     return write_rows_csv(rows, path)
 
@@ -168,7 +168,7 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", default=None, help="write the rows as CSV")
     args = parser.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    from dejaview.cli.bench import parse_counts, parse_names
+    from dejaview.cli.bench_table import parse_counts, parse_names
     from dejaview.cli.options import configure_torch
     from dejaview.errors import DejaViewError
 

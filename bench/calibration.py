@@ -291,7 +291,7 @@ def main(argv=None) -> int:
     rows = run(scenes=tuple(args.scenes.split(",")), truths=args.truths, samples=args.samples, plot=args.plot,
                verbose=args.verbose)
     if args.csv is not None:
-        from dejaview.cli.bench import write_rows_csv
+        from dejaview.cli.bench_table import write_rows_csv
 
         write_rows_csv(rows, args.csv)
     return 0

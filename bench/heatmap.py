@@ -40,7 +40,7 @@ TARGET_S = 300.0
 
 
 def _load() -> str:
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     return load_average()
 
@@ -129,7 +129,7 @@ def run(print_fn=print, scene=None, cells=(16, 16), samples=4, iterations=30, wo
     for r in rows:
         say(f"{r['name']:<{width}}  {r['value']:10.3f} {r['unit']:<2} {r['note']}")
     if csv_path:
-        from dejaview.cli.bench import write_rows_csv
+        from dejaview.cli.bench_table import write_rows_csv
 
         write_rows_csv(rows, csv_path)
         say(f"wrote {csv_path}")

@@ -76,7 +76,7 @@ def make_default_scene() -> Path:
 
 
 def _load() -> str:
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     return load_average()
 
@@ -193,7 +193,7 @@ def main(argv=None) -> int:
     if args.make_scene:
         print(make_default_scene())
         return 0
-    from dejaview.cli.bench import parse_counts, parse_names
+    from dejaview.cli.bench_table import parse_counts, parse_names
     from dejaview.cli.options import configure_torch
 
     configure_torch()

@@ -274,7 +274,7 @@ def run(print_fn=print, quick: bool = False, counts=COUNTS, repeats: int = 3,
     import numpy as np
     import torch
 
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
     from dejaview.sim import native
 
     say = print_fn or (lambda *_: None)

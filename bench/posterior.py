@@ -118,7 +118,7 @@ def run(print_fn=print, scenes=DEFAULT_SCENES, seeds=(0,), solve_fn=None) -> lis
     """Every scene x seed: one timed solve each; prints a row per solve and the verdicts.
 
     ``solve_fn(scene, samples, seed) -> row``: ``solve_once`` (the tests pass a stand-in)."""
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     solve_fn = solve_once if solve_fn is None else solve_fn
     say = print_fn or (lambda *_: None)
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     rows = run(scenes=parse_scenes(args.scenes), seeds=tuple(int(s) for s in args.seeds.split(",") if s))
     if args.csv is not None:
-        from dejaview.cli.bench import write_rows_csv
+        from dejaview.cli.bench_table import write_rows_csv
 
         write_rows_csv(rows, args.csv)
     return 0 if all(r["met"] for r in rows) else 1

@@ -109,7 +109,7 @@ def main(argv=None) -> int:
     rows = run(scenes=tuple(args.scenes.split(",")), seeds=tuple(int(s) for s in args.seeds.split(",")),
                pipelines=tuple(args.pipelines.split(",")))
     if args.csv is not None:
-        from dejaview.cli.bench import write_rows_csv
+        from dejaview.cli.bench_table import write_rows_csv
 
         write_rows_csv(rows, args.csv)
     return 0

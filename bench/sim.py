@@ -125,7 +125,7 @@ def _best_time(fn, repeats: int = 1) -> float:
 
 
 def _load() -> str:
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     return load_average()
 

@@ -93,7 +93,7 @@ def rolling(backend: str, seconds: float = ROLL_SECONDS, start: float = ROLL_FRO
 def run(print_fn=print, scenes=SCENES, backends=BACKENDS, eps: float = EPS, quick: bool = False) -> list[dict]:
     """Both measurements (module docstring); rows ``section`` gradients | rolling."""
     from dejaview.backends import REGISTRY as KNOWN
-    from dejaview.cli.bench import load_average
+    from dejaview.cli.bench_table import load_average
 
     say = print_fn or (lambda *_: None)
     usable = []

@@ -161,8 +161,8 @@ def simulate(scene, backend: str = "spheres", **options):
 
 
 def as_problem(problem) -> Problem:
-    """``problem`` itself: every backend's problem is a ``Problem`` (the spheres backend's
-    ``SpheresProblem`` included; it used to need a wrapper).
+    """``problem`` itself, checked: every backend's problem is a ``Problem`` (the spheres
+    backend's ``SpheresProblem`` included).
 
     Raises:
         InferenceError: something that is not a ``Problem``.

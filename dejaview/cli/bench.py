@@ -6,13 +6,15 @@ meshes), loaded by path from the checkout DejaView is installed from (``pip inst
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import click
+
+# load_average: bench/crossengine.py imports it from here
+from dejaview.cli.bench_table import load_average, parse_counts, parse_names, write_rows_csv  # noqa: F401
 
 
 def bench_module(name: str):
@@ -39,59 +41,6 @@ def bench_module(name: str):
             del sys.modules[key]
             raise
     return sys.modules[key]
-
-
-def load_average() -> str:
-    """``load average 1 5 15 (N CPUs)`` for benchmark headers (machines are shared: say how busy)."""
-    import os
-
-    try:
-        one, five, fifteen = os.getloadavg()
-    except OSError:
-        return "load average unknown"
-    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} ({os.cpu_count()} CPUs)"
-
-
-def write_rows_csv(rows: list[dict], path) -> Path:
-    """Write benchmark rows as CSV: one column per key (first-seen order), blank where absent."""
-    fields: dict[str, None] = {}
-    for row in rows:
-        fields.update(dict.fromkeys(row))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(fields) or ["name"], restval="", lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(rows)
-    return path
-
-
-def parse_names(text: str, choices) -> tuple[str, ...]:
-    """``"gd, adam"`` -> ("gd", "adam"), each one of ``choices``.
-
-    Raises:
-        ValueError: empty, or a name not in ``choices``.
-    """
-    items = tuple(v for v in text.replace(" ", "").split(",") if v)
-    bad = [v for v in items if v not in choices]
-    if not items or bad:
-        raise ValueError(f"expected a comma-separated list of {', '.join(choices)}, got {text!r}")
-    return items
-
-
-def parse_counts(text: str) -> tuple[int, ...]:
-    """``"100,500,1000"`` -> (100, 500, 1000).
-
-    Raises:
-        ValueError: empty, not integers, or not positive.
-    """
-    try:
-        counts = tuple(int(v) for v in text.replace(" ", "").split(",") if v)
-    except ValueError:
-        counts = ()
-    if not counts or min(counts) < 1:
-        raise ValueError(f"expected comma-separated positive integers (e.g. 100,500,1000), got {text!r}")
-    return counts
 
 
 def _comma_list(choices):
@@ -314,7 +263,7 @@ def search(scenes, seeds, pipelines, csv_path):
 
     Solves each scene as shipped with `solve`'s defaults (auto) and with the settings the
     recovery suite needed before (screening, four L-BFGS candidates, restarts), in one run,
-    and prints the time ratio and the issue's targets (mug 10 s, box_among_boxes 60 s).
+    and prints the time ratio and the targets (mug 10 s, box_among_boxes 60 s).
     """
     from dejaview.cli.options import configure_torch
 
@@ -462,7 +411,7 @@ def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity
 @click.option("--count", default=7, show_default=True, type=click.IntRange(min=1),
               help="Stories, one of each kind in turn.")
 @click.option("--kinds", default=None,
-              help="Comma-separated kinds [default: all of bench/stories.py KINDS].")
+              help="Comma-separated kinds [default: all of bench/story_scenes.py KINDS].")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out/bench/stories"),
               show_default=True, help="The stories' scene files and truths go to OUT/seed<SEED>.")
 @click.option("--no-solve", is_flag=True, help="Only write the stories.")
@@ -475,7 +424,7 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
     knocked off a counter, tossed or slid off a desk, a box thrown), each with the source's resting
     pose as its target, a start area and no other setting, and solves each with `solve`'s
     defaults. Solved: the answer's end within 1 cm and 5 deg of the observed pose; --check: exit 1
-    below the issue's 6 of 7.
+    below the target, 6 of 7.
     """
     from dejaview.cli.options import configure_torch
 
@@ -484,9 +433,10 @@ def stories(seed, count, kinds, out, no_solve, csv_path, check):
     names = None
     if kinds is not None:
         names = [k for k in kinds.replace(" ", "").split(",") if k]
-        bad = [k for k in names if k not in module.KINDS]
+        known = module.story_scenes().KINDS
+        bad = [k for k in names if k not in known]
         if not names or bad:
-            raise click.BadParameter(f"expected a comma-separated list of {', '.join(module.KINDS)}, got {kinds!r}",
+            raise click.BadParameter(f"expected a comma-separated list of {', '.join(known)}, got {kinds!r}",
                                      param_hint="--kinds")
     rows = module.run(print_fn=click.echo, seed=seed, count=count, out=out, kinds=names, solve=not no_solve)
     solved = sum(bool(r.get("solved")) for r in rows)
@@ -532,7 +482,7 @@ def peers(quick, repeats, memory_batch, csv_path, check):
     rollout and exact loss + gradient beside MuJoCo's rollout and
     finite-difference gradient (13 rollouts); the mug reference scene at B = 1
     and 64; the peak memory of a 1024-candidate mug loss + gradient; and the
-    issue's targets. A few minutes without --quick.
+    targets. A few minutes without --quick.
     """
     from dejaview.cli.options import configure_torch
 

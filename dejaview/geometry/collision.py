@@ -335,7 +335,7 @@ class SceneCollision:
     def query_bytes(self, source_id: str) -> int:
         """Bytes a ``penetration`` query holds per candidate pose at its peak: the support values of
         the source's hull vertices against a plane (B, V), beside its rotation, pose and depths
-        (5.3 kB measured for the ball's 642 vertices)."""
+        (docs/benchmarks.md, "Sized before run", has the ball's)."""
         body = self._body(source_id)
         return 8 * ((0 if body.hull is None else len(body.hull)) + 32)
 

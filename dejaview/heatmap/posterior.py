@@ -9,11 +9,11 @@ is the posterior probability that the source started in it; the likelihood is
 ``<observation>``'s (``<heatmap sigma>`` is its position sigma when
 ``<observation>`` is absent, as the spec says).
 
-Why this replaced the per-cell optimisation heatmap (``dejaview.heatmap.search``,
-still there for backends without residual Jacobians and for a local optimiser
-named explicitly): its cells weighed one optimum each by a hand-tuned basin
-level, which is not a probability; the sampler's marginal is, and the
-calibration bench (``dejaview bench calibration``) checks it.
+Why the sampler and not the per-cell optimisation heatmap (``dejaview.heatmap.search``,
+kept for backends without residual Jacobians and for a local optimiser named
+explicitly): its cells weigh one optimum each by a hand-tuned basin level,
+which is not a probability; the sampler's marginal is, and the calibration
+bench (``dejaview bench calibration``) checks it.
 """
 
 from __future__ import annotations

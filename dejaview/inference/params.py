@@ -6,6 +6,8 @@
 restarts). Their defaults are the tool's; a researcher changes one with
 ``dataclasses.replace(SearchParams(), budget=20000)`` and passes it to the object that runs. Each
 is checked when it is made: a value out of range is a one-line ``InferenceError`` naming it.
+Beside them: ``ModelParams`` (physics variants), ``ReportParams`` (what a solve reports),
+``StartAreaParams`` (the start area's check) and ``SizingParams`` (the memory a solve is sized with).
 """
 
 from __future__ import annotations
@@ -283,6 +285,10 @@ class ModelParams:
     unexplained_p: float = 1e-3
     min_factor: float = 0.05
 
+    def __post_init__(self):
+        check_params(self, counts=("variants", "heldout_variants"), naturals=("heldout_seed",),
+                     positive=("stiffness_sd",), fractions=("unexplained_p", "min_factor"))
+
 
 @dataclass(frozen=True)
 class ReportParams:
@@ -292,9 +298,8 @@ class ReportParams:
         intervals: central credible intervals reported for every free parameter.
         min_mode_mass: modes holding less posterior mass are left out of the summary.
         rhat_limit: the runs agree when every parameter's rank-normalised R-hat is at most this
-            (Gelman and Rubin's threshold; measured in docs/inference.md: 1.05 flagged 5 of 50
-            calibrated ball_off_table truths, all with every 90 % interval holding the truth; 1.1
-            flags 1 of them, and 9 of 50 box_thrown truths, whose intervals hold the truth less often).
+            (Gelman and Rubin's threshold; docs/inference.md, "The posterior", has how often 1.05
+            and 1.1 flag the calibration bench's truths, and how those truths' intervals fare).
         paths: samples whose trajectories ``posterior_paths.csv`` holds (drawn faintly by the viewer).
         path_records: about how many records each of those trajectories keeps.
         rest_level: mean speeds (and spins) above this many ``rest_speed`` (``rest_spin``) count as
@@ -312,6 +317,13 @@ class ReportParams:
     extend_factor: float = 4.0
     max_checked: int = 64
 
+    def __post_init__(self):
+        check_params(self, counts=("paths", "path_records", "max_checked"),
+                     positive=("rhat_limit", "rest_level", "extend_factor"), fractions=("min_mode_mass",))
+        if not all(isinstance(x, float) and 0 < x < 1 for x in self.intervals):
+            raise InferenceError(f"ReportParams.intervals must be levels strictly between 0 and 1, "
+                                 f"got {self.intervals!r}")
+
 
 @dataclass(frozen=True)
 class StartAreaParams:
@@ -324,6 +336,7 @@ class StartAreaParams:
             mesh; only an area with no free start found runs that far).
         batch: cells evaluated together (one collision query each).
         recheck: placements with the least depth bounds whose full depth is measured for the message.
+        named: objects the message names (the rest are counted).
     """
 
     draws: int = 256
@@ -360,3 +373,38 @@ class IdentifyParams:
     def __post_init__(self):
         check_params(self, nonnegative=("friction", "restitution", "stiffness"), naturals=("samples", "seed"),
                      counts=("lm_iterations",), fractions=("min_ess_share",))
+
+
+    named: int = 3
+
+    def __post_init__(self):
+        check_params(self, counts=("draws", "orientations", "budget", "batch", "recheck", "named"))
+
+
+@dataclass(frozen=True)
+class SizingParams:
+    """The memory a solve is sized with before it runs (``dejaview.inference.sizing``): peaks
+    measured on the bundled scenes and rounded up (docs/benchmarks.md, "Sized before run", has the
+    measurements and the commands); frozen, checked.
+
+    Attributes:
+        search_bytes: memory the default search holds at its peak beyond the built problem.
+        rollout_copies: records' worth of memory a candidate of a batch of rollouts holds at the
+            batch's peak.
+        kde_copies: (M, M) float64 matrices the sampler's population move holds at its peak for M
+            guides (the kernels, cdist's distances and their square).
+        particle_bytes: the rest a particle holds (its state, the moves' proposals,
+            ``torch.unique``'s copies).
+        min_kde_rows: fewest particles a chunk of the kernel density estimate holds: below it, the
+            request is refused.
+    """
+
+    search_bytes: int = 128 * 2 ** 20
+    rollout_copies: int = 3
+    kde_copies: int = 5
+    particle_bytes: int = 16384
+    min_kde_rows: int = 64
+
+    def __post_init__(self):
+        check_params(self, counts=("search_bytes", "rollout_copies", "kde_copies", "particle_bytes",
+                                   "min_kde_rows"))

@@ -53,9 +53,6 @@ from dejaview.inference.params import StartAreaParams
 from dejaview.inference.posterior import PosteriorSettings
 from dejaview.scene import bounds
 
-_MAX_NAMES = 3
-
-
 def check_start_area(scene, collision=None, margin: float = PosteriorSettings.feasibility_margin):
     """Refuse a start area that cannot hold the source (module docstring).
 
@@ -193,9 +190,9 @@ def _search(collision, source: str, lo: np.ndarray, hi: np.ndarray, guess: np.nd
 
 def _message(source: str, lo, hi, free_orientation: bool, margin: float, certified: bool, tried: int,
              least: float, names: list[str]) -> str:
-    shown = [repr(n) for n in names[:_MAX_NAMES]]
-    if len(names) > _MAX_NAMES:
-        shown.append(f"{len(names) - _MAX_NAMES} other object(s)")
+    shown = [repr(n) for n in names[:StartAreaParams.named]]
+    if len(names) > StartAreaParams.named:
+        shown.append(f"{len(names) - StartAreaParams.named} other object(s)")
     if len(shown) == 1:
         pair = f"{source!r} and {shown[0]} interpenetrate"
     else:

@@ -68,9 +68,6 @@ from dejaview.inference.reference import log_density, log_haar
 from dejaview.sim.rotation import quat_multiply, quat_rotate, quat_to_rotvec, rotvec_to_quat
 from dejaview.sim.state import State, Trajectory
 
-_TOL = 1e-12
-
-
 def _rotation_z(theta: torch.Tensor) -> torch.Tensor:
     """(B, 4) quaternions of rotations by theta (B,) about z."""
     h = 0.5 * theta
@@ -115,10 +112,11 @@ class FloorSymmetry:
             return None
         if problem.penalties or any(s.step is None for s in post.sightings):
             return None
-        if world.mass.shape[0] != 1 or float(world.gravity[:2].abs().max()) > _TOL:
+        rounding = 1e-12  # vertical or horizontal up to the rounding of a rotation built from z
+        if world.mass.shape[0] != 1 or float(world.gravity[:2].abs().max()) > rounding:
             return None
         for shape in world.statics:
-            if shape.kind != "plane" or float((shape.rotation[:2, 2]).abs().max()) > _TOL:
+            if shape.kind != "plane" or float((shape.rotation[:2, 2]).abs().max()) > rounding:
                 return None
         if lay.lo is not None and lay.lo.dim() != 1:
             return None

@@ -116,10 +116,8 @@ def pose_error(pos: torch.Tensor, q: torch.Tensor, target_pos: torch.Tensor, tar
     ``0.5 * loss^2``. For the sum ``a + w b`` that has a cross term ``w a b``,
     which is a V-shaped valley along every pose whose position matches
     (``a = 0``) while its orientation does not: L-BFGS lands on the valley
-    floor and stalls there. Measured on ``box_among_boxes`` (recovery case 0):
-    the sum ended at 0.0 mm and 5.7 degrees after 400 evaluations; the
-    quadrature loss, started from that point, fell from 5.0 mm to 0.45 mm in
-    51 evaluations. In quadrature ``0.5 * loss^2 = 0.5 (a^2 + w^2 b^2)`` is
+    floor and stalls there (docs/inference.md, "Parameters and losses", has a
+    case). In quadrature ``0.5 * loss^2 = 0.5 (a^2 + w^2 b^2)`` is
     smooth wherever either part vanishes. Both parts stay bounded by the loss:
     a loss of 3 mm means a position within 3 mm and an angle within
     3 mm / ``orientation_weight`` (3.4 degrees at 0.05 m/rad).

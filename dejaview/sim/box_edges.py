@@ -33,10 +33,10 @@ surface is the body's).
 Why: a packed face is a union of spheres up to 5 cm in radius, 2 cm apart, and
 a sphere meeting a sharp edge is pushed along the line from the edge to its
 centre, up to 11 deg off the face's normal, so a box sliding off a table
-rolled over the edge on those curved sides and tipped early: across its width
-2.5 deg ahead of a rigid flat box at 0.25 s and 54.7 deg at 0.5 s against the
-rigid 49.7 (``bench/edge_tip.py``; MuJoCo 51.4), now 50.4
-(docs/physics-fidelity.md, "Static box edges against a box's faces").
+would roll over the edge on those curved sides and tip early, ahead of a
+rigid flat box (docs/physics-fidelity.md, "Static box edges against a box's
+faces", has the angles against the rigid reference ``bench/edge_tip.py`` and
+MuJoCo, with and without the exact faces).
 
 The native engine makes the same points and contacts (``native/box_edges.h``:
 ``edge_point``, ``select_edges``, ``edge_contact``) and their reverse mode

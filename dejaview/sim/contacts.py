@@ -71,12 +71,13 @@ with F_N and T_N the normal force and torque of all the body's static contacts
 (``predicted_slip_change``). In an impact on an edge or a corner the normal
 force (hundreds of newtons over a few substeps) turns the body and drives the
 contact point sideways within one substep; friction read from the slip at the
-substep's start lagged one substep behind that, and the lag slip it left at
-the peak of the impact could not be taken back while the contact unloaded
+substep's start would lag one substep behind that, and the lag slip it leaves
+at the peak of the impact cannot be taken back while the contact unloads
 (with the small unloading stiffness of a low restitution): a box landing on an
-edge, where Coulomb friction holds a rigid edge, left the floor sliding at
-0.3-0.4 m/s and spinning 40 % faster than the rigid box
-(``tests/sim/test_physics.py::test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box``;
+edge, where Coulomb friction holds a rigid edge, would leave the floor sliding
+and spinning faster than the rigid box (docs/physics-fidelity.md, "Impacts on
+an edge or a corner", has the numbers;
+``tests/sim/test_physics.py::test_box_landing_on_an_edge_leaves_it_without_slip_like_a_rigid_box``;
 MuJoCo agrees with the rigid box there). With the prediction the friction is
 implicit in the normal forces' part of the slip; the stick limit's
 no-overshoot bound still holds (a substep maps the predicted slip u to
@@ -130,9 +131,8 @@ selected contacts' forces are recomputed from the differentiable state. While
 a set has no more touching candidates than its capacity the result is that of
 the dense computation, values and gradients (``tests/sim/test_contact_capacity.py``);
 beyond it the shallowest contacts, which carry the least force, are dropped.
-Measured: a box packed with 128 spheres resting on a face touches the floor
-with 43-65 spheres and meets another such box with up to 191 sphere pairs;
-a mug of 150 spheres touches a table or floor with up to 30.
+How many of the bundled bodies' spheres touch at once (and so what the
+capacities must hold): ``tests/sim/test_contact_capacity.py``, docs/benchmarks.md.
 
 All functions are free of data-dependent Python branches, so they run under
 ``torch.func`` transforms and ``torch.compile``.

@@ -28,25 +28,22 @@ a face, a ring or a single contact is left alone (f = 0),
 and so is any spin about the line itself (rolling over an edge, tipping). It
 pushes and unloads, never pulls. The friction's Coulomb limit and predicted
 slip read the spring forces f_n,i (the stick changes only the wrench).
-Measured: box-thrown's row 2.35 -> 0.98 cm at 1.0 s, box-tumble-2's start
-4.98 -> 1.39, the other rows unchanged; ungated it held a box's pitch after
-landing on an edge (the box off the table 2.19 -> 8.50 cm), and a stick on
-every difference of the contacts' normal velocities held any turn over an
-edge (docs/physics-fidelity.md, "Sliding along an edge";
+The gate is why a box's pitch stays free after it lands on an edge (ungated,
+the stick holds it), and the stick acts on the roll alone
+because one on every difference of the contacts' normal velocities would hold
+any turn over an edge (docs/physics-fidelity.md, "Sliding along an edge", has
+the fidelity rows with and without it;
 ``tests/sim/test_physics.py::test_a_box_landing_on_an_edge_while_sliding_along_it_does_not_roll_over_the_edge_line``).
 
 Why tau and not h: a force that stops the roll in every substep (tau = h)
 grows as 1 / h, each substep's push an impulse of a fixed size; where the
 roll is not gone by the next substep (an end that cannot pull, the max;
 friction starting it again), the pushes add up with the number of
-substeps. box-tumble-2's start moved 41.9 / 31.2 / 15.0 cm at 2 / 8 / 16
-substeps against itself at 32 (and 1.39 -> 41.8 cm from MuJoCo); making
-only the gate's share a rate, 1 - (1 - f)^(h / tau), left 29.3 / 19.0 /
-14.2 cm. With tau fixed by omega_0 the stick is a damper of one rate at
-every step: 0.25 / 0.17 / 0.07 cm, and 1.07-1.39 cm from MuJoCo at every
-step (docs/physics-fidelity.md, "The roll stick and the step";
-``tests/sim/test_physics.py``). At the default step tau = h: nothing
-changed there.
+substeps and the answer moves with the step (making only the gate's share
+a rate, 1 - (1 - f)^(h / tau), does not cure it). With tau fixed by omega_0
+the stick is a damper of one rate at every step, and the answer holds
+across steps (docs/physics-fidelity.md, "The roll stick and the step", has
+the numbers; ``tests/sim/test_physics.py``). At the default step tau = h.
 
 Static contacts only (``dejaview.sim.contacts.static_contact_wrench`` calls it after the
 friction), and not for box bodies: they meet planes and static boxes with their exact corners

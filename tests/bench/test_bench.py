@@ -9,7 +9,8 @@ import pytest
 from click.testing import CliRunner
 
 from dejaview.cli import cli
-from dejaview.cli.bench import bench_module, command, write_rows_csv
+from dejaview.cli.bench import bench_module, command
+from dejaview.cli.bench_table import write_rows_csv
 
 ROW_KEYS = {"section", "name", "batch", "mode", "value", "unit"}
 

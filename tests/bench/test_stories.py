@@ -1,4 +1,5 @@
-"""The stories bench (bench/stories.py, ``dejaview bench stories``): the generator and the CLI's options.
+"""The stories bench (bench/stories.py, ``dejaview bench stories``): the generator
+(bench/story_scenes.py) and the CLI's options.
 
 No solve in the default run: the one test that solves a story is marked slow.
 """
@@ -21,44 +22,45 @@ from dejaview.inference.posterior import PosteriorSettings
 from dejaview.scene import Scene
 
 stories = bench_module("stories")
+scenes = bench_module("story_scenes")
 
 
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     """The development set (seed 0, one story of each kind), written to a folder."""
     folder = tmp_path_factory.mktemp("stories")
-    made = stories.make_stories(seed=0, count=len(stories.KINDS), folder=folder)
+    made = scenes.make_stories(seed=0, count=len(scenes.KINDS), folder=folder)
     for story in made:
-        stories.write_story(story, folder)
+        scenes.write_story(story, folder)
     return folder, made
 
 
 def test_one_story_of_each_kind_in_turn():
-    kinds = list(stories.KINDS)
+    kinds = list(scenes.KINDS)
     assert len(kinds) >= 6
-    assert stories.story_kinds(len(kinds) + 2) == kinds + kinds[:2]
-    assert stories.story_kinds(3, ["box_thrown"]) == ["box_thrown"] * 3
+    assert scenes.story_kinds(len(kinds) + 2) == kinds + kinds[:2]
+    assert scenes.story_kinds(3, ["box_thrown"]) == ["box_thrown"] * 3
 
 
 def test_the_generator_is_deterministic_per_seed(written, tmp_path):
     folder, made = written
-    again = stories.make_stories(seed=0, count=len(made), folder=tmp_path)
+    again = scenes.make_stories(seed=0, count=len(made), folder=tmp_path)
     for a, b in zip(made, again):
         assert a.name == b.name and a.truth == b.truth
-        stories.write_story(b, tmp_path)
+        scenes.write_story(b, tmp_path)
         assert (folder / f"{a.name}.xml").read_text() == (tmp_path / f"{b.name}.xml").read_text()
-    other = stories.make_stories(seed=1, count=1, folder=tmp_path)[0]
+    other = scenes.make_stories(seed=1, count=1, folder=tmp_path)[0]
     assert other.truth["initial_state"] != made[0].truth["initial_state"]
 
 
 def test_a_story_does_not_depend_on_the_others(written, tmp_path):
     _, made = written
     kind = made[3].kind
-    alone = stories.make_story(kind, np.random.default_rng([0, 3]), tmp_path)
+    alone = scenes.make_story(kind, np.random.default_rng([0, 3]), tmp_path)
     assert alone.truth == made[3].truth
 
 
-@pytest.mark.parametrize("index", range(len(stories.KINDS)))
+@pytest.mark.parametrize("index", range(len(scenes.KINDS)))
 def test_the_scene_file_reads_back_with_no_settings(written, index):
     folder, made = written
     story = made[index]
@@ -74,7 +76,7 @@ def test_the_scene_file_reads_back_with_no_settings(written, index):
     assert set(truth["initial_state"]) == {"position", "orientation", "linear_velocity", "angular_velocity"}
 
 
-@pytest.mark.parametrize("index", range(len(stories.KINDS)))
+@pytest.mark.parametrize("index", range(len(scenes.KINDS)))
 def test_the_truth_ends_at_rest_at_the_target(written, index):
     """The written scene, run from the truth's start for its duration, ends at the target, and the
     source has lain still (mean speed and spin over 0.1 s) for the last ``REST_MARGIN`` seconds."""
@@ -84,25 +86,25 @@ def test_the_truth_ends_at_rest_at_the_target(written, index):
     s = story.truth["initial_state"]
     start = dict(position=s["position"], orientation=s["orientation"], linear=s["linear_velocity"],
                  angular=s["angular_velocity"])
-    world, traj, source = stories.simulate(scene, start)
-    assert len(traj.steps) - 1 == round(scene.simulation.duration / stories.DT)
+    world, traj, source = scenes.simulate(scene, start)
+    assert len(traj.steps) - 1 == round(scene.simulation.duration / scenes.DT)
     target = scene.inference.target
     end = world.object_position(traj.final)[0, source]
     assert float(torch.linalg.vector_norm(end - torch.tensor(target.position, dtype=end.dtype))) < 1e-6
     q = traj.final.orientation[0, source]
     assert abs(abs(float(q @ torch.tensor(target.orientation, dtype=q.dtype))) - 1.0) < 1e-9
-    speed, spin = stories.mean_motion(world, traj, source)
-    tail = int(round(stories.REST_MARGIN / stories.DT))
-    assert float(speed[-tail:].max()) < stories.REST_SPEED and float(spin[-tail:].max()) < stories.REST_SPIN
+    speed, spin = scenes.mean_motion(world, traj, source)
+    tail = int(round(scenes.REST_MARGIN / scenes.DT))
+    assert float(speed[-tail:].max()) < scenes.REST_SPEED and float(spin[-tail:].max()) < scenes.REST_SPIN
     rest = story.truth["rest_time"]
-    assert rest <= stories.MAX_REST
-    assert scene.simulation.duration == stories.story_duration(rest) >= rest + stories.REST_MARGIN - 1e-9
-    kind = stories.KINDS[story.kind]
+    assert rest <= scenes.MAX_REST
+    assert scene.simulation.duration == scenes.story_duration(rest) >= rest + scenes.REST_MARGIN - 1e-9
+    kind = scenes.KINDS[story.kind]
     if kind.leaves_top:
         assert target.position[2] < 0.3  # on the floor, not on its top
 
 
-@pytest.mark.parametrize("index", range(len(stories.KINDS)))
+@pytest.mark.parametrize("index", range(len(scenes.KINDS)))
 def test_the_start_is_feasible_and_inside_its_area(written, index):
     from dejaview.geometry.collision import SceneCollision
 
@@ -113,12 +115,12 @@ def test_the_start_is_feasible_and_inside_its_area(written, index):
     s = story.truth["initial_state"]
     assert all(lo <= p <= hi for lo, p, hi in zip(area.min, s["position"], area.max))
     widths = [hi - lo for lo, hi in zip(area.min, area.max)]
-    assert all(stories.AREA_WIDTH[0] - 1e-9 <= w <= stories.AREA_WIDTH[1] + 1e-9 for w in widths[:2])
-    kind = stories.KINDS[story.kind]
+    assert all(scenes.AREA_WIDTH[0] - 1e-9 <= w <= scenes.AREA_WIDTH[1] + 1e-9 for w in widths[:2])
+    kind = scenes.KINDS[story.kind]
     if kind.stand is not None:  # on its top, where it stands
-        assert area.min[2] == area.max[2] == pytest.approx(kind.stand["top"] + stories.SOURCES[kind.source]["stand"])
+        assert area.min[2] == area.max[2] == pytest.approx(kind.stand["top"] + scenes.SOURCES[kind.source]["stand"])
     else:
-        assert stories.AIR_Z[0] <= area.min[2] < area.max[2] <= stories.AIR_Z[1]
+        assert scenes.AIR_Z[0] <= area.min[2] < area.max[2] <= scenes.AIR_Z[1]
     # not centred on the truth: the truth is drawn inside the area (here: somewhere off its centre)
     assert any(abs(p - (lo + hi) / 2) > 1e-6 for lo, p, hi in zip(area.min[:2], s["position"], area.max[:2]))
     hit, depth, _ = SceneCollision(scene).penetration(scene.inference.source, np.asarray(s["position"]),
@@ -132,7 +134,7 @@ def test_the_start_is_feasible_and_inside_its_area(written, index):
 def test_velocities_within_the_kinds_ranges(written):
     _, made = written
     for story in made:
-        kind = stories.KINDS[story.kind]
+        kind = scenes.KINDS[story.kind]
         v = story.truth["initial_state"]["linear_velocity"]
         assert kind.speed[0] - 1e-9 <= math.hypot(v[0], v[1]) <= kind.speed[1] + 1e-9
         assert kind.vz[0] - 1e-9 <= v[2] <= kind.vz[1] + 1e-9
@@ -140,33 +142,33 @@ def test_velocities_within_the_kinds_ranges(written):
 
 
 def test_story_duration_rounds_up_to_a_tenth():
-    assert stories.story_duration(1.0) == 1.5
-    assert stories.story_duration(1.1) == 1.6
-    assert stories.story_duration(1.002) == 1.6
-    assert stories.story_duration(3.98) == 4.5
+    assert scenes.story_duration(1.0) == 1.5
+    assert scenes.story_duration(1.1) == 1.6
+    assert scenes.story_duration(1.002) == 1.6
+    assert scenes.story_duration(3.98) == 4.5
 
 
 def test_rest_time_of_a_box_dropped_flat():
     """A box let go 1 cm above the floor lies still after a few tenths of a second; one sliding at
     1 m/s to the end of a short horizon is not at rest."""
-    kind = stories.KINDS["box_thrown"]
-    folder = stories.PACKINGS  # only for resolving relative names: the scene is not written
-    scene = stories.base_scene(kind, ([0.0, 0.0, 0.5], [0.3, 0.3, 0.8]), folder, duration=1.0)
+    kind = scenes.KINDS["box_thrown"]
+    folder = scenes.PACKINGS  # only for resolving relative names: the scene is not written
+    scene = scenes.base_scene(kind, ([0.0, 0.0, 0.5], [0.3, 0.3, 0.8]), folder, duration=1.0)
     start = dict(position=[0.0, 0.0, 0.06], orientation=[1.0, 0.0, 0.0, 0.0], linear=[0.0, 0.0, 0.0],
                  angular=[0.0, 0.0, 0.0])
-    world, traj, source = stories.simulate(scene, start)
-    rest = stories.rest_time(world, traj, source)
+    world, traj, source = scenes.simulate(scene, start)
+    rest = scenes.rest_time(world, traj, source)
     assert rest is not None and 0.1 <= rest < 0.6
     sliding = dict(start, linear=[1.0, 0.0, 0.0])
-    world, traj, source = stories.simulate(scene, sliding, steps=50)
-    assert stories.rest_time(world, traj, source) is None
+    world, traj, source = scenes.simulate(scene, sliding, steps=50)
+    assert scenes.rest_time(world, traj, source) is None
 
 
 def test_the_knobbly_ball_reaches_the_mesh(tmp_path):
-    rows = stories.knobbly_ball()
+    rows = scenes.knobbly_ball()
     reach = np.linalg.norm(rows[:, :3], axis=1) + rows[:, 3]
     assert rows.shape == (13, 4) and float(reach.max()) == pytest.approx(0.05)
-    path = stories.write_knobbly(tmp_path)
+    path = scenes.write_knobbly(tmp_path)
     from dejaview.geometry.packing import SpherePacking
 
     packing = SpherePacking.read(path)

@@ -1,4 +1,4 @@
-// Reverse mode of one substep's pieces, written by hand (dejaview.sim.native; issue 25): vector-
+// Reverse mode of one substep's pieces, written by hand (dejaview.sim.native): vector-
 // Jacobian products of the static contacts' wrench, a body pair's wrench and the integration, for
 // the adjoint lam <- J^T lam of rollout.cpp's substep_adjoint.
 //
