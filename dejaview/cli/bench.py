@@ -305,6 +305,26 @@ def posterior(scenes, seeds, csv_path, check):
     _finish(rows, csv_path, check, [r["met"] for r in rows])
 
 
+@command.command("physics")
+@click.option("--scenes", default="box_along_shelf,ball_off_table,box_tossed_tracked", show_default=True,
+              help="Comma-separated bundled scenes.")
+@click.option("--prior", default="0.3 0.3 0", show_default=True,
+              help="The <physics-prior> added: friction, restitution and stiffness relative standard deviations.")
+@csv_option
+@check_option
+def physics(scenes, prior, csv_path, check):
+    """What a <physics-prior> costs: each scene solved without and with it (target: at most 3x)."""
+    try:
+        values = tuple(float(v) for v in prior.split())
+    except ValueError:
+        values = ()
+    if len(values) != 3 or min(values) < 0:
+        raise click.BadParameter(f"expected three numbers >= 0, got {prior!r}")
+    rows = bench_module("physics_cost").run(print_fn=click.echo, scenes=tuple(s for s in scenes.split(",") if s),
+                                            prior=values)
+    _finish(rows, csv_path, check, [r["met"] for r in rows])
+
+
 @command.command("calibration")
 @click.option("--scenes", default="ball_off_table,box_thrown,ramp", show_default=True,
               callback=_comma_list(("ball_off_table", "box_thrown", "ramp")), help="Calibration scenes.")

@@ -344,6 +344,10 @@ class StartAreaParams:
     budget: int = 4096
     batch: int = 32
     recheck: int = 8
+    named: int = 3
+
+    def __post_init__(self):
+        check_params(self, counts=("draws", "orientations", "budget", "batch", "recheck", "named"))
 
 
 @dataclass(frozen=True)

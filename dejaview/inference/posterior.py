@@ -377,8 +377,9 @@ class Posterior:
             else:
                 norm = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-24)
                 parts.append(torch.relu(norm - bound) / (self.settings.bound_softness * bound))
-        if lay.physics_names:  # standard normals (dejaview.sim.physics)
-            parts.append(lay.physics_z(x))
+        cols = lay.block_slice("physics")
+        if cols.stop > cols.start:  # standard normals (dejaview.sim.physics)
+            parts.append(x[:, cols])
         if not parts:
             return x[:, :0]
         return torch.cat(parts, -1)

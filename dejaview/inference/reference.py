@@ -59,8 +59,9 @@ def prior_draws(post, n: int, gen: torch.Generator) -> torch.Tensor:
                 d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-300)
                 v = d * bound * torch.rand(n, 1, generator=gen, dtype=dt) ** (1 / 3)
             parts.append(v / lay.scale[block])
-    if lay.physics_names:  # standard normals (dejaview.sim.physics)
-        parts.append(torch.randn(n, len(lay.physics_names), generator=gen, dtype=dt))
+    cols = lay.block_slice("physics")
+    if cols.stop > cols.start:  # standard normals (dejaview.sim.physics)
+        parts.append(torch.randn(n, cols.stop - cols.start, generator=gen, dtype=dt))
     return torch.cat(parts, -1)
 
 
@@ -92,7 +93,7 @@ def log_prior_density(post, x: torch.Tensor) -> torch.Tensor:
                 out = torch.where(inside, out - math.log(4 / 3 * math.pi * bound ** 3),
                                   torch.full_like(out, -math.inf))
             out = out + w * math.log(sc)
-    z = lay.physics_z(x)
+    z = x[:, lay.block_slice("physics")]
     if z.shape[1]:
         out = out - 0.5 * (z * z).sum(-1) - z.shape[1] * 0.5 * math.log(2 * math.pi)
     return out
