@@ -8,10 +8,13 @@ best) share one physics. The joint posterior over every scene's start and the sh
 R_s a scene's observation and start-prior residuals (``Posterior.residuals`` without its physics
 prior), z the physics' standard normals (``dejaview.sim.physics``), counted once.
 
-``identify`` finds its maximum in three steps: each scene's own most probable past with the physics
-free (``MapSearch`` on the scene's ``Posterior``); then Levenberg-Marquardt on the joint vector from
-each scene's physics and their mean (exact Jacobians, block-sparse: a scene's residuals see only
-its start and z); then the Laplace approximation at the maximum, (J^T J)^-1, for the intervals.
+``identify`` finds its maximum in steps: each scene's own most probable past with the physics free
+(``MapSearch`` on the scene's ``Posterior``); Levenberg-Marquardt on the joint vector from the best
+of each scene's physics and their mean (exact Jacobians: a scene's residuals see only its start and
+z); then, ``rounds`` times while it gains, each scene's start searched again with the physics fixed
+at the joint maximum's (``physics_fixed``: a search in the start alone finds a tumbling box's basin
+that one with the physics free misses) and the joint refined again; finally the Laplace
+approximation at the maximum, (J^T J)^-1, for the intervals.
 With ``samples``, draws from that Gaussian are weighted by the exact joint posterior over it
 (importance sampling; the effective sample size is reported), so the intervals hold where the
 Gaussian is off, as long as it covers the posterior.
@@ -316,16 +319,37 @@ def identify(scenes: list, params: IdentifyParams | None = None, *, callback=Non
     with torch.no_grad():
         first = joint.cost(x0)  # refine the best start only: a joint Jacobian costs a reverse pass per residual
     x, cost = levenberg_marquardt(joint, x0[int(torch.argmin(first))][None], params.lm_iterations)
-    best = int(torch.argmin(cost))
-    if not math.isfinite(float(cost[best])):
+    if not math.isfinite(float(cost[0])):
         raise InferenceError("identify: no joint start of the scenes has a finite posterior")
-    x = x[best]
+    x, cost = x[0], float(cost[0])
+    model = posts[0].layout.physics
+    for round_ in range(params.rounds if "stiffness" not in model.names else 0):
+        # the starts searched again under the joint physics (a search with the physics fixed finds a
+        # tumbling box's basin that one with the physics free misses), then the joint refined again
+        z = x[-joint.f:][None]
+        starts = []
+        for k, sc in enumerate(scenes):
+            fixed = Posterior.from_scene(physics_fixed(sc, model, z))
+            opt = MapSearch(replace(params.search, seed=params.seed + 101 * (round_ + 1) + k)).run(fixed)
+            starts.append(opt.x.to(torch.float64)[None])
+        trial = torch.cat([joint.join(starts, z), x[None]])
+        with torch.no_grad():
+            costs = joint.cost(trial)
+        if float(costs[0]) >= cost:
+            break  # the searches found nothing better than the joint maximum
+        x_new, c_new = levenberg_marquardt(joint, trial[:1], params.lm_iterations)
+        if not float(c_new[0]) < cost:
+            break
+        x, cost = x_new[0], float(c_new[0])
+        if callback is not None:
+            callback(f"round {round_ + 2}: starts searched again under the joint physics "
+                     f"(-log posterior {cost:.4g})")
     _, J = joint.jacobian(x[None])
     H = J[0].T @ J[0]
     covariance = torch.linalg.pinv(H, hermitian=True)
-    result = IdentifyResult(scenes, joint, x, float(cost[best]), covariance)
+    result = IdentifyResult(scenes, joint, x, cost, covariance)
     if callback is not None:
-        callback(f"joint most probable physics found (-log posterior {float(cost[best]):.4g})")
+        callback(f"joint most probable physics found (-log posterior {cost:.4g})")
     if params.samples:
         samples, weights, ess = _importance_samples(joint, x, covariance, params)
         if math.isfinite(ess) and ess >= params.min_ess_share * params.samples:
@@ -335,6 +359,23 @@ def identify(scenes: list, params: IdentifyParams | None = None, *, callback=Non
                                 f"to trust: the intervals are the Laplace approximation's")
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def physics_fixed(scene, model, z: torch.Tensor):
+    """``scene`` with the physics of standard normals z (1, F) written in and no physics prior: the
+    scene's friction and restitution, and every object's own, scaled as ``PhysicsModel`` scales
+    them (the stiffness is not written: ``identify`` does not search again where it is inferred)."""
+    values = model.values(z)[0]
+    f = float(values[0]) / model.friction
+    r = float(values[1]) / model.restitution
+
+    def material(obj):
+        return replace(obj, friction=None if obj.friction is None else obj.friction * f,
+                       restitution=None if obj.restitution is None else min(1.0, obj.restitution * r))
+
+    sim = replace(scene.simulation, friction=float(values[0]), restitution=float(values[1]))
+    return replace(scene, simulation=sim, objects=tuple(material(o) for o in scene.objects),
+                   inference=replace(scene.inference, physics_prior=None))
 
 
 def _importance_samples(joint: JointPosterior, x: torch.Tensor, covariance: torch.Tensor,

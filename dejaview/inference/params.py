@@ -361,6 +361,7 @@ class IdentifyParams:
         seed: the searches' and the samples' seed.
         search: each scene's ``MapSearch`` settings.
         lm_iterations: joint Levenberg-Marquardt iterations at most.
+        rounds: most rounds of searching the starts again under the joint physics.
         min_ess_share: importance samples are kept where their effective size is at least this
             share of their count (else the intervals are the Laplace approximation's).
     """
@@ -372,10 +373,11 @@ class IdentifyParams:
     seed: int = 0
     search: SearchParams = field(default_factory=SearchParams)
     lm_iterations: int = 60
+    rounds: int = 2
     min_ess_share: float = 0.02
 
     def __post_init__(self):
-        check_params(self, nonnegative=("friction", "restitution", "stiffness"), naturals=("samples", "seed"),
+        check_params(self, nonnegative=("friction", "restitution", "stiffness"), naturals=("samples", "seed", "rounds"),
                      counts=("lm_iterations",), fractions=("min_ess_share",))
 
 
