@@ -40,7 +40,7 @@ set on every run): Bullet gives a contact restitution only in its first frames, 
 not bounce at a 0.25 ms step; at 0.5 mm ahead the bounces still moved 4-5 cm between steps). A
 weak push-out of penetration (``contactERP`` 0.01, Bullet's 0.2): the push-out's velocity adds
 to a rebound (e 0.3 bounced 58 % above e^2 h at 0.2, 2 % at 0.01), and without any a box
-resting on the floor sank 1.3 mm in a second (docs/physics-fidelity.md, "Bullet")."""
+resting on the floor sank 1.3-1.4 mm in a second (docs/physics-fidelity.md, "Bullet")."""
 SHAPES = ("plane", "box", "sphere", "cylinder")
 
 

@@ -64,7 +64,17 @@ UNCERTAINTY = (0.2, 0.2)
 def settings(uncertainty=UNCERTAINTY, baseline: bool = True, extra: str = "") -> list[tuple]:
     """The solves' settings, ``(label, uncertainty or None, extra XML)``: without model uncertainty
     ("off", unless not ``baseline``), with it (its relative standard deviations), and with
-    ``extra`` added to ``<inference>`` ("xml", where given; the scene's physics otherwise as is)."""
+    ``extra`` added to ``<inference>`` ("xml", where given; the scene's physics otherwise as is).
+
+    Raises:
+        ValueError: ``extra`` that is not XML elements, in one line.
+    """
+    import xml.etree.ElementTree as ET
+
+    try:
+        ET.fromstring(f"<inference>{extra}</inference>")
+    except ET.ParseError as exc:
+        raise ValueError(f"inference-xml: {extra!r} is not XML elements ({exc})") from None
     out = [("off", None, "")] if baseline else []
     out.append((f"{uncertainty[0]:g} {uncertainty[1]:g}", tuple(uncertainty), ""))
     return out + ([("xml", None, extra)] if extra else [])
@@ -148,6 +158,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     from dejaview.cli.bench import load_average
 
     seeds, engines = _cases.check_seeds(seeds), _engines.check_engines(engines)
+    solves = settings(uncertainty, baseline, extra)
     if mismatched is not None:
         _cases.check_seeds((mismatched,))
     chosen = [c for c in _cases.CASES if (not cases and not extra_cases) or c.name in (cases or ())]
@@ -183,7 +194,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     for case in chosen:
         world = None if mismatched is None else _cases.mismatch(case, mismatched)
         for engine in engines:
-            for label, u, xml in settings(uncertainty, baseline, extra):
+            for label, u, xml in solves:
                 for seed in seeds:
                     rows.append({**solve_case(case, u, warp, print_fn, seed, prior, engine, world, xml, label),
                                  "area_offset": f"{area_offset[0]:g} {area_offset[1]:g}",
@@ -205,7 +216,8 @@ def summary(rows, print_fn=print) -> None:
         ok = sum(r["success"] for r in rs)
         secs[engine, key] = sum(r["seconds"] for r in rs) / len(rs)
         line = (f"model uncertainty {key}: {_engines.ENGINE_NAMES[engine]} {ok}/{len(rs)} within "
-                f"{100 * _cases.SUCCESS_TOL:g} cm ({100 * ok / len(rs):.0f} %), mean {secs[engine, key]:.1f} s per solve")
+                f"{100 * _cases.SUCCESS_TOL:g} cm ({100 * ok / len(rs):.0f} %), "
+                f"mean {secs[engine, key]:.1f} s per solve")
         w = [r for r in rs if r.get("warp_success") is not None]
         if w:
             line += f"; Warp {sum(r['warp_success'] for r in w)}/{len(w)}"

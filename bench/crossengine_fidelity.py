@@ -142,7 +142,8 @@ def timestep_study(print_fn=print, steps=None, reference=None, substeps=SUBSTEP_
     rows = []
     print_fn(f"{'motion':<44} " + " ".join(f"{tag + ' ' + format(1e3 * dt, 'g') + 'ms':>10}" for dt in steps)
              + " " + " ".join(f"{'dv ' + str(k) + ' sub':>9}" for k in substeps)
-             + f"  (cm at 1.0 s or the case's end: {_engines.ENGINE_NAMES[engine]} from its {1e3 * reference:g} ms run, DejaView "
+             + f"  (cm at 1.0 s or the case's end: {_engines.ENGINE_NAMES[engine]} from its "
+               f"{1e3 * reference:g} ms run, DejaView "
                f"from its {SUBSTEP_REFERENCE} substeps)")
     for name, scene, t in runs:
         ref = run_engine(scene, (t,), timestep=reference)[t][0]

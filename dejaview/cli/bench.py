@@ -437,7 +437,8 @@ def crossengine(seed_list, csv_path, **options):
         rows = module.command(click.echo, seeds=seeds, **options)
     except ValueError as exc:
         hint = next((h for k, h in (("seeds", "--seeds"), ("area offset", "--area-offset"),
-                                    ("engines", "--engines")) if k in str(exc)), "--cases")
+                                    ("engines", "--engines"), ("inference-xml", "--inference-xml"))
+                     if k in str(exc)), "--cases")
         raise click.BadParameter(str(exc), param_hint=hint) from None
     except ImportError as exc:
         raise click.ClickException(f"the crossengine bench needs MuJoCo and PyBullet: {exc}") from None

@@ -109,3 +109,8 @@ def test_bullet_sees_the_fidelity_tables_bounce_as_dejaview_does(ce):
 def test_unknown_engines_are_a_one_line_error():
     result = CliRunner().invoke(cli, ["bench", "crossengine", "--engines", "havok", "--no-fidelity"])
     assert result.exit_code != 0 and "--engines" in result.output and "havok" in result.output, result.output
+
+
+def test_inference_xml_that_is_not_xml_is_a_one_line_error():
+    result = CliRunner().invoke(cli, ["bench", "crossengine", "--no-fidelity", "--inference-xml", "<physics-prior"])
+    assert result.exit_code != 0 and "--inference-xml" in result.output and "not XML" in result.output, result.output
