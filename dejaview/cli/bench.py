@@ -367,60 +367,50 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
               help="Move the floor cases' start areas (centred on the truth's x, y) by DX DY m, so that "
                    "the guess at the area's centre is not the truth's position.")
 @click.option("--timestep-study", is_flag=True,
-              help="Only MuJoCo's time-step convergence on the fidelity rows and the cases' true starts "
-                   "(how its step was chosen).")
+              help="Only the first engine's time-step convergence on the fidelity rows and the cases' true starts.")
 @click.option("--throws", default=0, type=click.IntRange(min=0), metavar="N",
               help="Only the engines' gap on N random box throws, with its controls (seeded by the first "
                    "of --seeds).")
 @click.option("--random-cases", default=0, type=click.IntRange(min=0), metavar="N",
-              help="Also solve N random tumbling boxes of the cases' kind (bench/crossengine.py random_cases), "
+              help="Also solve N random tumbling boxes of the cases' kind (bench/crossengine_cases.py random_cases), "
                    "held out from every choice made on the cases; alone without --cases.")
 @click.option("--random-seed", default=0, type=click.IntRange(min=0), show_default=True,
               help="The seed of --random-cases' draw.")
 @click.option("--perturbed-seed", default=None, type=click.IntRange(min=0), metavar="S",
-              help="Solve the cases with their truths perturbed by seed S (bench/crossengine.py perturbed_cases: "
-                   "the start moved up to 5 cm, each velocity component scaled by 0.8-1.2, turned up to 15 deg) "
-                   "instead of the cases themselves: cases of the same kinds that nothing was tuned on.")
+              help="Solve the cases with their truths perturbed by seed S (perturbed_cases: the start moved up to "
+                   "5 cm, velocities scaled by 0.8-1.2, turned up to 15 deg); S >= 100 held out, below: tuning.")
+@click.option("--engines", default="mujoco", show_default=True, help="Observing engines: mujoco, bullet.")
+@click.option("--mismatched", default=None, type=click.IntRange(min=0), metavar="S",
+              help="Observe in worlds drawn by seed S: friction x0.7-1.4, restitution 0-0.3 (S >= 100 held out).")
+@click.option("--inference-xml", default="", help="Also solve with this XML added to <inference>.")
 @csv_option
-def crossengine(cases, uncertainty, no_baseline, seed_list, no_warp, no_fidelity, fidelity_only, flat_prior,
-                area_offset, timestep_study, throws, random_cases, random_seed, perturbed_seed, csv_path):
-    """Answers that survive another engine: MuJoCo observes, DejaView solves, MuJoCo re-simulates.
+def crossengine(seed_list, csv_path, **options):
+    """Answers that survive another engine: MuJoCo or Bullet observes, DejaView solves, the observer re-simulates.
 
-    First the fidelity table (the same start in DejaView and in MuJoCo via the MJCF export, end
-    distance after 0.5/1.0/1.5 s), then every case solved from its end pose alone (the start
-    area's centre at rest as the guess, the cases' <prior>) with `solve`'s defaults, without and
-    with <model-uncertainty>, each answer re-simulated in MuJoCo (and Warp where it is
-    installed); success: within 3 cm of MuJoCo's observation. Needs the mujoco package.
+    First the fidelity table (the same start in DejaView, MuJoCo and Bullet, end distance after
+    0.5/1.0/1.5 s), then every case solved from its end pose alone (the start area's centre at rest
+    as the guess, the cases' <prior>) with `solve`'s defaults, without and with
+    <model-uncertainty>, each answer re-simulated in the observing engine (and Warp where it is
+    installed); success: within 3 cm of the observation. Needs mujoco (and pybullet for Bullet).
     """
     from dejaview.cli.options import configure_torch
 
     configure_torch()
     module = bench_module("crossengine")
-    names = tuple(c for c in cases.replace(" ", "").split(",") if c)
     try:
         seeds = tuple(int(v) for v in seed_list.replace(" ", "").split(",") if v)
     except ValueError:
         raise click.BadParameter(f"{seed_list!r} is not a comma-separated list of whole numbers",
                                  param_hint="--seeds") from None
     try:
-        if timestep_study:
-            rows = module.timestep_study(click.echo)
-        elif throws:
-            rows = module.throws(click.echo, count=throws, seed=seeds[0] if seeds else 0)
-        elif fidelity_only:
-            rows = module.fidelity(click.echo)
-        else:
-            rows = module.run(print_fn=click.echo, cases=names, uncertainty=uncertainty, warp=not no_warp,
-                              with_fidelity=not no_fidelity, baseline=not no_baseline, seeds=seeds,
-                              prior=not flat_prior, area_offset=area_offset,
-                              extra_cases=module.random_cases(random_cases, random_seed),
-                              perturb=perturbed_seed)
+        rows = module.command(click.echo, seeds=seeds, **options)
     except ValueError as exc:
-        hint = ("--seeds" if "seeds" in str(exc) else "--area-offset" if "area offset" in str(exc)
-                else "--cases")
+        hint = next((h for k, h in (("seeds", "--seeds"), ("area offset", "--area-offset"),
+                                    ("engines", "--engines"), ("inference-xml", "--inference-xml"))
+                     if k in str(exc)), "--cases")
         raise click.BadParameter(str(exc), param_hint=hint) from None
     except ImportError as exc:
-        raise click.ClickException(f"the crossengine bench needs MuJoCo: {exc}") from None
+        raise click.ClickException(f"the crossengine bench needs MuJoCo and PyBullet: {exc}") from None
     _finish(rows, csv_path, False, [])
 
 
