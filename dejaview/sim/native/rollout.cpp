@@ -29,6 +29,7 @@
 #include <atomic>
 #include <exception>
 #include <mutex>
+#include <optional>
 #include <thread>
 #include <cstdint>
 #include <vector>
@@ -66,8 +67,9 @@ void parallel_for(int64_t b, int64_t threads, F work) {
 }
 
 // the rows of a (B, 3) float64 CPU tensor of physics (rollout's `physics`), or null where it is empty
-inline const double* physics_of(torch::Tensor& physics, int64_t b) {
-  if (!physics.defined() || physics.numel() == 0) return nullptr;
+inline const double* physics_of(std::optional<torch::Tensor>& given, int64_t b) {
+  if (!given.has_value() || !given->defined() || given->numel() == 0) return nullptr;
+  torch::Tensor& physics = *given;
   TORCH_CHECK(physics.scalar_type() == torch::kFloat64 && physics.device().is_cpu() && physics.dim() == 2 &&
               physics.size(0) == b && physics.size(1) == 3, "physics must be (B, 3) float64 on the CPU");
   physics = physics.contiguous();
@@ -89,7 +91,7 @@ inline const double* physics_of(torch::Tensor& physics, int64_t b) {
 // logs of its friction, unloading and stiffness factors (World::mu_scale, ...), or empty (none).
 std::vector<torch::Tensor> rollout(torch::Tensor init, int64_t steps, int64_t record_every, int64_t mode,
                                    std::vector<torch::Tensor> world, std::vector<double> floats,
-                                   std::vector<int64_t> ints, int64_t threads, torch::Tensor physics) {
+                                   std::vector<int64_t> ints, int64_t threads, std::optional<torch::Tensor> physics) {
   TORCH_CHECK(init.device().is_cpu(), "the native simulator runs on the CPU");
   TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH, "init must be (B, N, 13)");
   TORCH_CHECK(steps >= 1 && record_every >= 1, "steps and record_every must be >= 1");
@@ -159,7 +161,7 @@ std::vector<torch::Tensor> adjoint(torch::Tensor init, torch::Tensor states, tor
                                    int64_t steps, int64_t record_every, std::vector<torch::Tensor> world,
                                    std::vector<double> floats, std::vector<int64_t> ints, int64_t threads,
                                    torch::Tensor counts, torch::Tensor picks, torch::Tensor starts,
-                                   torch::Tensor physics) {
+                                   std::optional<torch::Tensor> physics) {
   TORCH_CHECK(init.dim() == 3 && init.size(2) == dv::STATE_WIDTH && init.scalar_type() == torch::kFloat64 &&
               init.device().is_cpu(), "init must be (B, N, 13) float64 on the CPU");
   init = init.contiguous();
@@ -217,9 +219,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace py = pybind11;
   m.def("rollout", &rollout, "sphere-packing rollout with optional state Jacobians or trace (dejaview.sim.native)",
         py::arg("init"), py::arg("steps"), py::arg("record_every"), py::arg("mode"), py::arg("world"),
-        py::arg("floats"), py::arg("ints"), py::arg("threads"), py::arg("physics") = torch::Tensor());
+        py::arg("floats"), py::arg("ints"), py::arg("threads"), py::arg("physics") = py::none());
   m.def("adjoint", &adjoint, "reverse-mode gradient of a traced rollout (dejaview.sim.native)",
         py::arg("init"), py::arg("states"), py::arg("trace"), py::arg("grad"), py::arg("steps"),
         py::arg("record_every"), py::arg("world"), py::arg("floats"), py::arg("ints"), py::arg("threads"),
-        py::arg("counts"), py::arg("picks"), py::arg("starts"), py::arg("physics") = torch::Tensor());
+        py::arg("counts"), py::arg("picks"), py::arg("starts"), py::arg("physics") = py::none());
 }
