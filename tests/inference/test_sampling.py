@@ -503,3 +503,19 @@ def test_local_optimisers_refuse_a_physics_prior():
     scene = replace(scene, inference=replace(scene.inference, physics_prior=PhysicsPrior(friction=0.3)))
     with pytest.raises(InferenceError, match="physics-prior"):
         solve(scene, SolveParams(optimizer="lbfgs", iterations=2))
+
+
+def test_a_heatmap_with_a_physics_prior_is_the_marginal_over_the_physics(tmp_path):
+    """The posterior heatmap takes the physics columns (its samples carry them); the basins heatmap,
+    whose per-cell optimisations have no prior, refuses a physics prior in one line."""
+    from dejaview.heatmap import compute_heatmap
+    from dejaview.scene import PhysicsPrior
+
+    scene = ramp_scene()
+    scene = replace(scene, inference=replace(scene.inference, physics_prior=PhysicsPrior(friction=0.3)))
+    result = compute_heatmap(scene, cells=(4, 5), samples=2)
+    assert float(result.probability.sum()) == pytest.approx(1.0)
+    assert result.best.posterior.x.shape[1] == 3  # position x, y and the friction
+    assert "physics" in result.best.settings
+    with pytest.raises(InferenceError, match="physics-prior.*posterior heatmap"):
+        compute_heatmap(scene, cells=(4, 5), samples=2, method="basins")
