@@ -26,6 +26,7 @@ def command(scenes, out_dir, samples, seed, budget, quiet):
     own start. Their <physics-prior> (the same in every scene; default friction and restitution
     50 %) says what is known before. Writes DIR/result.json (the shared physics with intervals and
     each scene's most probable start) and, with --samples N, DIR/posterior.csv."""
+    import json
     from dataclasses import replace
 
     from dejaview.inference.identify import identify
@@ -38,16 +39,17 @@ def command(scenes, out_dir, samples, seed, budget, quiet):
     result = identify(loaded, IdentifyParams(samples=samples, seed=seed, search=search),
                       callback=None if quiet else (lambda line: click.echo(f"  {line}", err=True)))
     paths = result.write(out_dir)
-    physics = result.physics()
+    written = json.loads(paths["result"].read_text(encoding="utf-8"))  # not computed again: it re-simulates
+    physics = written["physics"]
     mp = physics["most_probable"]
     click.echo(f"shared physics of {len(loaded)} scenes: friction {mp['friction']:.3f}, restitution "
                f"{mp['restitution']:.3f}, stiffness {mp['stiffness']:.4g} N/m per kg ({result.seconds:.1f} s)")
     for name, iv in physics["intervals"].items():
         lo, hi = iv["90%"]
         click.echo(f"  {name:12s} median {iv['median']:.3f}   90% [{lo:.3f}, {hi:.3f}]  ({physics['intervals_from']})")
-    for sc in result.to_json()["scenes"]:
+    for sc in written["scenes"]:
         p = sc["initial_state"]["position"]
-        click.echo(f"  {sc['name'] or sc['file']}: start ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m, observation "
+        click.echo(f"  {sc['name']}: start ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m, observation "
                    f"chi2 {sc['observation_chi2']:.1f} over {sc['observed']} residuals")
     for note in result.notes:
         click.echo(f"  warning: {note}")

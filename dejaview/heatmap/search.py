@@ -158,8 +158,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         return posterior_heatmap(scene, cells=cells, samples=samples, sigma=sigma, iterations=iterations,
                                  seed=seed, callback=callback, should_stop=should_stop, problem=problem,
                                  backend=None if problem is not None else options, memory_limit=memory_limit)
-    prior = getattr(getattr(scene, "inference", None), "physics_prior", None)
-    if prior is not None and any((getattr(prior, n) or 0) > 0 for n in ("friction", "restitution", "stiffness")):
+    if getattr(scene, "inference", None) is not None and scene.inference.infers_physics:
         raise InferenceError("<physics-prior> needs the posterior heatmap (method posterior): the basins "
                              "heatmap's per-cell optimisations have no prior to hold the physics to")
     t_start = time.perf_counter()

@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from dejaview.errors import InferenceError
-from dejaview.inference.params import IdentifyParams, ReportParams
+from dejaview.inference.params import IdentifyParams
 
 
 def shared_scenes(scenes: list, params: IdentifyParams) -> list:
@@ -143,7 +143,7 @@ class JointPosterior:
 
 def levenberg_marquardt(joint: JointPosterior, x: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg-Marquardt from each row of x (K, P) on the joint posterior; (x, cost) refined."""
-    from dejaview.inference.search import _spd_solve
+    from dejaview.inference.search import lm_step
 
     cost = joint.cost(x)
     lam = torch.full((x.shape[0],), 1e-2, dtype=x.dtype)
@@ -152,13 +152,7 @@ def levenberg_marquardt(joint: JointPosterior, x: torch.Tensor, iterations: int)
     for _ in range(iterations):
         if not bool(active.any()):
             break
-        JT = J.transpose(1, 2)
-        JTJ = JT @ J
-        g = (JT @ r.unsqueeze(-1)).squeeze(-1)
-        d = torch.diagonal(JTJ, dim1=1, dim2=2).clamp_min(1e-12)
-        step = -_spd_solve(JTJ + torch.diag_embed(lam[:, None] * d), g)
-        step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
-        trial = x + step
+        trial = x + lm_step(r, J, lam)
         c_t = joint.cost(trial)
         better = active & (c_t < cost)
         rel = (cost - c_t) / cost.clamp_min(1e-300)
@@ -206,13 +200,12 @@ class IdentifyResult:
     def physics(self) -> dict:
         """``result.json``'s ``physics``: the most probable values, each inferred one's median and
         central intervals (weighted samples where drawn, else the Laplace Gaussian's), the prior."""
-        from dejaview.inference.posterior_report import PHYSICS_COLUMNS, weighted_quantiles
+        from dejaview.inference.posterior_report import (PHYSICS_COLUMNS, interval_entry, interval_levels,
+                                                         weighted_quantiles)
 
         model, f = self.model, self.joint.f
         values = model.values(self.x[None, -f:])[0].tolist()
-        qs = [0.5]
-        for level in ReportParams.intervals:
-            qs += [(1 - level) / 2, (1 + level) / 2]
+        qs = interval_levels()
         if self.samples is not None:
             quant = weighted_quantiles(model.values(self.samples[:, -f:]), self.weights, qs)
             how = "importance samples of the joint posterior"
@@ -222,23 +215,24 @@ class IdentifyResult:
             z = torch.stack([self.x[-f:] + sd * float(normal.icdf(torch.tensor(q))) for q in qs])
             quant = model.values(z)
             how = "Laplace approximation at the most probable joint past"
-        intervals = {}
-        for j, i in enumerate(model.free):
-            name = PHYSICS_COLUMNS[i]
-            intervals[name] = {"median": float(quant[0, i]),
-                               **{f"{int(level * 100)}%": [float(quant[1 + 2 * k, i]), float(quant[2 + 2 * k, i])]
-                                  for k, level in enumerate(ReportParams.intervals)}}
+        intervals = {PHYSICS_COLUMNS[i]: interval_entry(quant, i) for i in model.free}
         return {"most_probable": dict(zip(PHYSICS_COLUMNS, values)), "inferred": list(model.names),
                 "intervals": intervals, "intervals_from": how, "prior": model.to_json()}
+
+    @property
+    def names(self) -> list[str]:
+        """Each scene's name in the outputs: its ``name``, else its file's stem, else ``scene-K``."""
+        return [sc.name or (sc.path.stem if sc.path is not None else f"scene-{k + 1}")
+                for k, sc in enumerate(self.scenes)]
 
     def to_json(self) -> dict:
         out = {"physics": self.physics(), "neg_log_posterior": self.cost, "seconds": self.seconds,
                "warnings": list(self.notes), "scenes": []}
-        for sc, post, xs in zip(self.scenes, self.joint.posts, self.joint.split(self.x[None])):
+        for sc, name, post, xs in zip(self.scenes, self.names, self.joint.posts, self.joint.split(self.x[None])):
             with torch.no_grad():
                 state = {k: v[0].tolist() for k, v in post.layout.decode(xs).items()}
                 chi2 = float(post.cost(xs)[1][0])
-            out["scenes"].append({"name": sc.name, "file": None if sc.path is None else str(sc.path),
+            out["scenes"].append({"name": name, "file": None if sc.path is None else str(sc.path),
                                   "initial_state": state, "observation_chi2": chi2,
                                   "observed": post.num_observed})
         if self.samples is not None:
@@ -254,30 +248,20 @@ class IdentifyResult:
         return write_result_set(out_dir, self._write_files, ("result.json", "posterior.csv"))
 
     def _write_files(self, out: Path) -> dict[str, Path]:
-        import csv
         import json
 
-        from dejaview.inference.posterior_report import CSV_HEADER, PHYSICS_COLUMNS
+        from dejaview.inference.posterior_report import CSV_HEADER, PHYSICS_COLUMNS, state_rows, write_rows
 
         paths = {"result": out / "result.json"}
         paths["result"].write_text(json.dumps(self.to_json(), indent=2), encoding="utf-8")
         if self.samples is not None:
             header, cols = ["sample", "weight"], []
-            for sc, post, xs in zip(self.scenes, self.joint.posts, self.joint.split(self.samples)):
-                with torch.no_grad():
-                    dec = post.layout.decode(xs)
-                header += [f"{sc.name}.{c}" for c in CSV_HEADER[2:]]
-                cols.append(torch.cat([dec["position"], dec["orientation"], dec["linear_velocity"],
-                                       dec["angular_velocity"]], -1))
+            for name, post, xs in zip(self.names, self.joint.posts, self.joint.split(self.samples)):
+                header += [f"{name}.{c}" for c in CSV_HEADER[2:]]
+                cols.append(state_rows(post.layout, xs))
             header += list(PHYSICS_COLUMNS)
             cols.append(self.model.values(self.samples[:, -self.joint.f:]))
-            rows = torch.cat(cols, -1).tolist()
-            paths["posterior"] = out / "posterior.csv"
-            with open(paths["posterior"], "w", newline="", encoding="utf-8") as fh:
-                writer = csv.writer(fh, lineterminator="\n")
-                writer.writerow(header)
-                for i, (w, row) in enumerate(zip(self.weights.tolist(), rows)):
-                    writer.writerow([i, repr(float(w)), *(repr(float(v)) for v in row)])
+            paths["posterior"] = write_rows(out / "posterior.csv", header, self.weights, torch.cat(cols, -1))
         return paths
 
 
@@ -386,7 +370,7 @@ def _importance_samples(joint: JointPosterior, x: torch.Tensor, covariance: torc
     cov = 0.5 * (covariance + covariance.T) + 1e-12 * torch.eye(x.numel(), dtype=x.dtype)
     q = torch.distributions.MultivariateNormal(x, covariance_matrix=cov)
     eps = torch.randn(params.samples, x.numel(), generator=gen, dtype=x.dtype)
-    draws = x + eps @ torch.linalg.cholesky(cov).T
+    draws = x + eps @ q.scale_tril.T
     with torch.no_grad():
         logw = joint.log_density(draws) - q.log_prob(draws)
     logw = torch.where(torch.isfinite(logw), logw, torch.full_like(logw, -math.inf))

@@ -83,6 +83,22 @@ def rhat(values: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(var_plus / within.clamp_min(1e-300))
 
 
+def interval_levels() -> list[float]:
+    """The quantiles ``summary`` reports: the median, then each ``ReportParams.intervals`` level's
+    lower and upper end."""
+    qs = [0.5]
+    for level in ReportParams.intervals:
+        qs += [(1 - level) / 2, (1 + level) / 2]
+    return qs
+
+
+def interval_entry(quant: torch.Tensor, j: int) -> dict:
+    """Column j of quantiles (len(interval_levels()), P) as ``{"median", "50%": [lo, hi], ...}``."""
+    return {"median": float(quant[0, j]),
+            **{f"{int(level * 100)}%": [float(quant[1 + 2 * i, j]), float(quant[2 + 2 * i, j])]
+               for i, level in enumerate(ReportParams.intervals)}}
+
+
 def summary(samples, layout, modes) -> dict:
     """``result.json``'s ``posterior``: sampler statistics, the modes with their probability mass
     (the share of samples nearest to each of the search's distinct modes) and, per free
@@ -93,17 +109,12 @@ def summary(samples, layout, modes) -> dict:
     """
     w = samples.weights
     values = physical(layout, samples.x)
-    qs = [0.5]
-    for level in ReportParams.intervals:
-        qs += [(1 - level) / 2, (1 + level) / 2]
-    quant = weighted_quantiles(values, w, qs)
+    quant = weighted_quantiles(values, w, interval_levels())
     intervals = {}
     run = samples.run if samples.run is not None else torch.zeros(values.shape[0], dtype=torch.long)
     r = rhat(values, run)  # NaN for one run
     for j, name in enumerate(layout.names()):
-        intervals[name] = {"median": float(quant[0, j]),
-                           **{f"{int(level * 100)}%": [float(quant[1 + 2 * i, j]), float(quant[2 + 2 * i, j])]
-                              for i, level in enumerate(ReportParams.intervals)},
+        intervals[name] = {**interval_entry(quant, j),
                            **({"rhat": float(r[j])} if bool(torch.isfinite(r[j])) else {})}
     found = []
     for k, index in enumerate(samples.mode_index):
@@ -175,22 +186,34 @@ def agreement_warning(agreement: dict | None, what: str) -> str | None:
             f"{agreement['limit']:g}): the posterior is rugged; do not trust {what} (docs/inference.md)")
 
 
-def write_csv(path, samples, layout) -> Path:
-    """``posterior.csv``: one row per sample, the source's initial state (spec header ``CSV_HEADER``)
-    and, where physics was inferred, its friction, restitution and stiffness (``PHYSICS_COLUMNS``)."""
+def state_rows(layout, x: torch.Tensor) -> torch.Tensor:
+    """(N, 13) the source's initial states of parameters x (N, P) in ``CSV_HEADER``'s order after
+    ``weight`` (object-frame origin, orientation w x y z, linear and angular velocity)."""
     with torch.no_grad():
-        dec = layout.decode(samples.x.to(layout.base_position.dtype))
-        parts = [dec["position"], dec["orientation"], dec["linear_velocity"], dec["angular_velocity"]]
-        if layout.physics is not None:
-            parts.append(layout.physics_values(samples.x.to(torch.float64)))
-    rows = torch.cat(parts, -1).tolist()
+        dec = layout.decode(x.to(layout.base_position.dtype))
+    return torch.cat([dec["position"], dec["orientation"], dec["linear_velocity"], dec["angular_velocity"]], -1)
+
+
+def write_rows(path, header, weights: torch.Tensor, rows: torch.Tensor) -> Path:
+    """A CSV of ``sample,weight,...`` rows: header (names), weights (N,), rows (N, C) written exactly."""
     path = Path(path)
     with open(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(CSV_HEADER + (PHYSICS_COLUMNS if layout.physics is not None else ()))
-        for i, (w, row) in enumerate(zip(samples.weights.tolist(), rows)):
+        writer.writerow(header)
+        for i, (w, row) in enumerate(zip(weights.tolist(), rows.tolist())):
             writer.writerow([i, repr(float(w)), *(repr(float(v)) for v in row)])
     return path
+
+
+def write_csv(path, samples, layout) -> Path:
+    """``posterior.csv``: one row per sample, the source's initial state (spec header ``CSV_HEADER``)
+    and, where physics was inferred, its friction, restitution and stiffness (``PHYSICS_COLUMNS``)."""
+    parts = [state_rows(layout, samples.x)]
+    if layout.physics is not None:
+        with torch.no_grad():
+            parts.append(layout.physics_values(samples.x.to(torch.float64)))
+    return write_rows(path, CSV_HEADER + (PHYSICS_COLUMNS if layout.physics is not None else ()),
+                      samples.weights, torch.cat(parts, -1))
 
 
 def path_samples(samples, count: int = ReportParams.paths, seed: int = 0) -> list[int]:

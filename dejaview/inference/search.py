@@ -254,14 +254,7 @@ class _Search:
         for it in range(iterations):
             if self.stopped or self.out_of_budget() or not bool(active.any()):
                 break
-            JT = J.transpose(1, 2)
-            JTJ = JT @ J
-            g = (JT @ r.unsqueeze(-1)).squeeze(-1)
-            d = torch.diagonal(JTJ, dim1=1, dim2=2).clamp_min(1e-12)
-            A = JTJ + torch.diag_embed(lam[:, None] * d)
-            step = -_spd_solve(A, g)
-            step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
-            trial = x + step
+            trial = x + lm_step(r, J, lam)
             c_t, chi_t, l_t = post.cost(trial)
             better = active & (c_t < cost)
             rel = (cost - c_t) / cost.clamp_min(1e-300)
@@ -327,6 +320,17 @@ class _Search:
         if not self.stopped and math.isfinite(self.best.cost):
             starts = [self.best.x] + [m.x for m in self.modes[:self.p.candidates - 1]]
             self.add_modes(self.refine(torch.stack(starts), self.p.lm_final_iterations))
+
+
+def lm_step(r: torch.Tensor, J: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Levenberg-Marquardt steps (K, P) from residuals r (K, M), their Jacobians J (K, M, P) and
+    damping lam (K,) on J^T J's diagonal (Marquardt's scaling); a non-finite entry is 0."""
+    JT = J.transpose(1, 2)
+    JTJ = JT @ J
+    g = (JT @ r.unsqueeze(-1)).squeeze(-1)
+    d = torch.diagonal(JTJ, dim1=1, dim2=2).clamp_min(1e-12)
+    step = -_spd_solve(JTJ + torch.diag_embed(lam[:, None] * d), g)
+    return torch.where(torch.isfinite(step), step, torch.zeros_like(step))
 
 
 def _spd_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

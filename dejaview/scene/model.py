@@ -279,6 +279,12 @@ class InferenceSettings:
         """The last observation (``last_target``)."""
         return last_target(self.targets)
 
+    @property
+    def infers_physics(self) -> bool:
+        """Whether ``<physics-prior>`` makes any physics parameter an unknown (a deviation above 0)."""
+        p = self.physics_prior
+        return p is not None and any((v or 0.0) > 0 for v in (p.friction, p.restitution, p.stiffness))
+
 
 @dataclass(frozen=True)
 class Scene:

@@ -79,12 +79,10 @@ class PhysicsModel:
             SceneError: a restitution prior on a scene whose restitution the engine cannot move
                 (0, or below the least the integrator gives).
         """
-        prior = scene.inference.physics_prior if scene.inference is not None else None
-        if prior is None:
+        if scene.inference is None or not scene.inference.infers_physics:
             return None
+        prior = scene.inference.physics_prior
         sd = tuple(float(getattr(prior, n) or 0.0) for n in NAMES)
-        if not any(v > 0 for v in sd):
-            return None
         h = world.dt / world.substeps
         model = PhysicsModel(sd, float(scene.simulation.friction), float(scene.simulation.restitution),
                              world.contact.frequency * h, world.contact.frequency)
@@ -131,13 +129,17 @@ class PhysicsModel:
             parts[i] = cols[j]
         return torch.stack(parts, -1)
 
+    def _restitution(self, zz: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """(B,) min(1, e0 exp(s_e z_e)) of all three standard normals zz (B, 3), deviations s (3,)."""
+        return torch.clamp(self.restitution * torch.exp(s[1] * zz[:, 1]), max=1.0)
+
     def values(self, z: torch.Tensor) -> torch.Tensor:
         """(B, 3) friction coefficient, restitution and stiffness (omega_0^2 f_k, N/m per kg) of
         the free parameters' standard normals z (B, F)."""
         zz = self.full(z)
         s = torch.tensor(self.sd, dtype=zz.dtype)
         friction = self.friction * torch.exp(s[0] * zz[:, 0])
-        restitution = torch.clamp(self.restitution * torch.exp(s[1] * zz[:, 1]), max=1.0)
+        restitution = self._restitution(zz, s)
         stiffness = self.frequency ** 2 * torch.exp(s[2] * zz[:, 2])
         return torch.stack([friction, restitution, stiffness], -1)
 
@@ -149,8 +151,7 @@ class PhysicsModel:
         log_mu = s[0] * zz[:, 0]
         log_k = s[2] * zz[:, 2]
         if self.sd[1] > 0:
-            e = torch.clamp(self.restitution * torch.exp(s[1] * zz[:, 1]), max=1.0)
-            log_phi = torch.log(self._unloading(e).clamp_min(1e-300) / self._phi0)
+            log_phi = torch.log(self._unloading(self._restitution(zz, s)).clamp_min(1e-300) / self._phi0)
         else:
             log_phi = torch.zeros_like(log_mu)
         return torch.stack([log_mu, log_phi, log_k], -1)

@@ -326,6 +326,7 @@ def _reverse_only(init: torch.Tensor) -> bool:
 
 
 def _needs_jacobian(init: torch.Tensor) -> bool:
+    """Whether a derivative may be asked of a rollout through ``init`` (the start, or the physics)."""
     import torch._C._functorch as ft
 
     if ft.peek_interpreter_stack() is not None:  # torch.func transforms (jvp, vmap, grad)
@@ -365,7 +366,7 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")
     init = state.flat()  # (B, N, STATE_WIDTH)
-    physics_grad = physics is not None and _physics_needs_gradient(physics)
+    physics_grad = physics is not None and _needs_jacobian(physics)
     if check_divergence:
         from dejaview.sim import divergence
 
@@ -400,13 +401,6 @@ def _plain(physics: torch.Tensor | None) -> torch.Tensor:
     if physics is None:
         return torch.empty(0, dtype=torch.float64)
     return physics.detach().to(torch.float64).contiguous()
-
-
-def _physics_needs_gradient(physics: torch.Tensor) -> bool:
-    import torch._C._functorch as ft
-
-    return ((torch.is_grad_enabled() and physics.requires_grad) or ft.peek_interpreter_stack() is not None
-            or torch.autograd.forward_ad.unpack_dual(physics).tangent is not None)
 
 
 def record_steps(steps: int, record_every: int) -> torch.Tensor:
