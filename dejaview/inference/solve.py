@@ -209,7 +209,7 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
     if settings.optimizer != "auto" and mu is not None and ((mu.friction or 0) > 0 or (mu.restitution or 0) > 0):
         raise InferenceError(f"<model-uncertainty> needs the default search (optimizer auto on the spheres "
                              f"backend), not optimizer {settings.optimizer} on {problem.backend}")
-    if settings.optimizer != "auto" and getattr(problem.layout, "physics", None) is not None:
+    if settings.optimizer != "auto" and scene.inference.infers_physics:
         raise InferenceError(f"<physics-prior> needs the default search (optimizer auto on the spheres backend), "
                              f"not optimizer {settings.optimizer} on {problem.backend}")
     samples_drawn, kde_rows = None, 0

@@ -505,6 +505,18 @@ def test_local_optimisers_refuse_a_physics_prior():
         solve(scene, SolveParams(optimizer="lbfgs", iterations=2))
 
 
+def test_a_backend_without_physics_columns_refuses_a_physics_prior():
+    """Warp's layout has no physics columns: a physics prior is an error there, not ignored. Skipped
+    where warp-lang is not installed (it comes with the test extra)."""
+    from dejaview.scene import PhysicsPrior
+
+    pytest.importorskip("warp", reason="needs warp-lang")
+    scene = ramp_scene()
+    scene = replace(scene, inference=replace(scene.inference, physics_prior=PhysicsPrior(friction=0.3)))
+    with pytest.raises(InferenceError, match="physics-prior.*warp"):
+        solve(scene, SolveParams(iterations=2), backend="warp")
+
+
 def test_a_heatmap_with_a_physics_prior_is_the_marginal_over_the_physics(tmp_path):
     """The posterior heatmap takes the physics columns (its samples carry them); the basins heatmap,
     whose per-cell optimisations have no prior, refuses a physics prior in one line."""
