@@ -507,7 +507,7 @@ def test_local_optimisers_refuse_a_physics_prior():
 
 def test_a_backend_without_physics_columns_refuses_a_physics_prior():
     """Warp's layout has no physics columns: a physics prior is an error there, not ignored. Skipped
-    where warp-lang is not installed (it comes with the test extra)."""
+    where warp-lang is not installed (the warp extra, which scripts/setup installs)."""
     from dejaview.scene import PhysicsPrior
 
     pytest.importorskip("warp", reason="needs warp-lang")
