@@ -41,11 +41,23 @@ def _schema_bytes() -> bytes:
     return resources.files("dejaview.scene").joinpath("scene.xsd").read_bytes()
 
 
-@functools.lru_cache(maxsize=1)
+_schema: etree.XMLSchema | None = None
+
+
 def load_schema() -> etree.XMLSchema:
-    """The XML Schema of scene files (``scene.xsd`` in this package), cached."""
-    doc = etree.fromstring(_schema_bytes(), hardened_parser())
-    return etree.XMLSchema(doc)
+    """The XML Schema of scene files (``scene.xsd`` in this package), built once per process.
+
+    Built under ``_schema_lock``: libxml2 sets up its table of built-in XML Schema types on the
+    first schema it parses, and two threads doing that at once (the server reads scenes in
+    worker threads) leave the table broken for the life of the process (every later parse
+    fails with "the given type is not a built-in type") or crash it.
+    """
+    global _schema
+    with _schema_lock:
+        if _schema is None:
+            doc = etree.fromstring(_schema_bytes(), hardened_parser())
+            _schema = etree.XMLSchema(doc)
+        return _schema
 
 
 @functools.lru_cache(maxsize=1)
