@@ -22,6 +22,7 @@ SUBCOMMANDS = {
     "simulate": "dejaview.cli.simulate",
     "solve": "dejaview.cli.solve",
     "identify": "dejaview.cli.identify",
+    "train": "dejaview.cli.train",
     "heatmap": "dejaview.cli.heatmap",
     "serve": "dejaview.cli.serve",
     "client": "dejaview.cli.client",

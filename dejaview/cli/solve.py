@@ -28,6 +28,9 @@ from dejaview.cli.options import (backend_options, common_options, configure_tor
               help="a known true start (a .truth.json with initial_state): say where it lies in the posterior")
 @click.option("--tolerance", type=float, default=None,
               help="stop once the best loss is at or below this (default: run all iterations)")
+@click.option("--amortised", "amortised", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="answer from an amortised posterior trained for this scene (dejaview train): its draws "
+                   "weighed by the exact likelihood, the sampler where they show it does not fit")
 @click.option("--model-uncertainty", "model_uncertainty", nargs=2, default=None,
               type=click.FloatRange(min=0.0, max=1.0), metavar="FRICTION RESTITUTION",
               help="relative standard deviations the likelihood averages over (overrides the scene's "
@@ -36,7 +39,7 @@ from dejaview.cli.options import (backend_options, common_options, configure_tor
 @package_path_option
 @backend_options(with_compile=True)
 def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth_file, tolerance,
-            model_uncertainty, backend, iterations, optimizer, gradient, seed, quiet):
+            amortised, model_uncertainty, backend, iterations, optimizer, gradient, seed, quiet):
     """Infer the most probable initial state of SCENE's source object (its <prior> and
     <observation>); write result.json, iterations.csv and trajectory.csv (the answer
     re-simulated) to DIR, and posterior.csv with --samples N."""
@@ -70,7 +73,7 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
 
     result = solve(sc, SolveParams(iterations=iterations, optimizer=optimizer, gradient=gradient, seed=seed,
                    lr=lr, multistart=multistart, screen=screen, budget=budget, samples=samples,
-                   tolerance=tolerance), callback=progress, backend=backend, truth=truth)
+                   tolerance=tolerance, amortised=amortised), callback=progress, backend=backend, truth=truth)
     bar.close()
     paths = result.write(out_dir, plot=plot)
     if not quiet:
@@ -100,8 +103,11 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
         post = result.settings.get("posterior")
         if post is not None:
             sampler = post["sampler"]
+            how = (f"{sampler['stages']} tempering steps" if sampler.get("method") != "amortised" else
+                   f"{sampler['draws']} draws of the amortised model weighed, Pareto k-hat {sampler['k_hat']:.2f}, "
+                   f"ESS {sampler['ess']:.0f}")
             click.echo(f"  posterior: {post['samples']} samples ({sampler['unique_samples']} distinct, "
-                       f"{sampler['stages']} tempering steps, {sampler['rollouts']} rollouts, "
+                       f"{how}, {sampler['rollouts']} rollouts, "
                        f"{sampler['seconds']:.1f} s); modes by probability: "
                        + ", ".join(f"{m['probability']:.2f}" for m in post["modes"]))
             for name, iv in post["intervals"].items():

@@ -414,3 +414,74 @@ class SizingParams:
     def __post_init__(self):
         check_params(self, counts=("search_bytes", "rollout_copies", "kde_copies", "particle_bytes",
                                    "min_kde_rows"))
+
+
+@dataclass(frozen=True)
+class TrainParams:
+    """How an amortised posterior is trained (``dejaview.inference.amortised.train``); frozen, checked.
+
+    Attributes:
+        simulations: training pairs (feasible starts drawn from the prior, each simulated once).
+        seed: seeds the draws (chunk i draws from ``seed`` and i alone: the same set whichever
+            workers or Ray actors simulate it) and the fit.
+        chunk: starts drawn per chunk of simulation work (one batch of the native engine).
+        workers: processes simulating chunks at once (1: this process, its engine's threads).
+        ray: None, ``local`` or a Ray cluster address (``dejaview.parallel``).
+        transforms, hidden, bins: the flow's shape (``amortised.model.FlowShape``).
+        batch: training pairs per gradient step; lr: Adam's step (cosine-annealed to 0).
+        epochs: most passes over the training pairs; patience: epochs without a better validation
+            loss before the fit stops (the best epoch's weights are kept).
+        validation: share of the pairs held out of the fit to choose the epoch.
+        max_fit_seconds: the fit stops after this long (its best epoch kept).
+    """
+
+    simulations: int = 20000
+    seed: int = 0
+    chunk: int = 512
+    workers: int = 1
+    ray: str | None = None
+    transforms: int = 4
+    hidden: tuple[int, ...] = (128, 128)
+    bins: int = 8
+    batch: int = 256
+    lr: float = 1e-3
+    epochs: int = 200
+    patience: int = 15
+    validation: float = 0.1
+    max_fit_seconds: float = 150.0
+
+    def __post_init__(self):
+        check_params(self, counts=("simulations", "chunk", "workers", "transforms", "bins", "batch", "epochs",
+                                   "patience"),
+                     naturals=("seed",), positive=("lr", "max_fit_seconds"), fractions=("validation",))
+        if not self.hidden or not all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.hidden):
+            raise InferenceError(f"TrainParams.hidden must be positive layer widths, got {self.hidden!r}")
+        if not 0.0 < self.validation < 0.5:
+            raise InferenceError(f"TrainParams.validation must lie in (0, 0.5), got {self.validation!r}")
+
+
+@dataclass(frozen=True)
+class AmortisedParams:
+    """How an answer is drawn from an amortised posterior (``dejaview.inference.amortised.answer``).
+
+    Attributes:
+        draws: draws from the flow per requested sample (each simulated once for its exact
+            likelihood), at least ``min_draws`` in all.
+        max_k_hat: Pareto k-hat of the importance weights above which the flow is taken not to fit
+            the observation (Vehtari et al. 2024: above 0.7 the estimate is unreliable), and the
+            answer falls back to the sampler with the flow in its proposal.
+        refine: the best weighted draws refined by Levenberg-Marquardt for the most probable start.
+        flow_share: in the fallback, the flow's share of the sampler's reference mixture.
+        live_draws: draws of a live answer (``live``): from the flow alone, no rollout.
+    """
+
+    draws: int = 4
+    min_draws: int = 1000
+    max_k_hat: float = 0.7
+    refine: int = 4
+    flow_share: float = 0.5
+    live_draws: int = 1000
+
+    def __post_init__(self):
+        check_params(self, counts=("draws", "min_draws", "refine", "live_draws"), positive=("max_k_hat",),
+                     fractions=("flow_share",))

@@ -176,9 +176,14 @@ class Mixture:
     """Optional ``Posterior`` whose prior (``prior_draws``, ``log_prior_density``) is one more
     component, with weight ``prior_share``; the t components share the rest."""
     prior_share: float = 0.0
+    flow: object = None
+    """Optional proposal with ``sample(n, gen)`` and ``log_prob(x)`` (an amortised posterior at the
+    observation, ``dejaview.inference.amortised.answer.FlowProposal``): one more component, last,
+    with weight ``flow_share`` of the whole."""
+    flow_share: float = 0.0
 
     def sample(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """n draws (n, P) and the component (n,) each came from (K for the prior)."""
+        """n draws (n, P) and the component (n,) each came from (K for the prior, then the flow)."""
         x, k = self._sample_t(n, gen)
         if self.prior is not None and self.prior_share > 0:
             use = torch.rand(n, generator=gen, dtype=torch.float64) < self.prior_share
@@ -186,6 +191,12 @@ class Mixture:
             if m:
                 x[use] = prior_draws(self.prior, m, gen)
                 k[use] = self.means.shape[0]
+        if self.flow is not None and self.flow_share > 0:
+            use = torch.rand(n, generator=gen, dtype=torch.float64) < self.flow_share
+            m = int(use.sum())
+            if m:
+                x[use] = self.flow.sample(m, gen).to(x.dtype)
+                k[use] = self.means.shape[0] + (self.prior is not None and self.prior_share > 0)
         return x, k
 
     def _sample_t(self, n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -198,8 +209,8 @@ class Mixture:
         return x, k
 
     def component_log_prob(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, K) or, with a prior component, (B, K + 1): log density of each component (weights
-        included) at x (B, P)."""
+        """(B, K), plus a column for the prior and one for the flow where they are components: log
+        density of each component (weights included) at x (B, P)."""
         p = self.means.shape[1]
         d = x[:, None, :] - self.means[None]  # (B, K, P)
         sol = torch.linalg.solve_triangular(self.chol[None].expand(x.shape[0], -1, -1, -1),
@@ -209,10 +220,13 @@ class Mixture:
         nu = self.df
         c = (math.lgamma((nu + p) / 2) - math.lgamma(nu / 2) - 0.5 * p * math.log(nu * math.pi))
         out = self.log_weights + c - logdet - 0.5 * (nu + p) * torch.log1p(m / nu)
-        if self.prior is None or self.prior_share <= 0:
-            return out
-        lp = math.log(self.prior_share) + log_prior_density(self.prior, x)
-        return torch.cat([out + math.log1p(-self.prior_share), lp[:, None]], -1)
+        if self.prior is not None and self.prior_share > 0:
+            lp = math.log(self.prior_share) + log_prior_density(self.prior, x)
+            out = torch.cat([out + math.log1p(-self.prior_share), lp[:, None]], -1)
+        if self.flow is not None and self.flow_share > 0:
+            lf = math.log(self.flow_share) + self.flow.log_prob(x)
+            out = torch.cat([out + math.log1p(-self.flow_share), lf[:, None]], -1)
+        return out
 
     def log_prob(self, x: torch.Tensor) -> torch.Tensor:
         """(B,) log density at x (B, P)."""

@@ -162,7 +162,7 @@ class SolveResult:
             "parameters": self.problem.layout.names(),
             "simulation": self.problem.simulation_settings(),
             "stopped_early": self.optimization.stopped,
-            **{k: self.settings[k] for k in ("prior", "observation", "model_uncertainty", "physics", "search", "posterior",
+            **{k: self.settings[k] for k in ("prior", "observation", "model_uncertainty", "physics", "search", "amortised", "posterior",
                                              "truth") if k in self.settings},
             "iterations": [{"iteration": p.iteration, "loss": _num(p.loss), "best_loss": _num(p.best_loss),
                             "duration_s": p.duration_s, "restarted": p.restarted}

@@ -500,7 +500,8 @@ class Sampler:
     def __init__(self, params: SamplerParams | None = None):
         self.params = SamplerParams() if params is None else params
 
-    def sample(self, post, modes: list, n: int, *, callback=None, should_stop=None) -> PosteriorSamples:
+    def sample(self, post, modes: list, n: int, *, callback=None, should_stop=None, proposal=None,
+               proposal_share: float = 0.5) -> PosteriorSamples:
         """Draw n weighted samples from the posterior ``post`` (module docstring).
 
         Args:
@@ -512,6 +513,9 @@ class Sampler:
                 ``elapsed_s``) after each run's start and every tempering step.
             should_stop: polled between moves; True raises InferenceError (nothing half-sampled is
                 returned).
+            proposal: optional ``sample(n, gen)`` / ``log_prob(x)`` object (an amortised posterior at
+                the observation) made a component of the reference mixture with weight
+                ``proposal_share``: the independence moves propose from it.
         Returns:
             PosteriorSamples; equal weights 1/n after the final moves.
         """
@@ -526,6 +530,8 @@ class Sampler:
         proper = post.layout.lo is not None or post.layout.block_slice("position").stop == 0
         if proper:  # the prior is a proper distribution: temper from it, propose from it too
             q.prior, q.prior_share = post, p.prior_share
+        if proposal is not None:
+            q.flow, q.flow_share = proposal, float(proposal_share)
         sizes = particles(n, p)
         m, keep = sum(sizes), _shares(n, len(sizes))
         t0 = time.perf_counter()

@@ -36,6 +36,9 @@ class SolveParams:
         gradient, lr, multistart, screen, screen_rounds, screen_near, epsilon, patience: the local
             pipeline's (``LocalParams``); an error with ``auto``.
         memory_limit: bytes a sampled solve may take (``dejaview.memory``; None: the machine's).
+        amortised: an amortised posterior (``AmortisedModel`` or the path of its file, ``dejaview
+            train``) answering instead of the search and the sampler
+            (``dejaview.inference.amortised.answer``).
     """
 
     optimizer: str | None = None
@@ -53,6 +56,7 @@ class SolveParams:
     epsilon: float | None = None
     patience: int | None = None
     memory_limit: int | None = None
+    amortised: object = None
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,7 @@ class SolveSettings:
         sampler: ``SamplerParams`` of the posterior sampler.
         posterior: ``PosteriorSettings`` (prior and observation noise) of the ``auto`` search.
         samples: posterior samples to draw after the search (0: the most probable start alone).
+        amortised: the ``AmortisedModel`` that answers, or None.
     """
 
     optimizer: str
@@ -82,6 +87,7 @@ class SolveSettings:
     sampler: SamplerParams
     posterior: object = None
     samples: int = 0
+    amortised: object = None
 
     @staticmethod
     def resolve(scene, params: SolveParams | None = None) -> "SolveSettings":
@@ -128,9 +134,18 @@ class SolveSettings:
                 _check_count(budget, "budget", 1)
             search = SearchParams(iterations=iterations, seed=seed, tolerance=tolerance,
                                   **({} if budget is None else {"budget": budget}))
+            amortised = params.amortised
+            if amortised is not None and not hasattr(amortised, "sample"):
+                from dejaview.inference.amortised import AmortisedModel
+
+                amortised = AmortisedModel.load(amortised)
             return SolveSettings(optimizer=optimizer, iterations=iterations, seed=seed, gradient="reverse",
                                  search=search, local=None, sampler=SamplerParams(seed=seed),
-                                 posterior=PosteriorSettings.from_scene(scene), samples=samples)
+                                 posterior=PosteriorSettings.from_scene(scene), samples=samples,
+                                 amortised=amortised)
+        if params.amortised is not None:
+            raise InferenceError(f"an amortised posterior answers in place of the default search (optimizer "
+                                 f"auto), not with optimizer {optimizer}")
         if budget is not None:
             raise InferenceError("budget applies to the default search (optimizer auto)")
         exploration = inf.exploration
@@ -219,10 +234,25 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
                                                      params.memory_limit)
         post = Posterior.from_scene(scene, problem=problem, collision=collision)
         search = settings.search
-        opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
-        extra = _search_report(post, opt, search, problem.layout)
-        if settings.samples and not opt.stopped and math.isfinite(opt.loss):
-            samples_drawn = _sample(post, opt, settings, callback, should_stop, kde_rows)
+        if settings.amortised is not None:
+            from dejaview.inference.amortised.answer import answer
+
+            opt, samples_drawn, amortised = answer(post, settings.amortised, settings.samples, seed=settings.seed,
+                                                   search=search, should_stop=should_stop)
+            extra = _search_report(post, opt, search, problem.layout)
+            extra["amortised"] = amortised
+            if not amortised["fitted"]:
+                extra["warnings"] = [f"the amortised model does not fit this observation (Pareto k-hat "
+                                     f"{amortised['k_hat']:.2f} > {amortised['max_k_hat']}): "
+                                     + ("the samples come from the sampler, with the model in its proposal"
+                                        if settings.samples else "the most probable start is refined from "
+                                        "its best draws; ask for samples to have the sampler check it")]
+        else:
+            opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
+            extra = _search_report(post, opt, search, problem.layout)
+            if settings.samples and not opt.stopped and math.isfinite(opt.loss):
+                samples_drawn = _sample(post, opt, settings, callback, should_stop, kde_rows)
+        if samples_drawn is not None:
             from dejaview.inference.posterior_report import summary
 
             extra["posterior"] = summary(samples_drawn, problem.layout, opt.modes)
