@@ -144,8 +144,9 @@ def prior_width90(post) -> list[float]:
     return out
 
 
-def run_case(name: str, index: int, samples: int) -> dict:
-    """One truth of scene ``name``: draw, observe, sample the posterior, rank the truth."""
+def run_case(name: str, index: int, samples: int, amortised=None) -> dict:
+    """One truth of scene ``name``: draw, observe, sample the posterior (or answer from the
+    ``amortised`` model trained for the scene), rank the truth."""
     import torch
 
     from dejaview.inference import solve
@@ -161,7 +162,7 @@ def run_case(name: str, index: int, samples: int) -> dict:
     truth = prior_post.sample(1, gen)
     observed = observe(scene, prior_post, truth, gen)
     t0 = time.perf_counter()
-    result = solve(observed, SolveParams(samples=samples, seed=index))
+    result = solve(observed, SolveParams(samples=samples, seed=index, amortised=amortised))
     seconds = time.perf_counter() - t0
     lay = result.problem.layout
     smp = result.posterior
@@ -170,8 +171,11 @@ def run_case(name: str, index: int, samples: int) -> dict:
     qs = [q for level in LEVELS for q in ((1 - level) / 2, (1 + level) / 2)]
     quant = weighted_quantiles(values, w, qs)
     row = {"scene": name, "case": index, "seconds": seconds, "parameters": lay.names(),
-           "unique": smp.stats["unique_samples"], "stages": smp.stats["stages"],
-           "rollouts": smp.stats["rollouts"], "acceptance": smp.stats["mean_acceptance"]}
+           "unique": smp.stats["unique_samples"], "stages": smp.stats.get("stages", 0),
+           "rollouts": smp.stats["rollouts"], "acceptance": smp.stats.get("mean_acceptance")}
+    if amortised is not None:
+        am = result.settings["amortised"]
+        row.update(k_hat=am["k_hat"], fitted=am["fitted"], ess=am["ess"])
     ranks, cover, width = [], {level: [] for level in LEVELS}, []
     for j in range(values.shape[1]):
         ranks.append(float((w * (values[:, j] < true_values[j]).double()).sum()))
@@ -217,9 +221,28 @@ def verdict(s: dict) -> str:
     return "met" if ok else "missed"
 
 
+def train_for(name: str, simulations: int | None = None, print_fn=None):
+    """The amortised posterior of calibration scene ``name`` (its target does not matter: the model
+    answers any observation), trained with the defaults (``TrainParams``) and seed 0."""
+    from dataclasses import replace as _replace
+
+    from dejaview.inference.amortised import train
+    from dejaview.inference.params import TrainParams
+
+    params = TrainParams() if simulations is None else _replace(TrainParams(), simulations=simulations)
+    model = train(base_scene(name), params)
+    if print_fn is not None:
+        info = model.info
+        print_fn(f"  {name}: trained on {info['simulations']} simulations in {info['seconds']:.0f} s "
+                 f"({info['fit']['epochs']} epochs, validation -log q {info['fit']['validation_nll']:.3f})")
+    return model
+
+
 def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot=None,
-        verbose: bool = False) -> list[dict]:
-    """Every scene x truth; prints a row per scene and the pooled verdict."""
+        verbose: bool = False, amortised: bool = False, first: int = 0, simulations: int | None = None) -> list[dict]:
+    """Every scene x truth; prints a row per scene and the pooled verdict. ``amortised``: each scene's
+    truths answered by ``solve --amortised`` from a model trained for it first; ``first``: the first
+    truth's index (truth i draws from seed 1000 + i: another ``first`` is another, held-out set)."""
     import torch
 
     torch.set_num_threads(int(os.environ.get("DEJAVIEW_THREADS", "1")))
@@ -230,14 +253,16 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
     per_scene = {}
     for name in scenes:
         mine = []
-        for i in range(truths):
-            row = run_case(name, i, samples)
+        model = train_for(name, simulations, say) if amortised else None
+        for i in range(first, first + truths):
+            row = run_case(name, i, samples, model)
             mine.append(row)
             rows.append(row)
             if verbose:
                 say(f"  {name} {i}: {row['seconds']:.1f} s, ranks "
                     + " ".join(f"{r:.2f}" for r in row["ranks"])
                     + f", {row['unique']} distinct, {row['stages']} steps, "
+                    + (f"k-hat {row['k_hat']:.2f}, " if "k_hat" in row else "")
                     + f"{row['density_rank']:.2f} of the samples denser than the truth")
         per_scene[name] = summarize(mine)
     say(f"{'scene':<16} {'params':>6} {'cover50':>8} {'cover90':>8} {'sharp':>6} {'s/case':>7}  rank histogram"
@@ -247,7 +272,8 @@ def run(print_fn=print, scenes=CASES, truths: int = 50, samples: int = 300, plot
         say(f"{name:<16} {params:>6} {s['cover50']:>8.3f} {s['cover90']:>8.3f} {s['sharpness']:>6.3f} "
             f"{s['seconds']:>7.1f}  {' '.join(str(h) for h in s['histogram'])}  "
             f"[{' '.join(str(h) for h in s['density_histogram'])}]  {verdict(s)}; runs disagree on "
-            f"{s['flagged']} of {truths} truths")
+            f"{s['flagged']} of {truths} truths"
+            + (f"; the model did not fit {sum(not r['fitted'] for r in mine)}" if amortised else ""))
     pooled = summarize(rows)
     say(f"{'pooled':<16} {'':>6} {pooled['cover50']:>8.3f} {pooled['cover90']:>8.3f} "
         f"{pooled['sharpness']:>6.3f} {pooled['seconds']:>7.1f}  "
@@ -287,9 +313,11 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", type=Path, default=None, help="write the rank histograms as a PNG here")
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows as CSV here")
     parser.add_argument("--verbose", action="store_true", help="a line per truth")
+    parser.add_argument("--amortised", action="store_true", help="answer from an amortised model trained per scene")
+    parser.add_argument("--first", type=int, default=0, help="index of the first truth (another set: held out)")
     args = parser.parse_args(argv)
     rows = run(scenes=tuple(args.scenes.split(",")), truths=args.truths, samples=args.samples, plot=args.plot,
-               verbose=args.verbose)
+               verbose=args.verbose, amortised=args.amortised, first=args.first)
     if args.csv is not None:
         from dejaview.cli.bench_table import write_rows_csv
 

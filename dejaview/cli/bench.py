@@ -325,6 +325,28 @@ def physics(scenes, prior, csv_path, check):
     _finish(rows, csv_path, check, [r["met"] for r in rows])
 
 
+@command.command("amortised")
+@click.option("--scenes", default="mug_off_counter", show_default=True, help="Comma-separated bundled scenes.")
+@click.option("--simulations", default=None, type=click.IntRange(min=2), help="Training simulations (default 20000).")
+@click.option("--samples", default=500, show_default=True, type=click.IntRange(min=1),
+              help="Samples of the weighed answer (solve --amortised).")
+@click.option("--repeats", default=20, show_default=True, type=click.IntRange(min=1), help="Live answers timed.")
+@click.option("--model-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Keep the trained models here and reuse them when they fit the scene.")
+@csv_option
+@check_option
+def amortised(scenes, simulations, samples, repeats, model_dir, csv_path, check):
+    """Amortised posteriors: training time (target <= 5 min for the mug), live answers (1000 draws and
+    a 16x16 heatmap, target <= 100 ms) and the answer weighed by the exact likelihood (k-hat)."""
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("amortised").run(print_fn=click.echo, scenes=tuple(s for s in scenes.split(",") if s),
+                                         simulations=simulations, samples=samples, repeats=repeats,
+                                         model_dir=model_dir)
+    _finish(rows, csv_path, check, [r["met"] for r in rows])
+
+
 @command.command("calibration")
 @click.option("--scenes", default="ball_off_table,box_thrown,ramp", show_default=True,
               callback=_comma_list(("ball_off_table", "box_thrown", "ramp")), help="Calibration scenes.")
@@ -334,8 +356,14 @@ def physics(scenes, prior, csv_path, check):
               help="Posterior samples per truth.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Write the rank histograms as a PNG here.")
+@click.option("--amortised", is_flag=True,
+              help="Answer each truth with solve --amortised from a model trained for the scene first.")
+@click.option("--first", default=0, show_default=True, type=click.IntRange(min=0),
+              help="Index of the first truth (truth i draws from seed 1000 + i): another set is held out.")
+@click.option("--simulations", default=None, type=click.IntRange(min=2),
+              help="With --amortised: training simulations (default TrainParams').")
 @csv_option
-def calibration(scenes, truths, samples, plot_path, csv_path):
+def calibration(scenes, truths, samples, plot_path, amortised, first, simulations, csv_path):
     """Simulation-based calibration of the posterior samples (Talts et al. 2018).
 
     Draws truths from each scene's prior, observes their ends with the stated noise, samples the
@@ -346,7 +374,8 @@ def calibration(scenes, truths, samples, plot_path, csv_path):
 
     configure_torch()
     rows = bench_module("calibration").run(print_fn=click.echo, scenes=scenes, truths=truths,
-                                           samples=samples, plot=plot_path)
+                                           samples=samples, plot=plot_path, amortised=amortised, first=first,
+                                           simulations=simulations)
     _finish(rows, csv_path, False, [])
 
 

@@ -44,11 +44,14 @@ def _cells(ctx, param, value):
 @click.option("--ray", "ray", envvar="DEJAVIEW_RAY_ADDRESS", default=None, metavar="ADDRESS",
               help="optimise the chunks on Ray: 'local' (an instance in this process) or a cluster address "
                    "(docs/scale.md; default $DEJAVIEW_RAY_ADDRESS); needs pip install 'dejaview[ray]'")
+@click.option("--amortised", "amortised", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="draw the posterior heatmap's samples from an amortised posterior trained for this scene "
+                   "(dejaview train), weighed by the exact likelihood")
 @click.option("--no-plot", is_flag=True, help="skip heatmap.png")
 @common_options
 @package_path_option
 @backend_options()
-def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, no_plot, backend,
+def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, workers, ray, amortised, no_plot, backend,
             iterations, optimizer, gradient, seed, quiet):
     """Which cells of SCENE's start area could its source have started from? Writes
     heatmap.ppm, heatmap.png, heatmap.json, result.json and trajectory.csv (best solution) to DIR."""
@@ -78,7 +81,7 @@ def command(scene, out_dir, cells, samples, sigma, method, lr, batch_size, worke
     result = compute_heatmap(sc, cells=(nx, ny), samples=samples, sigma=sigma, iterations=iterations,
                              optimizer=optimizer, gradient=gradient, seed=seed, lr=lr,
                              batch_size=batch_size, workers=workers, callback=progress, backend=backend,
-                             method=method, ray=ray or None)
+                             method=method, ray=ray or None, amortised=amortised)
     bar.n = nx * ny
     bar.close()
     paths = result.write(out_dir, plot=not no_plot)

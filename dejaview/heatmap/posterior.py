@@ -60,7 +60,8 @@ def choose_method(method: str | None, optimizer: str | None, backend: str | None
 
 
 def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations=None, seed=None,
-                      callback=None, should_stop=None, problem=None, backend=None, memory_limit=None):
+                      callback=None, should_stop=None, problem=None, backend=None, memory_limit=None,
+                      amortised=None):
     """Heatmap of the posterior's start-position marginal (module docstring).
 
     Args:
@@ -75,6 +76,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
         problem: reuse a spheres problem of this scene; backend: else the spheres backend's
             ``BackendOptions`` (e.g. its engine) or None.
         memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``).
+        amortised: an amortised posterior (model or file) drawing the samples (``solve --amortised``).
     Returns:
         HeatmapResult (``best``: the solve, with its posterior samples).
     """
@@ -125,7 +127,7 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
 
     try:
         result = solve(scene, SolveParams(optimizer="auto", iterations=iterations, seed=seed, samples=n,
-                       memory_limit=memory_limit), callback=progress, should_stop=should_stop,
+                       memory_limit=memory_limit, amortised=amortised), callback=progress, should_stop=should_stop,
                        problem=problem, backend=backend)
     except ResourceError as exc:
         raise exc.naming(f"a heatmap of {nx} x {ny} cells with {per_cell} samples each ({n} posterior "
@@ -145,7 +147,8 @@ def posterior_heatmap(scene, *, cells=None, samples=None, sigma=None, iterations
                 "seed": result.settings["seed"], "backend": result.problem.backend, "cells": [nx, ny],
                 "samples": per_cell, "posterior_samples": n,
                 "sigma": result.settings["observation"]["sigma"], "agreement": summary.get("agreement"),
-                "warnings": list(result.settings.get("warnings", []))}
+                "warnings": list(result.settings.get("warnings", [])),
+                **({"amortised": result.settings["amortised"]} if "amortised" in result.settings else {})}
     return HeatmapResult(scene=scene, lo=lo, hi=hi, cells=(nx, ny), probability=p, solutions=solutions,
                          candidates=n, best=result, settings=settings, seconds=time.perf_counter() - t0)
 

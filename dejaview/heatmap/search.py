@@ -82,7 +82,7 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                     velocity_tol: float = 0.05, spin_tol: float = 0.5, position_tol: float = 0.02,
                     callback=None, should_stop=None, problem=None, backend=None,
                     method: str | None = None, ray: str | None = None,
-                    memory_limit: int | None = None) -> HeatmapResult:
+                    memory_limit: int | None = None, amortised=None) -> HeatmapResult:
     """Start-position heatmap of a scene's source.
 
     ``method="posterior"`` (the default where the spheres backend runs, no local optimiser is
@@ -126,6 +126,8 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
         ray: optimise the chunks on Ray (``dejaview.parallel``): ``"local"`` or a cluster address,
             ``workers`` actors; each builds the problem from the scene. Same results as in processes.
             Basins method only (a ``ray`` given picks it).
+        amortised: an amortised posterior (``AmortisedModel`` or its file) answering the posterior
+            heatmap's samples (``solve --amortised``); posterior method only.
         memory_limit: bytes the process may hold (None: ``dejaview.memory.limit()``): the posterior
             method refuses samples that would need more, before any work (``ResourceError``).
     Returns:
@@ -157,7 +159,11 @@ def compute_heatmap(scene, *, cells: tuple[int, int] | None = None, samples: int
                                      f"not to the posterior's")
         return posterior_heatmap(scene, cells=cells, samples=samples, sigma=sigma, iterations=iterations,
                                  seed=seed, callback=callback, should_stop=should_stop, problem=problem,
-                                 backend=None if problem is not None else options, memory_limit=memory_limit)
+                                 backend=None if problem is not None else options, memory_limit=memory_limit,
+                                 amortised=amortised)
+    if amortised is not None:
+        raise InferenceError("an amortised posterior answers the posterior heatmap (method posterior), not the "
+                             "basins heatmap")
     if getattr(scene, "inference", None) is not None and scene.inference.infers_physics:
         raise InferenceError("<physics-prior> needs the posterior heatmap (method posterior): the basins "
                              "heatmap's per-cell optimisations have no prior to hold the physics to")

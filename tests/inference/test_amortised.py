@@ -209,3 +209,38 @@ def test_amortised_needs_the_default_search_and_a_start_area(model):
         '<start-area min="-0.2 -0.2 0.3" max="0.2 0.2 0.3"/>', ""))
     with pytest.raises(InferenceError, match="start-area"):
         train(no_area, SMALL)
+
+
+def test_cli_train_then_solve_and_heatmap_from_the_model(tmp_path):
+    from click.testing import CliRunner
+
+    from dejaview.cli import cli
+
+    scene = tmp_path / "throw.xml"
+    scene.write_text(THROW.format(target="0.45 0.1 0.05", sigma=0.05, name="throw"))
+    model = tmp_path / "throw.dvflow"
+    runner = CliRunner()
+    out = runner.invoke(cli, ["train", str(scene), "-o", str(model), "--simulations", "400", "-q"])
+    assert out.exit_code == 0, out.output
+    assert "trained on 400 simulations" in out.output and model.is_file()
+    out = runner.invoke(cli, ["solve", str(scene), "-o", str(tmp_path / "solved"), "--amortised", str(model),
+                              "--samples", "50", "--budget", "2000", "-q"])
+    assert out.exit_code == 0, out.output
+    import json
+
+    written = json.loads((tmp_path / "solved" / "result.json").read_text())
+    assert written["amortised"]["draws"] >= 1000 and "k_hat" in written["amortised"]
+    assert (tmp_path / "solved" / "posterior.csv").is_file()
+    out = runner.invoke(cli, ["heatmap", str(scene), "-o", str(tmp_path / "map"), "--amortised", str(model),
+                              "--cells", "4x4", "--samples", "2", "-q", "--no-plot"])
+    assert out.exit_code == 0, out.output
+    heat = json.loads((tmp_path / "map" / "heatmap.json").read_text())
+    assert sum(map(sum, heat["probability"])) == pytest.approx(1.0)
+    # a model of another scene: one line, exit 2 (the CLI's error), nothing written
+    other = tmp_path / "other.xml"
+    other.write_text(THROW.format(target="0.45 0.1 0.05", sigma=0.05, name="other").replace('mass="0.2"', 'mass="0.3"'))
+    out = runner.invoke(cli, ["solve", str(other), "-o", str(tmp_path / "o"), "--amortised", str(model)])
+    assert isinstance(out.exception, InferenceError), out.output
+    message = str(out.exception)
+    assert message.startswith(f"{model}: the amortised model was trained for throw") and "\n" not in message
+    assert not (tmp_path / "o").exists()

@@ -30,6 +30,16 @@ FORMAT = "dejaview-amortised"
 VERSION = 1
 
 
+def require(module: str):
+    """Import ``module`` of the ``amortised`` extra, or a one-line InferenceError saying how to get it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise InferenceError(f"amortised posteriors need {module}: pip install 'dejaview[amortised]'") from None
+
+
 @dataclass(frozen=True)
 class FlowShape:
     """The flow's architecture (zuko ``NSF``): P features, D context, its transforms and layers."""
@@ -41,8 +51,7 @@ class FlowShape:
     bins: int = 8
 
     def build(self):
-        import zuko
-
+        zuko = require("zuko")
         return zuko.flows.NSF(features=self.features, context=self.context, transforms=self.transforms,
                               hidden_features=list(self.hidden), bins=self.bins, passes=2).to(torch.float64)
 
@@ -119,6 +128,8 @@ class AmortisedModel:
     info: dict = field(default_factory=dict)
     reference: torch.Tensor | None = None
     reach: float = math.inf
+    path: Path | None = None
+    """The file it was loaded from (named in errors), or None."""
 
     def set_reference(self, c: torch.Tensor) -> None:
         """Keep standardised training observations c (M, D) and their nearest-neighbour reach."""
@@ -166,6 +177,7 @@ class AmortisedModel:
     def check_fits(self, post, path: str | Path | None = None) -> None:
         """One-line InferenceError where ``post`` is not what the model was trained for."""
         if fingerprint(post) != self.fingerprint:
+            path = self.path if path is None else path
             where = f"{path}: " if path is not None else ""
             trained = self.info.get("scene") or "another scene"
             raise InferenceError(f"{where}the amortised model was trained for {trained} (fingerprint "
@@ -179,6 +191,7 @@ class AmortisedModel:
         file renamed into place)."""
         import os
 
+        require("safetensors")
         from safetensors.torch import save_file
 
         path = Path(path)
@@ -200,6 +213,7 @@ class AmortisedModel:
     @staticmethod
     def load(path: str | Path) -> "AmortisedModel":
         """Read a model written by ``save``; one-line InferenceError for anything else."""
+        require("safetensors")
         from safetensors import SafetensorError
         from safetensors.torch import safe_open
 
@@ -230,7 +244,8 @@ class AmortisedModel:
                                                          ("u_mean", "u_std", "y_mean", "y_std")),
                                    fingerprint=str(header["fingerprint"]), names=list(header["names"]),
                                    info=dict(header.get("info", {})), reference=tensors.get("reference"),
-                                   reach=math.inf if header.get("reach") is None else float(header["reach"]))
+                                   reach=math.inf if header.get("reach") is None else float(header["reach"]),
+                                   path=path)
         except (KeyError, ValueError, TypeError, RuntimeError, json.JSONDecodeError) as exc:
             first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             raise InferenceError(f"{path}: not a DejaView amortised model ({first})") from None
