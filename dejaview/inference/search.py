@@ -366,7 +366,7 @@ class MapSearch:
     def __init__(self, params: SearchParams | None = None):
         self.params = SearchParams() if params is None else params
 
-    def run(self, post, *, callback=None, should_stop=None) -> SearchResult:
+    def run(self, post, *, callback=None, should_stop=None, seeds: torch.Tensor | None = None) -> SearchResult:
         """The most probable start under ``post`` (a ``dejaview.inference.posterior.Posterior``).
 
         A tracked source (several observed moments, ``stages``) is searched in time order: the
@@ -384,6 +384,8 @@ class MapSearch:
                 best negative log posterior, ``best_loss`` the best so far, ``evaluations`` budget
                 units spent; iterations numbered over all stages).
             should_stop: polled after every iteration; True ends the search with its best so far.
+            seeds: (K, P) starts the first stage's instances take first, before the screened ones
+                (an amortised posterior's best draws).
         Returns:
             SearchResult; ``x`` the best parameters (P,), ``loss`` the scene's loss there (metres),
             ``rollouts`` and ``history`` over all stages.
@@ -392,7 +394,7 @@ class MapSearch:
 
         p = self.params
         plain = post.without_model() if post.model is not None else post
-        history, seeds, spent, rollouts, jacobians = [], None, 0, 0, 0
+        history, spent, rollouts, jacobians = [], 0, 0, 0
         offset = used = 0
 
         def report(progress):

@@ -72,7 +72,7 @@ def answer(post, model, samples: int, *, params: AmortisedParams | None = None, 
     from dejaview.inference.amortised.psis import psis
     from dejaview.inference.reference import log_density
     from dejaview.inference.sampling import PosteriorSamples, Sampler
-    from dejaview.inference.search import SearchResult, _Search
+    from dejaview.inference.search import MapSearch, SearchResult, _Search
 
     p = AmortisedParams() if params is None else params
     search = SearchParams(seed=seed) if search is None else search
@@ -96,8 +96,8 @@ def answer(post, model, samples: int, *, params: AmortisedParams | None = None, 
               "like_training": model.like_training(y)}
     if callback is not None:
         callback({"phase": "weigh", "fraction": 0.5, "elapsed_s": time.perf_counter() - t0})
-    # the most probable start: the best distinct draws, refined
-    runner = _Search(post, search, None, should_stop)
+    # the most probable start: the best distinct draws, refined (where the flow fits), or seeding
+    # the default search (where it does not: its draws are then no better than the prior's)
     order = torch.argsort(torch.where(torch.isfinite(lp), -lp, torch.full_like(lp, math.inf)))
     picks = []
     for i in order.tolist():
@@ -110,18 +110,25 @@ def answer(post, model, samples: int, *, params: AmortisedParams | None = None, 
 
         raise InferenceError(f"none of the amortised model's {n_draw} draws is a possible start for this "
                              f"observation (each interpenetrates an object or its rollout is not finite)")
-    runner.add_modes(runner.refine(x[picks], search.lm_final_iterations))
-    if not runner.modes:
-        from dejaview.errors import InferenceError
+    if fitted:
+        runner = _Search(post, search, None, should_stop)
+        runner.add_modes(runner.refine(x[picks], search.lm_final_iterations))
+        if not runner.modes:
+            from dejaview.errors import InferenceError
 
-        raise InferenceError("the refinement of the amortised model's best draws lost every one of them")
-    modes = runner.modes
-    best = modes[0]
-    opt = SearchResult(x=best.x, loss=best.loss, history=runner.history, best_index=0, stopped=runner.stopped,
-                       candidate_x=torch.stack([m.x for m in modes]),
-                       candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
-                       cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts - rollouts0,
-                       jacobians=post.jacobians)
+            raise InferenceError("the refinement of the amortised model's best draws lost every one of them")
+        modes = runner.modes
+        best = modes[0]
+        opt = SearchResult(x=best.x, loss=best.loss, history=runner.history, best_index=0, stopped=runner.stopped,
+                           candidate_x=torch.stack([m.x for m in modes]),
+                           candidate_loss=torch.tensor([m.loss for m in modes], dtype=torch.float64),
+                           cost=best.cost, chi2=best.chi2, modes=modes, rollouts=post.rollouts - rollouts0,
+                           jacobians=post.jacobians)
+    else:
+        opt = MapSearch(search).run(post, should_stop=should_stop, seeds=x[picks])
+        opt.rollouts = post.rollouts - rollouts0
+        modes = opt.modes
+        report["search"] = "the default search, seeded with the model's best draws"
     drawn = None
     if samples and fitted:
         half = n_draw // 2
@@ -170,13 +177,12 @@ def live(post, model, *, params: AmortisedParams | None = None, cells: tuple[int
     t0 = time.perf_counter()
     y = observed(post) if y is None else y
     gen = torch.Generator().manual_seed(int(seed))
-    x, log_q = model.sample(post, y, p.live_draws, gen)
+    x, best = model.draw(post, y, p.live_draws, gen)
     lay = post.layout
     with torch.no_grad():
         dec = lay.decode(x)
     out = {"samples": dec["position"], "fitted": model.like_training(y)}
-    best = int(torch.argmax(log_q))
-    out["most_probable"] = {k: v[best].tolist() for k, v in dec.items()}
+    out["most_probable"] = {k: v[int(best)].tolist() for k, v in dec.items()}
     if lay.lo is not None:
         lo, hi = lay.lo.reshape(-1)[:2].tolist(), lay.hi.reshape(-1)[:2].tolist()
         w = torch.full((x.shape[0],), 1.0 / x.shape[0], dtype=torch.float64)

@@ -165,6 +165,28 @@ class AmortisedModel:
             log_q = log_f - torch.log(self.u_std).sum() - log_jacobian(post, u)
         return x, log_q
 
+    def draw(self, post, y: torch.Tensor, n: int, gen: torch.Generator, keep: int = 32
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """n draws x (n, P) from q(x | y) fast, for live answers: through a float32 copy of the
+        flow, inverting each transform once without its Jacobian (``sample`` computes both, three
+        passes of each transform's network); and the index of the likeliest draw, judged by
+        log q over the ``keep`` draws nearest the latent mode. Measured on the mug's model (one
+        thread, loaded 2-core machine): 1,000 draws in ~35 ms where ``sample`` took ~115 ms."""
+        from dejaview.inference.amortised.coordinates import from_flow
+
+        if getattr(self, "_flow32", None) is None:
+            import copy
+
+            self._flow32 = copy.deepcopy(self.flow).to(torch.float32).eval()
+        with torch.no_grad():
+            z = torch.randn(n, self.shape.features, generator=gen, dtype=torch.float64)
+            c = self.context(y).to(torch.float32)
+            f = self._flow32(c).transform.inv(z.to(torch.float32)).to(torch.float64)
+            x = from_flow(post, f * self.u_std + self.u_mean)
+            near = torch.argsort((z * z).sum(-1))[:keep]
+            best = near[int(torch.argmax(self.log_prob(post, y, x[near])))]
+        return x, best
+
     def log_prob(self, post, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """log q(x | y) (B,) of parameters x (B, P) given one observation vector y (D,)."""
         from dejaview.inference.amortised.coordinates import log_jacobian, to_flow
