@@ -50,7 +50,8 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
         get_task: blocking; returns a task or None (stop).
         put_event: sends an event tuple to the server.
         cancelled: callable -> bool, the slot's cancel flag.
-        options: ``job_timeout_s``, ``progress_interval_s``, ``memory_limit`` (bytes a job may hold).
+        options: ``job_timeout_s``, ``progress_interval_s``, ``memory_limit`` (bytes a job may hold),
+            ``models_dir`` (where train jobs put their models).
         parent_pid: stop when the parent process is gone (process workers).
     """
     from dejaview.server.jobs import JobStopped, StopCheck, run_job, worker_error
@@ -65,7 +66,8 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
         stop = StopCheck(cancelled, options.get("job_timeout_s"), parent_pid)
         try:
             result = run_job(spec, Path(out_dir), lambda data, j=job_id: put_event(("progress", j, data)),
-                             stop, options.get("progress_interval_s", 0.25), options.get("memory_limit"))
+                             stop, options.get("progress_interval_s", 0.25), options.get("memory_limit"),
+                             options.get("models_dir"))
             put_event(("finished", job_id, slot, result))
         except Exception as exc:  # every failure becomes the job's error, never the worker's end
             if stop.reason == "orphaned":
