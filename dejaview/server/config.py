@@ -42,6 +42,8 @@ class ServerConfig:
         live_draws: draws from the flow behind a live answer's heatmap.
         live_samples: start positions a live answer carries (of its draws).
         max_train_simulations: most training simulations a ``train`` job may ask for.
+        worker_niceness: added to the nice value of each worker process (process executor), so
+            that busy workers leave the cores to the server process's live answers first; 0: none.
         inline_limit_bytes: larger CSV / PPM / result JSON is sent as a URL only.
         max_bare_bytes: largest payload of the bare-text compatibility mode (which cannot
             send URLs).
@@ -77,6 +79,7 @@ class ServerConfig:
     live_draws: int = 512
     live_samples: int = 256
     max_train_simulations: int = 200_000
+    worker_niceness: int = 5
     inline_limit_bytes: int = 100_000
     max_bare_bytes: int = 16 * MIB
     max_jobs_per_connection: int = 16
@@ -103,6 +106,8 @@ class ServerConfig:
                      "max_train_simulations"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.worker_niceness <= 19:
+            raise ValueError(f"worker_niceness must lie in 0..19, got {self.worker_niceness}")
         if self.max_job_memory_bytes is not None and self.max_job_memory_bytes < 1:
             raise ValueError(f"max_job_memory_bytes must be >= 1, got {self.max_job_memory_bytes}")
         if not self.messages_per_second > 0 or not self.live_messages_per_second > 0:

@@ -140,7 +140,8 @@ class JobRunner:
                               {"job_timeout_s": self.config.job_timeout_s,
                                "progress_interval_s": self.config.progress_interval_s,
                                "memory_limit": self.config.job_memory_bytes,
-                               "models_dir": str(self.config.results_dir / MODELS)})
+                               "models_dir": str(self.config.results_dir / MODELS),
+                               "niceness": self.config.worker_niceness})
         self.pool.start(self._from_worker)
         self._dispatch()
 

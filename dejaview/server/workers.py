@@ -51,7 +51,8 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
         put_event: sends an event tuple to the server.
         cancelled: callable -> bool, the slot's cancel flag.
         options: ``job_timeout_s``, ``progress_interval_s``, ``memory_limit`` (bytes a job may hold),
-            ``models_dir`` (where train jobs put their models).
+            ``models_dir`` (where train jobs put their models), ``niceness`` (added to a worker
+            process's nice value: 0 none).
         parent_pid: stop when the parent process is gone (process workers).
     """
     from dejaview.server.jobs import JobStopped, StopCheck, run_job, worker_error
@@ -151,6 +152,10 @@ def _process_main(slot, serve, inbox, events, cancel, options, parent_pid):
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
+    if options.get("niceness"):
+        # batch work yields the cores to the server process, whose live answers are interactive
+        # (docs/benchmarks.md, "Live answers": busy workers at the server's priority starved them)
+        os.nice(int(options["niceness"]))
     import torch
 
     torch.set_num_threads(1)
