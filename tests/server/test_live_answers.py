@@ -247,3 +247,22 @@ def test_a_train_job_can_be_cancelled(server):
         messages = until_done(ws, job_id, timeout=120)
     assert messages[-1]["state"] == "cancelled"
     assert client.get(f"/jobs/{job_id}").json()["state"] == "cancelled"
+
+
+def test_live_messages_have_their_own_rate_budget(server):
+    """A flood of live messages is cut by the live budget (one rate_limited error) and leaves the
+    connection's budget for other messages whole: a ping after it is answered."""
+    client, _ = server
+    with client.websocket_connect("/ws") as ws:
+        for i in range(400):  # the live budget: bursts of 120, 60 more a second
+            live(ws, request_id=f"f{i}")
+        ws.send_text(json.dumps({"type": "ping", "request_id": "p"}))
+        seen = []
+        while True:
+            msg = receive(ws, 120)
+            seen.append(msg)
+            if msg["type"] == "pong":
+                break
+    limited = [m for m in seen if m["type"] == "error" and m["code"] == "rate_limited"]
+    assert limited and all("live messages per second" in m["message"] for m in limited)
+    assert all(m["type"] in ("live-result", "error") for m in seen[:-1])
