@@ -554,6 +554,22 @@ def load(clients, url, workers, executor, csv_path, check):
     _finish([row], csv_path, check, [row["lost"] == 0])
 
 
+@command.command("live")
+@click.option("--answers", default=100, show_default=True, type=click.IntRange(min=1),
+              help="Live messages answered one after another, idle and again with every worker busy.")
+@click.option("--simulations", default=2000, show_default=True, type=click.IntRange(min=2),
+              help="Training simulations of the train job that makes the model.")
+@click.option("--epochs", default=30, show_default=True, type=click.IntRange(min=1), help="Its most epochs.")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1), help="Worker processes.")
+@csv_option
+def live(answers, simulations, epochs, workers, csv_path):
+    """Live answers: round trips of `live` messages to a `dejaview serve` whose scene's model a train
+    job made, idle and while solve jobs keep every worker busy (p50/p99/max, the server's own time)."""
+    row = bench_module("live").run(print_fn=click.echo, answers=answers, simulations=simulations, epochs=epochs,
+                                   workers=workers)
+    _finish([row], csv_path, False, [])
+
+
 @command.command("soak")
 @click.option("--minutes", default=10.0, show_default=True, type=click.FloatRange(min=0.1, max=24 * 60),
               help="How long the clients submit jobs.")

@@ -24,6 +24,7 @@ from dejaview.server.access import AccessControl
 from dejaview.server.config import ServerConfig
 from dejaview.server.errors import ServiceError
 from dejaview.server.limits import BodyLimit
+from dejaview.server.live import LiveAnswers
 from dejaview.server.messages import (
     CLIENT_MESSAGE,
     SERVER_MESSAGE,
@@ -63,6 +64,7 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
     elif settings:
         config = config.replace(**settings)
     runner = JobRunner(config)
+    live = LiveAnswers(config)
 
     @contextlib.asynccontextmanager
     async def lifespan(app):
@@ -70,14 +72,17 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
         try:
             yield
         finally:
+            live.close()
             await runner.close()
 
     app = FastAPI(title="DejaView", version=__version__, lifespan=lifespan,
-                  description="Simulate scenes, infer where an object came from (solve) and map where it "
-                              "could have started (heatmap). REST for scripts; the WebSocket `/ws` "
+                  description="Simulate scenes, infer where an object came from (solve), map where it "
+                              "could have started (heatmap), train an amortised model of a scene (train) and "
+                              "answer its observations live (the WebSocket's `live`). REST for scripts; the WebSocket `/ws` "
                               "speaks the typed messages `ClientMessage` / `ServerMessage` listed below.")
     app.state.config = config
     app.state.runner = runner
+    app.state.live = live
     app.add_middleware(BodyLimit, max_bytes=config.max_body_bytes)
     # added last, so it runs first: nothing is read from a client that may not use the server
     app.add_middleware(AccessControl, token=config.token, allow_origins=config.allow_origins,
@@ -111,7 +116,7 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
                       queued=len(runner.pending), running=runner.running, queue_size=config.queue_size)
 
     @app.post("/jobs", status_code=202, response_model=JobCreated, responses=ERRORS,
-              summary="Submit a simulate, solve or heatmap job")
+              summary="Submit a simulate, solve, heatmap or train job")
     async def submit_job(body: JobRequest, request: Request):
         overrides = body.overrides.given() if body.overrides else {}
         job = await runner.submit_request(body.kind, scene_xml=body.scene_xml, scene_path=body.scene_path,
@@ -138,7 +143,7 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
 
     @app.websocket("/ws")
     async def websocket(ws: WebSocket):
-        await Connection(ws, runner, config).run()
+        await Connection(ws, runner, config, live).run()
 
     def openapi():
         if app.openapi_schema is None:

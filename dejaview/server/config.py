@@ -36,6 +36,14 @@ class ServerConfig:
         max_scene_bytes: largest scene XML (text or file).
         messages_per_second: sustained WebSocket messages per connection; bursts of twice
             that are allowed, more are answered with one ``rate_limited`` error per second.
+        live_messages_per_second: sustained ``live`` messages per connection (their own budget,
+            bursts of twice that): a client dragging the source sends many, and the server
+            answers one at a time, the newest (``dejaview.server.live``).
+        live_draws: draws from the flow behind a live answer's heatmap.
+        live_samples: start positions a live answer carries (of its draws).
+        max_train_simulations: most training simulations a ``train`` job may ask for.
+        worker_niceness: added to the nice value of each worker process (process executor), so
+            that busy workers leave the cores to the server process's live answers first; 0: none.
         inline_limit_bytes: larger CSV / PPM / result JSON is sent as a URL only.
         max_bare_bytes: largest payload of the bare-text compatibility mode (which cannot
             send URLs).
@@ -67,6 +75,11 @@ class ServerConfig:
     max_message_bytes: int = 2 * MIB
     max_scene_bytes: int = 1 * MIB
     messages_per_second: float = 20.0
+    live_messages_per_second: float = 60.0
+    live_draws: int = 512
+    live_samples: int = 256
+    max_train_simulations: int = 200_000
+    worker_niceness: int = 5
     inline_limit_bytes: int = 100_000
     max_bare_bytes: int = 16 * MIB
     max_jobs_per_connection: int = 16
@@ -89,13 +102,16 @@ class ServerConfig:
             raise ValueError(f"executor must be 'process' or 'thread', got {self.executor!r}")
         for name in ("workers", "queue_size", "max_body_bytes", "max_message_bytes", "max_scene_bytes",
                      "inline_limit_bytes", "max_bare_bytes", "max_jobs_per_connection", "max_objects",
-                     "max_steps", "max_iterations", "max_heatmap_runs", "keep_jobs"):
+                     "max_steps", "max_iterations", "max_heatmap_runs", "keep_jobs", "live_draws", "live_samples",
+                     "max_train_simulations"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.worker_niceness <= 19:
+            raise ValueError(f"worker_niceness must lie in 0..19, got {self.worker_niceness}")
         if self.max_job_memory_bytes is not None and self.max_job_memory_bytes < 1:
             raise ValueError(f"max_job_memory_bytes must be >= 1, got {self.max_job_memory_bytes}")
-        if not self.messages_per_second > 0:
-            raise ValueError("messages_per_second must be > 0")
+        if not self.messages_per_second > 0 or not self.live_messages_per_second > 0:
+            raise ValueError("messages_per_second and live_messages_per_second must be > 0")
         if self.token is not None and (not self.token or any(c.isspace() or not c.isprintable()
                                                              for c in self.token)):
             raise ValueError("the token must be non-empty, without spaces or control characters")

@@ -1,4 +1,4 @@
-"""What a worker does with one job: run simulate / solve / heatmap, write the artefacts.
+"""What a worker does with one job: run simulate / solve / heatmap / train, write the artefacts.
 
 ``run_job`` is the same in a worker thread and in a worker process: it gets
 the job's spec (kind, scene text, overrides), a folder to write into, a
@@ -19,7 +19,7 @@ import os
 import time
 from pathlib import Path
 
-from dejaview.server.errors import ServiceError
+from dejaview.server.errors import ServiceError, write_error
 
 
 class JobStopped(Exception):
@@ -76,7 +76,7 @@ def _finite(v):
 
 
 def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval: float = 0.25,
-            memory_limit: int | None = None) -> dict:
+            memory_limit: int | None = None, models_dir: str | None = None) -> dict:
     """Run one job and write its artefacts into ``out_dir``.
 
     Args:
@@ -88,6 +88,8 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
         progress_interval: seconds between progress reports.
         memory_limit: bytes the job may hold (None: ``dejaview.memory.limit()``); a job sized over
             it raises ``ResourceError`` before any work.
+        models_dir: where a train job puts its model (``live.model_path``; None: ``models`` beside
+            the ``jobs`` folder that holds ``out_dir``).
     Returns:
         ``{"summary": {...}, "artefacts": [file names]}``.
     Raises:
@@ -105,6 +107,11 @@ def run_job(spec: dict, out_dir: Path, emit, stop: StopCheck, progress_interval:
     overrides = dict(spec.get("overrides") or {}, memory_limit=memory_limit)
     progress = Throttle(emit, progress_interval)
     stop.raise_if_stopped()
+    if spec["kind"] == "train":
+        from dejaview.server.live import MODELS
+
+        models = Path(models_dir) if models_dir else Path(out_dir).parent.parent / MODELS
+        return _train(scene, overrides, Path(out_dir), progress, stop, models)
     runner = {"simulate": _simulate, "solve": _solve, "heatmap": _heatmap}[spec["kind"]]
     # each result set is written whole or not at all (``dejaview.result_set``): a reader, or a
     # run of the same job after a crash, never sees a half-written artefact
@@ -200,6 +207,55 @@ def _heatmap(scene, overrides, out_dir, progress, stop):
         summary["loss"] = _finite(data.get("loss"))
         if "initial_state" in data:
             summary["initial_state"] = data["initial_state"]
+    return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
+
+
+TRAIN_OVERRIDES = ("simulations", "seed", "epochs", "patience", "transforms", "hidden", "batch", "lr")
+
+
+def _train(scene, overrides, out_dir, progress, stop, models_dir: Path):
+    """An amortised model of the scene, saved as ``models_dir/<fingerprint>.safetensors`` (where
+    live answers look for it) and described in the job's ``result.json``."""
+    from dejaview.inference.amortised import train
+    from dejaview.inference.params import TrainParams
+    from dejaview.result_set import write_result_set
+    from dejaview.server.live import MODELS, model_path
+
+    start = time.perf_counter()
+    params = TrainParams(**{k: tuple(overrides[k]) if k == "hidden" else overrides[k]
+                            for k in TRAIN_OVERRIDES if k in overrides})
+    best = [math.inf]
+
+    def report(d):
+        data = {"elapsed_s": time.perf_counter() - start, "phase": d["phase"]}
+        if d["phase"] == "simulate":
+            data.update(iteration=int(d["done"]), total=int(d["total"]), fraction=min(1.0, d["done"] / d["total"]))
+        else:
+            best[0] = min(best[0], d["validation_loss"])
+            data.update(iteration=int(d["epoch"]), total=int(d["epochs"]), loss=_finite(d["validation_loss"]),
+                        best_loss=_finite(best[0]), fraction=d["epoch"] / d["epochs"])
+        progress(data)
+
+    model = train(scene, params, callback=report, should_stop=stop)
+    if stop.reason is not None:
+        raise JobStopped(stop.reason)
+    try:
+        path = model.save(model_path(models_dir, model.fingerprint))
+    except OSError as exc:
+        raise write_error(exc) from None
+    info = model.info
+    summary = {"fingerprint": model.fingerprint, "model": f"{MODELS}/{path.name}", "scene": info.get("scene"),
+               "simulations": info["simulations"], "feasible_share": info["feasible_share"],
+               "fit": info["fit"], "seconds": info["seconds"]}
+    progress({"iteration": info["fit"]["epochs"], "total": info["fit"]["epochs"], "elapsed_s": time.perf_counter() - start,
+              "phase": "fit", "fraction": 1.0}, last=True)
+
+    def write(folder):
+        target = folder / "result.json"
+        target.write_text(json.dumps({"kind": "train", **summary, "info": info}, indent=2), encoding="utf-8")
+        return {"result": target}
+
+    paths = write_result_set(out_dir, write, names=("result.json",))
     return {"summary": summary, "artefacts": sorted(p.name for p in paths.values())}
 
 

@@ -1,10 +1,11 @@
 """Typed messages of the service protocol (``shared/spec/protocol.md``, version 1).
 
 Client to server (``ClientMessage``, discriminated by ``type``): ``submit``,
-``cancel``, ``ping`` and ``subscribe`` (an extension: follow a job submitted
-elsewhere, e.g. after a reconnect). Server to client (``ServerMessage``):
+``cancel``, ``ping``, ``live`` (the addition "Live answers": one observation answered from the
+scene's amortised model, ``dejaview.server.live``) and ``subscribe`` (an extension: follow a job
+submitted elsewhere, e.g. after a reconnect). Server to client (``ServerMessage``):
 ``accepted``, ``progress``, ``trajectory``, ``heatmap``, ``result``,
-``error``, ``done``, ``pong``. REST bodies reuse the same models
+``error``, ``done``, ``pong``, ``live-result``. REST bodies reuse the same models
 (``JobRequest``, ``JobStatus``, ``ErrorBody``).
 
 Validation is strict: unknown keys are refused everywhere, numbers must be
@@ -44,6 +45,8 @@ not_found             404    no such job (or route)
 not_ready             409    the job has not finished: no artefacts yet
 no_artefact           404    the job finished without this artefact
 not_cancellable       409    the job has already finished
+no_model              --     a ``live`` message for a scene that has no amortised model in the server's
+                             models folder (``<results_dir>/models``): submit a ``train`` job first
 simulation_error      --     the job failed in the simulator
 geometry_error        --     the job failed loading a mesh or packing
 inference_error       --     the job failed in the optimiser
@@ -71,7 +74,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from dejaview.scene.model import OPTIMIZERS
 
-JobKind = Literal["simulate", "solve", "heatmap"]
+JobKind = Literal["simulate", "solve", "heatmap", "train"]
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 FINISHED_STATES = ("done", "failed", "cancelled")
 
@@ -90,7 +93,9 @@ class Overrides(_Strict):
     ``optimizer``, ``budget`` (the default search's), ``seed``, ``tolerance``, ``samples``
     (posterior samples: posterior.csv), and the local
     optimisers' ``gradient``, ``lr``, ``multistart``, ``screen``, ``screen_rounds``; heatmap: ``iterations``, ``optimizer``, ``gradient``,
-    ``seed``, ``cells``, ``samples`` (per cell), ``sigma``; ``backend`` to all three.
+    ``seed``, ``cells``, ``samples`` (per cell), ``sigma``; ``backend`` to all three; train
+    (``TrainParams``): ``simulations``, ``seed``, ``epochs``, ``patience``, ``transforms``,
+    ``hidden``, ``batch``, ``lr``.
     """
 
     backend: Literal["spheres", "warp"] | None = None
@@ -110,6 +115,13 @@ class Overrides(_Strict):
                      Field(min_length=2, max_length=2, description="[nx, ny]")] | None = None
     samples: Annotated[int, Field(ge=0, le=100_000)] | None = None
     sigma: Annotated[float, Field(gt=0)] | None = None
+    simulations: Annotated[int, Field(ge=2)] | None = None
+    epochs: Annotated[int, Field(ge=1, le=10_000)] | None = None
+    patience: Annotated[int, Field(ge=1, le=10_000)] | None = None
+    transforms: Annotated[int, Field(ge=1, le=16)] | None = None
+    hidden: Annotated[list[Annotated[int, Field(ge=1, le=1024)]],
+                      Field(min_length=1, max_length=6, description="hidden layer widths")] | None = None
+    batch: Annotated[int, Field(ge=1, le=65_536)] | None = None
 
     def given(self) -> dict[str, Any]:
         """The overrides actually set."""
@@ -122,6 +134,7 @@ OVERRIDES_BY_KIND: dict[str, frozenset[str]] = {
                         "multistart", "screen", "screen_rounds", "tolerance", "samples"}),
     "heatmap": frozenset({"backend", "iterations", "optimizer", "gradient", "seed", "cells", "samples",
                           "sigma"}),
+    "train": frozenset({"simulations", "seed", "epochs", "patience", "transforms", "hidden", "batch", "lr"}),
 }
 
 
@@ -171,7 +184,43 @@ class PingMessage(_Strict):
     request_id: RequestId | None = None
 
 
-ClientMessage = Annotated[Union[SubmitMessage, CancelMessage, SubscribeMessage, PingMessage],
+class LiveTarget(_Strict):
+    """Where the source is seen now: it replaces the scene's (last) ``<target>`` in the observation."""
+
+    position: Annotated[list[Annotated[float, Field(ge=-1e4, le=1e4)]],
+                        Field(min_length=3, max_length=3, description="[x, y, z] metres")]
+    orientation: Annotated[list[Annotated[float, Field(ge=-1e4, le=1e4)]],
+                           Field(min_length=4, max_length=4, description="[w, x, y, z]; ignored where the "
+                                 "scene's target gives no orientation")] | None = None
+
+    @model_validator(mode="after")
+    def _unit_quaternion(self):
+        if self.orientation is not None and sum(v * v for v in self.orientation) < 1e-12:
+            raise ValueError("target.orientation is a zero quaternion: give [w, x, y, z] of a rotation")
+        return self
+
+
+class LiveMessage(_Strict):
+    """The addition "Live answers": the answer to one observation of a scene with an amortised model,
+    ``live-result`` within milliseconds; the newest of a connection's waiting ``live`` messages is
+    answered and the others dropped."""
+
+    type: Literal["live"]
+    scene_xml: str | None = None
+    scene_path: str | None = None
+    target: LiveTarget
+    cells: Annotated[list[Annotated[int, Field(ge=1, le=64)]],
+                     Field(min_length=2, max_length=2, description="[nx, ny] of the heatmap (default 16 x 16)")] | None = None
+    request_id: RequestId | None = None
+
+    @model_validator(mode="after")
+    def _one_scene(self):
+        if (self.scene_xml is None) == (self.scene_path is None):
+            raise ValueError("give exactly one of scene_xml and scene_path")
+        return self
+
+
+ClientMessage = Annotated[Union[SubmitMessage, CancelMessage, SubscribeMessage, PingMessage, LiveMessage],
                           Field(discriminator="type")]
 CLIENT_MESSAGE = TypeAdapter(ClientMessage)
 
@@ -257,8 +306,23 @@ class PongMessage(_Out):
     request_id: str | None = None
 
 
+class LiveResultMessage(_Out):
+    """The answer to a ``live`` message, from the flow alone (``amortised.answer.live``): no rollout."""
+
+    type: Literal["live-result"] = "live-result"
+    request_id: str | None = None
+    heatmap: dict | None = Field(None, description="min, max, cells, probability[j][i] of the start "
+                                                   "positions over the start area (as heatmap.json)")
+    samples: list[list[float]] = Field(description="start positions [x, y, z] drawn from the flow")
+    most_probable: dict = Field(description="the flow's likeliest draw as an initial_state")
+    fitted: bool = Field(description="false where the observation lies outside the training observations")
+    draws: int = Field(description="draws from the flow behind the heatmap")
+    model: str = Field(description="the model's fingerprint (what it was trained for)")
+    seconds: float = Field(description="the answer's computation, from its turn to its reply")
+
+
 ServerMessage = Annotated[Union[AcceptedMessage, ProgressMessage, TrajectoryMessage, HeatmapMessage,
-                                ResultMessage, ErrorMessage, DoneMessage, PongMessage],
+                                ResultMessage, ErrorMessage, DoneMessage, PongMessage, LiveResultMessage],
                           Field(discriminator="type")]
 SERVER_MESSAGE = TypeAdapter(ServerMessage)
 

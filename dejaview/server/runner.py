@@ -8,7 +8,8 @@ Everything here runs on the event loop (worker events arrive through
 and every change is written to the job store (``dejaview.server.store``:
 SQLite in ``<results_dir>/jobs.sqlite3``) before anyone hears of it; the
 job's scene (``scene.xml``) and artefacts are files in
-``<results_dir>/jobs/<id>/``. A client that went away can fetch the results
+``<results_dir>/jobs/<id>/``; train jobs' models are ``<results_dir>/models/<fingerprint>.safetensors``
+(``dejaview.server.live``), kept when their jobs are pruned. A client that went away can fetch the results
 later, and a restarted server serves finished jobs and runs again the jobs a
 previous server left queued or running (after a crash or a plain stop), in
 their order: at-least-once, as a job's outputs are a pure function of its
@@ -58,6 +59,7 @@ from dejaview.server.messages import (
     ResultMessage,
     TrajectoryMessage,
 )
+from dejaview.server.live import MODELS
 from dejaview.server.scenes import SceneInput, check_job, read_scene_input
 from dejaview.server.store import JobStore
 from dejaview.server.workers import make_pool
@@ -137,7 +139,9 @@ class JobRunner:
         self.pool = make_pool(self.config.executor, self.config.workers,
                               {"job_timeout_s": self.config.job_timeout_s,
                                "progress_interval_s": self.config.progress_interval_s,
-                               "memory_limit": self.config.job_memory_bytes})
+                               "memory_limit": self.config.job_memory_bytes,
+                               "models_dir": str(self.config.results_dir / MODELS),
+                               "niceness": self.config.worker_niceness})
         self.pool.start(self._from_worker)
         self._dispatch()
 

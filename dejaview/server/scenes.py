@@ -185,17 +185,21 @@ def check_job(kind: str, scene, overrides: dict, config) -> None:
 
     Raises:
         ServiceError: ``invalid_scene`` (no ``<inference>`` / ``<start-area>``) or
-            ``limit_exceeded``.
+            ``limit_exceeded`` (a ``train`` job's ``simulations`` too).
     """
     if len(scene.objects) > config.max_objects:
         raise ServiceError("limit_exceeded", f"the scene has {len(scene.objects)} objects, over the "
                            f"server's limit of {config.max_objects}", 422)
     inf = scene.inference
-    if kind in ("solve", "heatmap") and inf is None:
+    if kind in ("solve", "heatmap", "train") and inf is None:
         raise ServiceError("invalid_scene", f"the scene has no <inference> section: nothing to {kind}",
                            422)
-    if kind == "heatmap" and inf.start_area is None:
-        raise ServiceError("invalid_scene", "a heatmap needs an <inference> with a <start-area>", 422)
+    if kind in ("heatmap", "train") and inf.start_area is None:
+        what = "a heatmap" if kind == "heatmap" else "an amortised model (train, live)"
+        raise ServiceError("invalid_scene", f"{what} needs an <inference> with a <start-area>", 422)
+    if kind == "train" and overrides.get("simulations", 0) > config.max_train_simulations:
+        raise ServiceError("limit_exceeded", f"{overrides['simulations']} training simulations is over the "
+                           f"server's limit of {config.max_train_simulations}", 422)
     try:
         steps = overrides.get("steps") or scene.simulation.steps
     except (OverflowError, ValueError):  # duration / dt beyond any integer (e.g. 1e308 / 0.01)

@@ -40,16 +40,19 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 
 from pydantic import ValidationError
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from dejaview.server.errors import ServiceError, from_library_error
 from dejaview.server.limits import TokenBucket
+from dejaview.server.live import LiveQueue
 from dejaview.server.messages import (
     CLIENT_MESSAGE,
     CancelMessage,
     ErrorMessage,
+    LiveMessage,
     PingMessage,
     PongMessage,
     ProgressMessage,
@@ -64,6 +67,8 @@ log = logging.getLogger("dejaview.server")
 
 URL_FIELDS = ("url", "ppm_url", "png_url", "grid_url")
 MAX_QUEUED_PROGRESS = 256  # progress for a slow reader beyond this is dropped (final messages never)
+# a frame that starts as a live message draws on the live budget (read before any parsing)
+LIVE_FRAME = re.compile(r'\s*\{\s*"type"\s*:\s*"live"')
 
 
 def _reject_constant(name):
@@ -90,12 +95,14 @@ def looks_like_json(text: str) -> bool:
 class Connection:
     """One WebSocket client: reads its frames, runs its requests, sends its messages in order."""
 
-    def __init__(self, websocket: WebSocket, runner, config):
+    def __init__(self, websocket: WebSocket, runner, config, live=None):
         self.ws = websocket
         self.runner = runner
         self.config = config
         self.out: asyncio.Queue = asyncio.Queue()
         self.bucket = TokenBucket(config.messages_per_second)
+        self.live_bucket = TokenBucket(config.live_messages_per_second)
+        self.live = None if live is None else LiveQueue(live.answer, self.send, self._live_failed)
         self.last_rate_error = -1e9
         self.dropped = 0
         self.following: set[str] = set()  # jobs whose messages come here
@@ -113,10 +120,11 @@ class Connection:
                 message = await self.ws.receive()
                 if message["type"] == "websocket.disconnect":
                     break
-                if not self.bucket.take():
-                    self._rate_limited()
-                    continue
                 text, data = message.get("text"), message.get("bytes")
+                live = text is not None and LIVE_FRAME.match(text) is not None
+                if not (self.live_bucket if live else self.bucket).take():
+                    self._rate_limited(live)
+                    continue
                 if text is None:
                     self.error("binary_frame", f"binary frames ({len(data or b'')} bytes) are not "
                                                "understood: send JSON text (or a bare scene path)")
@@ -125,6 +133,8 @@ class Connection:
         except WebSocketDisconnect:
             pass
         finally:
+            if self.live is not None:
+                self.live.close()
             for job_id in list(self.following):
                 self.runner.unsubscribe(job_id, self)
             for job_id in list(self.bare.jobs):
@@ -157,13 +167,15 @@ class Connection:
             request_id = None
         self.send(ErrorMessage(code=code, message=message, request_id=request_id, job_id=job_id))
 
-    def _rate_limited(self) -> None:
+    def _rate_limited(self, live: bool = False) -> None:
         self.dropped += 1
         now = self.bucket.clock()
         if now - self.last_rate_error >= 1.0:
             self.last_rate_error = now
-            self.error("rate_limited", f"more than {self.config.messages_per_second:g} messages per "
-                                       f"second: {self.dropped} message(s) dropped so far")
+            rate = self.config.live_messages_per_second if live else self.config.messages_per_second
+            what = "live messages" if live else "messages"
+            self.error("rate_limited", f"more than {rate:g} {what} per second: {self.dropped} message(s) "
+                                       f"dropped so far")
 
     # ------------------------------------------------------------ frames
     async def _frame(self, text: str) -> None:
@@ -193,7 +205,7 @@ class Connection:
             kinds = {e["type"] for e in exc.errors(include_url=False)}
             code = "unknown_type" if "union_tag_invalid" in kinds else "invalid_message"
             if "union_tag_not_found" in kinds:
-                self.error(code, "a message needs a 'type': submit, cancel, subscribe or ping", request_id)
+                self.error(code, "a message needs a 'type': submit, cancel, subscribe, ping or live", request_id)
             else:
                 self.error(code, first_error_line(exc), request_id)
             return
@@ -206,6 +218,10 @@ class Connection:
                 self.runner.subscribe(message.job_id, self, message.request_id)
             elif isinstance(message, PingMessage):
                 self.send(PongMessage(request_id=message.request_id))
+            elif isinstance(message, LiveMessage):
+                if self.live is None:
+                    raise ServiceError("no_model", "this server answers no live messages")
+                self.live.put(message)
         except ServiceError as exc:
             self.error(exc.code, exc.message, message.request_id, getattr(message, "job_id", None))
         except Exception as exc:  # a bug must not end the connection
@@ -221,6 +237,12 @@ class Connection:
         await self.runner.submit_request(message.kind, scene_xml=message.scene_xml,
                                          scene_path=message.scene_path, overrides=overrides,
                                          subscriber=self, request_id=message.request_id)
+
+    def _live_failed(self, exc: Exception, message) -> None:
+        err = exc if isinstance(exc, ServiceError) else from_library_error(exc)
+        if not isinstance(exc, ServiceError):
+            log.error("error answering a live message: %s", err.message)
+        self.error(err.code, err.message, message.request_id)
 
     def deliver(self, job_id: str, message) -> None:
         """Subscriber callback: send a job's message with absolute URLs."""

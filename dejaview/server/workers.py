@@ -50,7 +50,9 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
         get_task: blocking; returns a task or None (stop).
         put_event: sends an event tuple to the server.
         cancelled: callable -> bool, the slot's cancel flag.
-        options: ``job_timeout_s``, ``progress_interval_s``, ``memory_limit`` (bytes a job may hold).
+        options: ``job_timeout_s``, ``progress_interval_s``, ``memory_limit`` (bytes a job may hold),
+            ``models_dir`` (where train jobs put their models), ``niceness`` (added to a worker
+            process's nice value: 0 none).
         parent_pid: stop when the parent process is gone (process workers).
     """
     from dejaview.server.jobs import JobStopped, StopCheck, run_job, worker_error
@@ -65,7 +67,8 @@ def serve_jobs(slot: int, get_task, put_event, cancelled, options: dict, parent_
         stop = StopCheck(cancelled, options.get("job_timeout_s"), parent_pid)
         try:
             result = run_job(spec, Path(out_dir), lambda data, j=job_id: put_event(("progress", j, data)),
-                             stop, options.get("progress_interval_s", 0.25), options.get("memory_limit"))
+                             stop, options.get("progress_interval_s", 0.25), options.get("memory_limit"),
+                             options.get("models_dir"))
             put_event(("finished", job_id, slot, result))
         except Exception as exc:  # every failure becomes the job's error, never the worker's end
             if stop.reason == "orphaned":
@@ -149,6 +152,10 @@ def _process_main(slot, serve, inbox, events, cancel, options, parent_pid):
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the server, which stops us
+    if options.get("niceness"):
+        # batch work yields the cores to the server process, whose live answers are interactive
+        # (docs/benchmarks.md, "Live answers": busy workers at the server's priority starved them)
+        os.nice(int(options["niceness"]))
     import torch
 
     torch.set_num_threads(1)

@@ -49,7 +49,8 @@ def test_docs_and_openapi_list_routes_and_message_schemas(client):
     components = schema["components"]["schemas"]
     assert {"ClientMessage", "ServerMessage", "JobRequest", "JobStatus", "ErrorBody"} <= set(components)
     tags = set(components["ClientMessage"]["discriminator"]["mapping"])
-    assert tags == {"submit", "cancel", "subscribe", "ping"}
+    assert tags == {"submit", "cancel", "subscribe", "ping", "live"}
+    assert "live-result" in components["ServerMessage"]["discriminator"]["mapping"]
 
 
 def test_simulate_job_by_path(client):

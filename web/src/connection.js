@@ -74,7 +74,7 @@ export class Connection {
     else this.pending.push(text);
   }
 
-  // kind: simulate | solve | heatmap; returns the request id its replies carry.
+  // kind: simulate | solve | heatmap | train; returns the request id its replies carry.
   submit(kind, sceneXml, overrides) {
     const requestId = `r${++this.requests}-${Date.now().toString(36)}`;
     const message = { type: 'submit', kind, scene_xml: sceneXml, request_id: requestId };

@@ -6,6 +6,7 @@ import * as THREE from 'three';
 
 import { LossChart } from './chart.js';
 import { Connection, serverFetch, socketUrl } from './connection.js';
+import { Live } from './live.js';
 import { parseTrajectory } from './results.js';
 import {
   applyTime, clearResults, pause, play, showHeatmap, showResultSummary, showSamples, showSetup, showTrajectory,
@@ -23,7 +24,10 @@ import { $, app, notify } from './state.js';
 import { installTestHooks } from './test-hooks.js';
 import { setupVR } from './vr.js';
 
-gizmo.addEventListener('objectChange', () => poseEdited(gizmo.object));
+gizmo.addEventListener('objectChange', () => {
+  poseEdited(gizmo.object);
+  live.moved(gizmo.object);
+});
 
 const chart = new LossChart($('loss'));
 chart.draw();
@@ -54,6 +58,9 @@ async function loadScene(text, origin = '', files = null) {
   recolour();
   fitCamera();
   fillPanel();
+  live.sceneChanged();
+  live.clear();
+  live.moved(null);
   $('scene-name').textContent = `${model.name}${origin ? ` (${origin})` : ''}: ${model.objects.length} objects`;
   notify(`loaded ${model.name}`);
   return model.objects.map((o) => o.id);
@@ -114,6 +121,7 @@ function select(id) {
 
 function setSource(id) {
   app.model.setSource(id);
+  live.sceneChanged();
   buildObservations();
   recolour();
   fillPanel();
@@ -121,11 +129,13 @@ function setSource(id) {
 
 function setFixed(id, fixed) {
   app.model.setFixed(id, fixed);
+  live.sceneChanged();
   recolour();
 }
 
 function readSettings() {
   if (!app.model?.inference) return;
+  live.sceneChanged();
   app.model.setSettings({
     iterations: Number($('iterations').value),
     optimizer: $('optimizer').value,
@@ -157,6 +167,7 @@ const connection = new Connection(socketUrl(), {
   onMessage: handleMessage,
   onStatus: (status) => { $('connection').classList.toggle('connected', status === 'connected'); },
 });
+const live = new Live(connection);
 
 // kind: simulate | solve | heatmap; solve becomes heatmap when the heatmap box is ticked.
 function run(kind = 'solve') {
@@ -177,6 +188,7 @@ async function fetchText(url) {
 }
 
 async function handleMessage(msg) {
+  if (live.handle(msg)) return;
   const job = msg.job_id && (app.jobs.get(msg.job_id) || { kind: app.requests.get(msg.request_id) });
   if (msg.job_id) app.jobs.set(msg.job_id, job);
   switch (msg.type) {
@@ -222,6 +234,7 @@ async function handleMessage(msg) {
       if (msg.state === 'done' && (job.kind === 'heatmap' || job.kind === 'solve')) {
         await showSamples(msg.job_id);
       }
+      if (msg.state === 'done' && job.kind === 'train') live.moved(null); // its model answers now
       break;
     default:
       break;
@@ -244,6 +257,8 @@ $('load-scene').onclick = guard(() => loadScenePath($('scene-list').value));
 $('run-simulate').onclick = guard(() => run('simulate'));
 $('run-solve').onclick = guard(() => run('solve'));
 $('cancel').onclick = () => { if (app.current) connection.cancel(app.current); };
+$('live').onchange = () => live.setEnabled($('live').checked);
+$('train').onclick = guard(() => trainModel());
 $('select-target').onclick = () => select(TARGET);
 $('mode-translate').onclick = () => setMode('translate');
 $('mode-rotate').onclick = () => setMode('rotate');
@@ -265,6 +280,16 @@ function setMode(mode) {
   gizmo.setMode(mode);
   $('mode-translate').classList.toggle('on', mode === 'translate');
   $('mode-rotate').classList.toggle('on', mode === 'rotate');
+}
+
+// A train job for the scene as it is now: the server's model of it, which live answers come from.
+function trainModel() {
+  if (!app.model) throw new Error('load a scene first');
+  readSettings();
+  const requestId = connection.submit('train', app.model.toServerXml());
+  app.requests.set(requestId, 'train');
+  notify('train: submitted');
+  return requestId;
 }
 
 function exportXml() {
@@ -312,7 +337,7 @@ const vr = setupVR({
     return groups;
   },
   onGrab: () => showSetup(),
-  onRelease: (group) => poseEdited(group),
+  onRelease: (group) => { poseEdited(group); live.moved(group); },
   onSolve: () => run('solve'),
 });
 
@@ -332,9 +357,9 @@ renderer.setAnimationLoop(() => {
 });
 
 installTestHooks({
-  chart, connection, vr,
+  chart, connection, vr, live,
   actions: {
-    listScenes, loadScenePath, select, setSource, setFixed, setSettings, run, exportXml,
+    listScenes, loadScenePath, select, setSource, setFixed, setSettings, run, exportXml, trainModel,
     loadSceneXml: (text, origin = '') => loadScene(text, origin, null),
   },
 });

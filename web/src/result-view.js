@@ -163,7 +163,9 @@ $('scrub').oninput = () => seek(((app.trajectory?.duration || 0) * Number($('scr
 $('setup-view').onclick = () => showSetup();
 $('show-heatmap').onchange = () => { if (app.heatmap) app.heatmap.visible = $('show-heatmap').checked; };
 $('show-samples').onchange = () => {
-  for (const shown of [app.samples, app.samplePaths]) if (shown) shown.visible = $('show-samples').checked;
+  for (const shown of [app.samples, app.samplePaths, world.getObjectByName('live-samples')]) {
+    if (shown) shown.visible = $('show-samples').checked;
+  }
 };
 $('show-path').onchange = () => { if (app.path) app.path.visible = $('show-path').checked; };
 $('show-spheres').onchange = () => {

@@ -16,9 +16,10 @@ function positions() {
   return out;
 }
 
-// chart, connection, vr: the loss chart, the service connection and the VR state main.js made;
+// chart, connection, vr, live: the loss chart, the service connection, the VR state and the live
+// answers (live.js) main.js made;
 // actions: main.js's functions the tests call (listScenes, loadScenePath, loadSceneXml, select, ...).
-export function installTestHooks({ chart, connection, vr, actions }) {
+export function installTestHooks({ chart, connection, vr, live, actions }) {
   window.dejaview = {
     state: () => ({
       scene: app.model?.name ?? null,
@@ -59,6 +60,7 @@ export function installTestHooks({ chart, connection, vr, actions }) {
       connected: connection.connected,
       settings: app.model?.inference ? app.model.settings : null,
       xr: vr.state(),
+      live: live.state(),
     }),
     ...actions, play, pause, seek, showSetup,
     // the scene's observations: edit one ({position, orientation, time, moving}; null removes), add, remove

@@ -95,6 +95,30 @@ def observed(post) -> torch.Tensor:
     return torch.cat(parts)
 
 
+def with_target(post, y: torch.Tensor, position, orientation=None) -> torch.Tensor:
+    """(D,) the observation vector y (D,) (``observed``) with the source seen elsewhere: the
+    position (3,) and, where that sighting observes one, the orientation (4,) w x y z of the
+    scene's anchor sighting (its untimed one, else its last: ``posterior._anchor``) replaced. The
+    live service's cheap way to a new observation of a cached posterior (no scene, no world)."""
+    from dejaview.inference.posterior import _anchor
+    from dejaview.losses.targets import REST_PARTS
+
+    anchor = _anchor(post.sightings)
+    i = 0
+    for s in post.sightings:
+        t = s.target
+        if s is anchor:
+            break
+        i += 3 + 6 * (t.orientation is not None) + 3 * (t.linear_velocity is not None)
+        i += 3 * (t.angular_velocity is not None) + 6 * REST_PARTS * bool(s.at_rest)
+    out = y.clone()
+    out[i:i + 3] = torch.as_tensor(position, dtype=out.dtype)
+    if orientation is not None and anchor.target.orientation is not None:
+        q = normalize_quat(torch.as_tensor(orientation, dtype=out.dtype)).unsqueeze(0)
+        out[i + 3:i + 9] = _rot6(q)[0]
+    return out
+
+
 def noisy(post, y: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """Observation vectors y (B, D) (``simulated``) with the observation noise added: each
     position by ``sigma``, each orientation turned about a random axis by a rotation vector with
@@ -144,4 +168,4 @@ def _turned(r6: torch.Tensor, rotvec: torch.Tensor) -> torch.Tensor:
     return torch.cat([out[..., 0], out[..., 1]], -1)
 
 
-__all__ = ["noisy", "observed", "simulated", "width"]
+__all__ = ["noisy", "observed", "simulated", "width", "with_target"]
