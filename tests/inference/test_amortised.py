@@ -244,3 +244,14 @@ def test_cli_train_then_solve_and_heatmap_from_the_model(tmp_path):
     message = str(out.exception)
     assert message.startswith(f"{model}: the amortised model was trained for throw") and "\n" not in message
     assert not (tmp_path / "o").exists()
+
+
+def test_an_orientation_the_loss_does_not_read_is_not_observed():
+    """A position loss ignores the target's orientation, so the flow must not condition on it (it
+    would be sharper than the posterior)."""
+    text = THROW.format(target="0.45 0.1 0.05", sigma=0.05, name="t").replace(
+        '<target position="0.45 0.1 0.05"', '<target position="0.45 0.1 0.05" orientation="1 0 0 0"')
+    post = Posterior.from_scene(Scene.from_string(text))
+    assert width(post) == 3 and observed(post).shape == (3,)
+    pose = Posterior.from_scene(Scene.from_string(text.replace('loss="position"', 'loss="pose"')))
+    assert width(pose) == 9
