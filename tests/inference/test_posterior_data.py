@@ -153,3 +153,33 @@ def test_cli_solve_writes_posterior_nc_and_skips_it_silently_without_arviz(tmp_p
     assert without.exit_code == 0, without.output
     assert (tmp_path / "b" / "posterior.csv").exists() and not (tmp_path / "b" / "posterior.nc").exists()
     assert "arviz" not in without.output.lower() and "netcdf" not in without.output.lower()
+
+
+def test_inferred_physics_are_scalar_variables_and_csv_columns(tmp_path):
+    """box_throw_1: everything free and the floor's friction and restitution inferred (no solve:
+    samples drawn at random in the layout)."""
+    from dejaview.inference import Posterior
+    from dejaview.inference.posterior_data import frame, to_inference_data
+    from dejaview.inference.posterior_report import PHYSICS_COLUMNS, write_csv
+    from dejaview.inference.sampling import PosteriorSamples
+
+    layout = Posterior.from_scene(Scene.from_xml(SCENES / "box_throw_1.xml")).layout
+    gen = torch.Generator().manual_seed(0)
+    n = 30
+    samples = PosteriorSamples(x=0.3 * torch.randn(n, layout.size, generator=gen, dtype=torch.float64),
+                               weights=torch.full((n,), 1.0 / n, dtype=torch.float64),
+                               log_density=torch.randn(n, generator=gen, dtype=torch.float64),
+                               component=torch.zeros(n, dtype=torch.long), mode_index=[0],
+                               run=torch.arange(n) % 2)
+    post = to_inference_data(samples, layout).posterior
+    assert set(post.data_vars) == {"position", "orientation", "linear_velocity", "angular_velocity",
+                                   "friction", "restitution"}
+    assert post["friction"].dims == ("chain", "draw") and post["friction"].attrs["units"] == "1"
+    values = physical(layout, samples.x).numpy()
+    for j, name in enumerate(layout.names()):
+        var, sel = variable_of(name)
+        np.testing.assert_array_equal(post[var].sel(sel).values, np.stack([values[0::2, j], values[1::2, j]]))
+    df = frame(samples, layout)
+    csv = pd.read_csv(write_csv(tmp_path / "posterior.csv", samples, layout))
+    assert list(df.columns) == list(CSV_HEADER + PHYSICS_COLUMNS)
+    pd.testing.assert_frame_equal(df, csv, check_exact=True)
