@@ -79,8 +79,9 @@ def to_inference_data(samples, layout, attrs: dict | None = None):
     """The samples as an ``arviz.InferenceData``.
 
     Groups: ``posterior`` (chain, draw, ...): the variables of the module docstring, one chain per
-    independent run of the sampler (``chains``), so ArviZ compares the runs as DejaView's R-hat
-    does; ``sample_stats`` (chain, draw): ``lp`` (the unnormalised log posterior density) and,
+    independent run of the sampler (``chains``), so ArviZ's diagnostics compare the runs, as
+    DejaView's R-hat does (its ESS is ArviZ's; its R-hat is not split: docs/inference.md,
+    "Notebooks and ArviZ"); ``sample_stats`` (chain, draw): ``lp`` (the unnormalised log posterior density) and,
     where the weights are not all equal, ``weight`` (ArviZ's own statistics and plots do not use
     it).
 
