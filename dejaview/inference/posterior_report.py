@@ -83,6 +83,72 @@ def rhat(values: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(var_plus / within.clamp_min(1e-300))
 
 
+def chain_rows(run: torch.Tensor) -> list[torch.Tensor]:
+    """Row indices of each independent run's samples ``run`` (N,), in their order, cut to the
+    smallest run's size: the equal-length chains ``ess_bulk`` and ArviZ (``posterior.nc``) use (an
+    odd N's two runs differ by one sample)."""
+    rows = [torch.nonzero(run == k).flatten() for k in torch.unique(run)]
+    k = min(r.numel() for r in rows)
+    return [r[:k] for r in rows]
+
+
+def ess_bulk(values: torch.Tensor, run: torch.Tensor) -> torch.Tensor:
+    """Bulk effective sample size (P,) of values (N, P) with the runs ``run`` (N,) as chains
+    (``chain_rows``): ArviZ 0.23's ``ess(method="bulk")`` (Vehtari et al. 2021: each chain split
+    in two, the pooled draws' normal scores, autocorrelations along the draws cut by Geyer's
+    initial monotone sequence), so the number is the one ArviZ gives for ``posterior.nc``. A run's
+    samples are in particle order, and after a resampling its copies of one ancestor lie side by
+    side: the autocorrelation counts them as one draw where the moves have not pulled them apart.
+    NaN below 4 samples a chain."""
+    from scipy.special import ndtri
+    from scipy.stats import rankdata
+
+    rows = chain_rows(run)
+    out = []
+    for j in range(values.shape[1]):
+        a = np.stack([values[r, j].numpy() for r in rows]).astype(float)
+        if a.shape[1] < 4 or not np.isfinite(a).all():
+            out.append(float("nan"))
+            continue
+        half = a.shape[1] // 2
+        split = np.concatenate([a[:, :half], a[:, -half:]])
+        z = ndtri((rankdata(split, method="average").reshape(split.shape) - 0.375) / (split.size + 0.25))
+        out.append(_ess(z))
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def _ess(a: np.ndarray) -> float:
+    """ESS of chains a (M, D) by Geyer's initial monotone sequence (ArviZ 0.23's ``_ess``)."""
+    m, d = a.shape
+    if a.max() - a.min() < np.finfo(float).resolution:
+        return float(a.size)
+    centred = a - a.mean(1, keepdims=True)
+    f = np.fft.rfft(centred, n=2 * d, axis=1)
+    acov = np.fft.irfft(f * np.conjugate(f), n=2 * d, axis=1)[:, :d] / d
+    mean_var = acov[:, 0].mean() * d / (d - 1.0)
+    var_plus = mean_var * (d - 1.0) / d + (a.mean(1).var(ddof=1) if m > 1 else 0.0)
+    rho = np.zeros(d)
+    rho[0], even, odd = 1.0, 1.0, 1.0 - (mean_var - acov[:, 1].mean()) / var_plus
+    rho[1] = odd
+    t = 1
+    while t < d - 3 and even + odd > 0.0:
+        even = 1.0 - (mean_var - acov[:, t + 1].mean()) / var_plus
+        odd = 1.0 - (mean_var - acov[:, t + 2].mean()) / var_plus
+        if even + odd >= 0:
+            rho[t + 1], rho[t + 2] = even, odd
+        t += 2
+    max_t = t - 2
+    if even > 0:
+        rho[max_t + 1] = even
+    t = 1
+    while t <= max_t - 2:  # monotone: each pair's sum at most the one before
+        if rho[t + 1] + rho[t + 2] > rho[t - 1] + rho[t]:
+            rho[t + 1] = rho[t + 2] = (rho[t - 1] + rho[t]) / 2.0
+        t += 2
+    tau = -1.0 + 2.0 * rho[:max_t + 1].sum() + rho[max_t + 1:max_t + 2].sum()
+    return float(a.size / max(tau, 1.0 / np.log10(a.size)))
+
+
 def interval_levels() -> list[float]:
     """The quantiles ``summary`` reports: the median, then each ``ReportParams.intervals`` level's
     lower and upper end."""
@@ -113,9 +179,11 @@ def summary(samples, layout, modes) -> dict:
     intervals = {}
     run = samples.run if samples.run is not None else torch.zeros(values.shape[0], dtype=torch.long)
     r = rhat(values, run)  # NaN for one run
+    e = ess_bulk(values, run)
     for j, name in enumerate(layout.names()):
         intervals[name] = {**interval_entry(quant, j),
-                           **({"rhat": float(r[j])} if bool(torch.isfinite(r[j])) else {})}
+                           **({"rhat": float(r[j])} if bool(torch.isfinite(r[j])) else {}),
+                           **({"ess": float(e[j])} if bool(torch.isfinite(e[j])) else {})}
     found = []
     for k, index in enumerate(samples.mode_index):
         mass = float(w[samples.component == k].sum())

@@ -29,7 +29,9 @@ class SolveResult:
         loss: best loss.
         trajectory: the best solution re-simulated (record every step), batch of 1.
         settings: optimizer, gradient, iterations, seed, backend.
-        posterior: ``PosteriorSamples`` where samples were drawn (``write``: posterior.csv), else None.
+        posterior: ``PosteriorSamples`` where samples were drawn (``write``: posterior.csv), else None:
+            torch tensors in the layout's scaled coordinates; ``posterior_arrays``,
+            ``posterior_frame`` and ``to_arviz`` give them in physical units.
     """
 
     scene: object
@@ -44,6 +46,47 @@ class SolveResult:
     @property
     def iterations(self) -> list[Progress]:
         return self.optimization.history
+
+    def posterior_arrays(self) -> dict:
+        """The posterior samples as numpy arrays (N,): each free parameter in physical units under
+        ``result.json``'s name (``position.x`` m, ``orientation.rx`` rad, ...), then ``weight``,
+        ``run`` and ``log_density`` (``posterior_data.parameter_arrays``).
+
+        Raises:
+            ValueError: no samples were drawn (``SolveParams(samples=N)``).
+        """
+        from dejaview.inference.posterior_data import parameter_arrays
+
+        return parameter_arrays(self._samples(), self.problem.layout)
+
+    def posterior_frame(self):
+        """``posterior.csv`` as a pandas DataFrame (its columns and values; the ``analysis`` extra).
+
+        Raises:
+            ValueError: no samples were drawn. ImportError: pandas is not installed.
+        """
+        from dejaview.inference.posterior_data import frame
+
+        return frame(self._samples(), self.problem.layout)
+
+    def to_arviz(self):
+        """The posterior samples as an ``arviz.InferenceData``, the sampler's runs as chains
+        (``posterior_data.to_inference_data``; ``posterior.nc`` holds the same).
+
+        Raises:
+            ValueError: no samples were drawn. ImportError: arviz is not installed.
+        """
+        from dejaview.inference.posterior_data import to_inference_data
+
+        return to_inference_data(self._samples(), self.problem.layout, self._arviz_attrs())
+
+    def _samples(self):
+        if self.posterior is None:
+            raise ValueError("no posterior samples: solve with SolveParams(samples=N) or --samples N")
+        return self.posterior
+
+    def _arviz_attrs(self) -> dict:
+        return {"source": str(self.scene.inference.source), "seed": int(self.settings.get("seed") or 0)}
 
     def final_pose(self) -> tuple[list[float], list[float]]:
         """Object-frame position and orientation of the source at the end of the trajectory."""
@@ -171,7 +214,8 @@ class SolveResult:
 
     def write(self, out_dir, plot: bool = False) -> dict[str, Path]:
         """Write result.json, iterations.csv, trajectory.csv (and loss.png with ``plot``); with
-        posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``); whole
+        posterior samples also posterior.csv and posterior_paths.csv (``posterior_report``) and,
+        where arviz is installed (the ``analysis`` extra), posterior.nc (``posterior_data``); whole
         or not at all (``dejaview.result_set``).
 
         Raises:
@@ -199,6 +243,11 @@ class SolveResult:
             paths["posterior"] = write_csv(out / "posterior.csv", self.posterior, self.problem.layout)
             paths["posterior_paths"] = write_paths(out / "posterior_paths.csv", self.problem, self.posterior,
                                                    seed=int(self.settings.get("seed") or 0))
+            from dejaview.inference.posterior_data import write_netcdf
+
+            nc = write_netcdf(out / "posterior.nc", self.posterior, self.problem.layout, self._arviz_attrs())
+            if nc is not None:  # the analysis extra (arviz) is installed
+                paths["posterior_nc"] = nc
         if plot:
             quantity = "-log posterior" if self.settings["optimizer"] == "auto" else "loss"
             paths["plot"] = plot_losses(self.iterations, out / "loss.png", quantity)
@@ -206,7 +255,7 @@ class SolveResult:
 
 
 RESULT_FILES = ("result.json", "iterations.csv", "trajectory.csv", "posterior.csv", "posterior_paths.csv",
-                "loss.png")
+                "posterior.nc", "loss.png")
 """Every file a solve's result set may hold."""
 
 
