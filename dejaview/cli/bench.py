@@ -6,50 +6,14 @@ meshes), loaded by path from the checkout DejaView is installed from (``pip inst
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import click
 
 # load_average: bench/crossengine.py imports it from here
 from dejaview.cli.bench_table import load_average, parse_counts, parse_names, write_rows_csv  # noqa: F401
-
-
-def bench_module(name: str):
-    """The module ``bench/<name>.py`` of the checkout this package lives in.
-
-    Raises:
-        click.ClickException: no such file (DejaView not installed from a checkout).
-    """
-    import dejaview
-
-    root = Path(dejaview.__file__).resolve().parent.parent
-    path = root / "bench" / f"{name}.py"
-    if not path.is_file():
-        raise click.ClickException(f"{path} not found: the benchmarks run from a source checkout "
-                                   f"(pip install -e .)")
-    key = f"dejaview_bench_{name}"
-    if key not in sys.modules:
-        spec = importlib.util.spec_from_file_location(key, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[key] = module
-        try:
-            spec.loader.exec_module(module)
-        except BaseException:
-            del sys.modules[key]
-            raise
-    return sys.modules[key]
-
-
-def _comma_list(choices):
-    def convert(ctx, param, value):
-        try:
-            return parse_names(value, choices)
-        except ValueError as exc:
-            raise click.BadParameter(str(exc)) from None
-    return convert
+from dejaview.cli.bench_table import _comma_list, _finish, bench_module, check_option, csv_option  # noqa: F401
 
 
 def _iterations(ctx, param, value):
@@ -59,12 +23,6 @@ def _iterations(ctx, param, value):
         return parse_counts(value)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
-
-
-csv_option = click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path),
-                          help="Also write the rows as CSV to this file.")
-check_option = click.option("--check", is_flag=True,
-                            help="Exit with status 1 when a target is missed.")
 
 
 @click.group("bench", context_settings={"help_option_names": ["-h", "--help"]})
@@ -305,80 +263,6 @@ def posterior(scenes, seeds, csv_path, check):
     _finish(rows, csv_path, check, [r["met"] for r in rows])
 
 
-@command.command("physics")
-@click.option("--scenes", default="box_along_shelf,ball_off_table,box_tossed_tracked", show_default=True,
-              help="Comma-separated bundled scenes.")
-@click.option("--prior", default="0.3 0.3 0", show_default=True,
-              help="The <physics-prior> added: friction, restitution and stiffness relative standard deviations.")
-@csv_option
-@check_option
-def physics(scenes, prior, csv_path, check):
-    """What a <physics-prior> costs: each scene solved without and with it (target: at most 3x)."""
-    try:
-        values = tuple(float(v) for v in prior.split())
-    except ValueError:
-        values = ()
-    if len(values) != 3 or min(values) < 0:
-        raise click.BadParameter(f"expected three numbers >= 0, got {prior!r}")
-    rows = bench_module("physics_cost").run(print_fn=click.echo, scenes=tuple(s for s in scenes.split(",") if s),
-                                            prior=values)
-    _finish(rows, csv_path, check, [r["met"] for r in rows])
-
-
-@command.command("amortised")
-@click.option("--scenes", default="mug_off_counter", show_default=True, help="Comma-separated bundled scenes.")
-@click.option("--simulations", default=None, type=click.IntRange(min=2), help="Training simulations (default 20000).")
-@click.option("--samples", default=500, show_default=True, type=click.IntRange(min=1),
-              help="Samples of the weighed answer (solve --amortised).")
-@click.option("--repeats", default=20, show_default=True, type=click.IntRange(min=1), help="Live answers timed.")
-@click.option("--model-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Keep the trained models here and reuse them when they fit the scene.")
-@csv_option
-@check_option
-def amortised(scenes, simulations, samples, repeats, model_dir, csv_path, check):
-    """Amortised posteriors: training time (target <= 5 min for the mug), live answers (1000 draws and
-    a 16x16 heatmap, target <= 100 ms) and the answer weighed by the exact likelihood (k-hat)."""
-    from dejaview.cli.options import configure_torch
-
-    configure_torch()
-    rows = bench_module("amortised").run(print_fn=click.echo, scenes=tuple(s for s in scenes.split(",") if s),
-                                         simulations=simulations, samples=samples, repeats=repeats,
-                                         model_dir=model_dir)
-    _finish(rows, csv_path, check, [r["met"] for r in rows])
-
-
-@command.command("calibration")
-@click.option("--scenes", default="ball_off_table,box_thrown,ramp", show_default=True,
-              callback=_comma_list(("ball_off_table", "box_thrown", "ramp")), help="Calibration scenes.")
-@click.option("--truths", default=50, show_default=True, type=click.IntRange(min=1),
-              help="Truths drawn from each scene's prior.")
-@click.option("--samples", default=300, show_default=True, type=click.IntRange(min=1),
-              help="Posterior samples per truth.")
-@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write the rank histograms as a PNG here.")
-@click.option("--amortised", is_flag=True,
-              help="Answer each truth with solve --amortised from a model trained for the scene first.")
-@click.option("--first", default=0, show_default=True, type=click.IntRange(min=0),
-              help="Index of the first truth (truth i draws from seed 1000 + i): another set is held out.")
-@click.option("--simulations", default=None, type=click.IntRange(min=2),
-              help="With --amortised: training simulations (default TrainParams').")
-@csv_option
-def calibration(scenes, truths, samples, plot_path, amortised, first, simulations, csv_path):
-    """Simulation-based calibration of the posterior samples (Talts et al. 2018).
-
-    Draws truths from each scene's prior, observes their ends with the stated noise, samples the
-    posterior with `solve(samples=N)` and prints the coverage of the central 50 % and 90 %
-    intervals, their sharpness and the rank histograms (targets 40-60 % and 85-97 %).
-    """
-    from dejaview.cli.options import configure_torch
-
-    configure_torch()
-    rows = bench_module("calibration").run(print_fn=click.echo, scenes=scenes, truths=truths,
-                                           samples=samples, plot=plot_path, amortised=amortised, first=first,
-                                           simulations=simulations)
-    _finish(rows, csv_path, False, [])
-
-
 @command.command("crossengine")
 @click.option("--cases", default="", help="Comma-separated case names (default: all).")
 @click.option("--uncertainty", nargs=2, type=click.FloatRange(min=0.0, max=1.0), default=(0.2, 0.2),
@@ -597,9 +481,12 @@ def soak(minutes, clients, kills, workers, seed, disk_mib, csv_path, check):
             [row["lost"] == 0 and row["duplicated"] == 0])
 
 
-def _finish(rows, csv_path, check, verdicts):
-    if csv_path is not None:
-        write_rows_csv(rows, csv_path)
-        click.echo(f"wrote {csv_path}")
-    if check and not all(verdicts):
-        click.get_current_context().exit(1)
+def _register_inference_benchmarks() -> None:
+    """The inference's benchmarks (physics, amortised, calibration), defined in ``bench_inference``."""
+    from dejaview.cli import bench_inference
+
+    for cmd in (bench_inference.physics, bench_inference.amortised, bench_inference.calibration):
+        command.add_command(cmd)
+
+
+_register_inference_benchmarks()
