@@ -287,6 +287,8 @@ class _Checker:
             self.robot(key, obj)
         if obj.joints is not None and obj.urdf is None and obj.mjcf is None:
             self.report(key, "'joints' applies to a robot only (urdf=... or mjcf=...)")
+        if obj.keyframes and obj.urdf is None and obj.mjcf is None:
+            self.report(key + ("joints", 0), "<joints> keyframes apply to a robot only (urdf=... or mjcf=...)")
         if obj.spheres is not None:
             self.file_exists(key, "spheres", obj.spheres)
 
