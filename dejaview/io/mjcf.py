@@ -307,7 +307,17 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     assets: list[str] = []
     geoms: list[tuple] = []
     world, qpos, qvel = [], [], []
+    mocap: list[str] = []  # a moving robot's link geometries, as mocap bodies (dejaview.io.mjcf_motion)
     for obj in scene.objects:
+        if obj.fixed and obj.moving:
+            from dejaview.io.mjcf_motion import mocap_bodies
+            from dejaview.scene.robot_links import link_objects
+
+            parts = link_objects(scene, obj)
+            world.extend(mocap_bodies([(p.object, _geom(scene, p.object, assets, timestep, "", geoms, p))
+                                       for p in parts]))
+            mocap.extend(p.object.id for p in parts)
+            continue
         if obj.fixed:
             from dejaview.scene.robot_links import link_objects
 
@@ -339,8 +349,14 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     if scene.inference is not None:
         comment = (f"\n  <!-- DejaView inference source: {_xml(scene.inference.source)}; "
                    "the <inference> element has no MJCF counterpart -->")
-    keyframe = (f'\n  <keyframe>\n    <key name="initial" qpos="{_vec(qpos)}" qvel="{_vec(qvel)}"/>'
-                f"\n  </keyframe>" if qpos else "")
+    motion, keys = "", []
+    if mocap:  # where the links stand at each time, and at the start
+        from dejaview.io.mjcf_motion import motion_keys
+
+        motion, keys = motion_keys(scene, mocap)
+    keyframe = ("\n  <keyframe>\n    " + "\n    ".join(
+        [f'<key name="initial" qpos="{_vec(qpos)}" qvel="{_vec(qvel)}"{motion}/>'] + keys)
+        + "\n  </keyframe>" if qpos else "")
     asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
     body = "\n    ".join(world)
     pairs = _contact_pairs(scene, geoms, timestep)

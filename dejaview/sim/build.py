@@ -161,7 +161,7 @@ def statics_from_robot(scene, obj, sdf_spacing: float = 0.01, motion: tuple[floa
         from dejaview.sim.motion import path_length, robot_paths
 
         h, limit = motion
-        paths = robot_paths(scene, obj, h, path_length(obj.keyframes, h, limit))
+        paths = robot_paths(scene, obj, np.arange(path_length(obj.keyframes, h, limit)) * h)
         statics = [replace(st, path=paths[st.name]).at(0) for st in statics]
     return statics
 

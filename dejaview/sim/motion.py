@@ -122,16 +122,17 @@ def pose_velocity(poses_minus: np.ndarray, poses_plus: np.ndarray, dt: float) ->
     return v, _rotation_vector(rel) / (2.0 * dt)
 
 
-def robot_paths(scene, obj, h: float, count: int, model=None) -> dict[str, ShapePath]:
+def robot_paths(scene, obj, times: np.ndarray, model=None) -> dict[str, ShapePath]:
     """The path of every collision geometry of a moving robot object, by its piece name
-    (``dejaview.geometry.robot.robot_pieces``' ``robot-id/link``), at substep times ``j h``,
-    j < ``count``: one batched forward kinematics at the joint values then, and two more
-    ``VELOCITY_STEP`` before and after along the joints' velocities for the velocities."""
+    (``dejaview.geometry.robot.robot_pieces``' ``robot-id/link``), at ``times`` (T,) s (the
+    simulator's: substep times ``j h``): one batched forward kinematics at the joint values then,
+    and two more ``VELOCITY_STEP`` before and after along the joints' velocities for the
+    velocities."""
     from dejaview.geometry.robot import link_transforms_batch, robot_model
     from dejaview.geometry.transforms import quat_to_matrix, rigid_transform
 
     model = model or robot_model(scene, obj)
-    q, qdot = joint_path(obj.keyframes, np.arange(count) * h)
+    q, qdot = joint_path(obj.keyframes, np.asarray(times, dtype=np.float64))
     at = link_transforms_batch(model, q)
     minus = link_transforms_batch(model, q - VELOCITY_STEP * qdot)
     plus = link_transforms_batch(model, q + VELOCITY_STEP * qdot)
