@@ -32,22 +32,11 @@ MOTION_KEY = "motion-"
 
 def motion_times(scene) -> np.ndarray:
     """Times (s) of the motion keyframes: every ``MOTION_INTERVAL`` up to the last joint keyframe of
-    any moving robot (at least 0 and that last time)."""
+    any moving robot (``dejaview.sim.motion.sample_times``)."""
+    from dejaview.sim.motion import sample_times
+
     last = max((obj.keyframes[-1].time for obj in scene.objects if obj.moving), default=0.0)
-    count = int(np.ceil(last / MOTION_INTERVAL - 1e-9))
-    return np.minimum(np.arange(count + 1) * MOTION_INTERVAL, last)
-
-
-def link_poses(scene, obj, times: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Each link geometry's world position (T, 3) and orientation (T, 4, w x y z) at ``times``, by
-    piece name (``robot-id/link``, as ``dejaview.scene.robot_links.link_objects`` names them)."""
-    from dejaview.geometry.transforms import matrix_to_quat
-    from dejaview.sim.motion import robot_paths
-
-    out = {}
-    for name, path in robot_paths(scene, obj, times).items():
-        out[name] = (path.translation.numpy(), np.array([matrix_to_quat(r) for r in path.rotation.numpy()]))
-    return out
+    return sample_times(last, MOTION_INTERVAL)
 
 
 def mocap_bodies(link_geoms: list[tuple[object, list[str]]]) -> list[str]:
@@ -63,6 +52,8 @@ def motion_keys(scene, names: list[str]) -> tuple[str, list[str]]:
     """The ``mpos``/``mquat`` attributes of the ``initial`` keyframe and the motion keyframes'
     ``<key>`` elements, the mocap bodies in ``names`` order (every moving robot's link geometries)."""
     from dejaview.io.mjcf import _num, _vec
+
+    from dejaview.sim.motion import link_poses
 
     times = motion_times(scene)
     poses = {}

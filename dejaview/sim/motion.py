@@ -148,3 +148,19 @@ def robot_paths(scene, obj, times: np.ndarray, model=None) -> dict[str, ShapePat
         paths[name] = ShapePath(rotation=t(pose[:, :3, :3]), translation=t(pose[:, :3, 3]), velocity=t(v),
                                 angular_velocity=t(w))
     return paths
+
+
+def sample_times(last: float, interval: float) -> np.ndarray:
+    """Times (s) every ``interval`` from 0 to ``last``, ``last`` included (what the viewer and the MJCF
+    export sample a moving robot at)."""
+    count = int(math.ceil(last / interval - 1e-9))
+    return np.minimum(np.arange(count + 1) * interval, last)
+
+
+def link_poses(scene, obj, times: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each link geometry's world position (T, 3) and orientation (T, 4, w x y z) at ``times``, by
+    piece name (``robot-id/link``), for a moving robot object (``robot_paths``)."""
+    from dejaview.geometry.transforms import matrix_to_quat
+
+    return {name: (path.translation.numpy(), np.array([matrix_to_quat(r) for r in path.rotation.numpy()]))
+            for name, path in robot_paths(scene, obj, times).items()}
