@@ -194,7 +194,7 @@ def arm_sweeps_mug():
     scene = Scene(
         name="arm-sweeps-mug",
         objects=(floor(), table, arm, truth),
-        simulation=SimulationSettings(dt=0.002, duration=2.0, friction=0.5, restitution=0.2),
+        simulation=SimulationSettings(dt=0.002, duration=4.0, friction=0.5, restitution=0.2),
         inference=InferenceSettings(
             source="mug", targets=(Target((0, 0, 0)),),
             loss="pose", evaluate="final",

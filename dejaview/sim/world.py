@@ -445,6 +445,9 @@ class World:
         """This world integrated in ``substeps`` substeps per step at the same contact frequency
         (stiffness), each unloading factor re-mapped so that it rebounds with the same restitution:
         the same model at a finer (or coarser) step, to measure the step's share of a result."""
+        if self.moving and substeps != self.substeps:
+            raise SimulationError("a moving robot's paths are sampled at the world's substep; build the world "
+                                  "again (World.from_scene) with <simulation substeps> for another")
         om = self.contact.frequency
         h0, h = self.dt / self.substeps, self.dt / substeps
         return replace(self, substeps=int(substeps),
