@@ -422,15 +422,16 @@ def link_transforms(model: RobotModel, values) -> dict[str, np.ndarray]:
     problems = joint_problems(model, values)
     if problems:
         raise SceneError(problems[0], str(model.path))
-    return {name: t[0] for name, t in link_transforms_batch(model, np.asarray([values], dtype=np.float64)).items()}
+    values = np.asarray([tuple(values or ())], dtype=np.float64).reshape(1, len(model.joints))
+    return {name: t[0] for name, t in link_transforms_batch(model, values).items()}
 
 
 def link_transforms_batch(model: RobotModel, values: np.ndarray) -> dict[str, np.ndarray]:
     """Robot-frame transforms (T, 4, 4) of every link at T joint vectors ``values`` (T, J), in one
     batched forward kinematics (a moving robot's path); the values are not checked here."""
-    values = np.asarray(values, dtype=np.float64).reshape(-1, len(model.joints))
     if not model.joints and model.format == "urdf":  # no joint: one link (pk finds no root then)
         return {g.link: np.repeat(np.eye(4)[None], len(values), 0) for g in model.geometry}
+    values = np.asarray(values, dtype=np.float64).reshape(-1, len(model.joints))
     import torch
 
     with torch.no_grad():
