@@ -170,10 +170,15 @@ def test_a_rollout_continued_from_a_step_finds_the_links_there():
     assert not torch.allclose(again.final.position, whole.final.position, atol=1e-3)
 
 
-def test_a_moving_world_does_not_compile():
+def test_a_moving_world_does_not_compile_nor_change_its_substeps():
+    """Its links' poses change every substep (no compiled graph holds them), and its paths are
+    sampled at its substep (another substep count would read them at the wrong times)."""
     world, state = _world("ball", 10)
     with pytest.raises(SimulationError, match="moving robot does not compile"):
         rollout(world, state, steps=10, compile=True)
+    with pytest.raises(SimulationError, match="sampled at the world's substep"):
+        world.with_substeps(4)
+    assert world.with_substeps(2) is not None  # the same substeps: the same world
 
 
 def test_joint_paths_interpolate_and_hold():
