@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from dejaview.errors import DejaViewError, SceneError
+from dejaview.io.mjcf_text import _num, _vec, _xml
 
 # MuJoCo settings shared by the export, tests/sim/test_mujoco_crosscheck.py and bench/crossengine.py
 MJ_TIMESTEP = 0.0005
@@ -179,14 +180,6 @@ def scene_frequency(scene) -> float:
     return float(frequency) if frequency else DEFAULT_OMEGA_H * substeps / scene.simulation.dt
 
 
-def _num(x) -> str:
-    return f"{float(x):.10g}"
-
-
-def _vec(values) -> str:
-    return " ".join(_num(v) for v in values)
-
-
 # -------------------------------------------------------------------- export
 def _initial_states(scene, state: dict | None) -> dict[str, dict]:
     """Initial state per movable object: the scene's, with ``state`` (result.json) for its source."""
@@ -268,11 +261,6 @@ def _geom_text(attrs: dict, contact: dict, fixed: bool) -> str:
     if not fixed:
         attrs["mass"] = "0"  # the body's <inertial> carries mass and inertia
     return "<geom " + " ".join(f'{k}="{_xml(v)}"' for k, v in attrs.items()) + "/>"
-
-
-def _xml(text) -> str:
-    return (str(text).replace("&", "&amp;").replace('"', "&quot;").replace("<", "&lt;")
-            .replace(">", "&gt;"))
 
 
 def _mass_properties(scene, obj):

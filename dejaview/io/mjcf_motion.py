@@ -42,7 +42,7 @@ def motion_times(scene) -> np.ndarray:
 def mocap_bodies(link_geoms: list[tuple[object, list[str]]]) -> list[str]:
     """``<body mocap="true">`` elements, one per link geometry: (the link's fixed SceneObject posed
     at time 0, its ``<geom>`` elements in its own frame)."""
-    from dejaview.io.mjcf import _vec, _xml
+    from dejaview.io.mjcf_text import _vec, _xml
 
     return [f'<body name="{_xml(one.id)}" mocap="true" pos="{_vec(one.pose.position)}" '
             f'quat="{_vec(one.pose.orientation)}">{"".join(geoms)}</body>' for one, geoms in link_geoms]
@@ -51,7 +51,7 @@ def mocap_bodies(link_geoms: list[tuple[object, list[str]]]) -> list[str]:
 def motion_keys(scene, names: list[str]) -> tuple[str, list[str]]:
     """The ``mpos``/``mquat`` attributes of the ``initial`` keyframe and the motion keyframes'
     ``<key>`` elements, the mocap bodies in ``names`` order (every moving robot's link geometries)."""
-    from dejaview.io.mjcf import _num, _vec
+    from dejaview.io.mjcf_text import _num, _vec
 
     from dejaview.sim.motion import link_poses
 
