@@ -23,6 +23,7 @@ import torch
 from dejaview.scene import (
     HeatmapSettings,
     InferenceSettings,
+    JointKeyframe,
     Optimize,
     Penalty,
     Pose,
@@ -59,14 +60,15 @@ def movable(name: str, mesh: str, position, orientation=(1.0, 0.0, 0.0, 0.0), li
                        velocity=Velocity(tuple(linear), tuple(angular)))
 
 
-def with_truth(scene: Scene, truth: SceneObject, guess: SceneObject, **target_kw) -> tuple[Scene, dict]:
+def with_truth(scene: Scene, truth: SceneObject, guess: SceneObject, engine: str = "torch",
+               **target_kw) -> tuple[Scene, dict]:
     """Simulate the scene with the source's true start; return the scene holding the guess
-    and a target at the simulated end, plus the truth record."""
+    and a target at the simulated end, plus the truth record (``engine``: the rollout's)."""
     scene = replace(scene, base_dir=SCENES)
     true_scene = scene.with_object(truth)
     world = World.from_scene(true_scene)
     with torch.no_grad():
-        traj = rollout(world, initial_state(world, true_scene))
+        traj = rollout(world, initial_state(world, true_scene), engine=engine)
     src = world.body_index(truth.id)
     end_pos = world.object_position(traj.final)[0, src].tolist()
     end_q = traj.final.orientation[0, src].tolist()
@@ -173,6 +175,34 @@ def box_hits_arm():
             start_area=StartArea((0.2, -0.75, 0.6), (0.7, -0.35, 0.6)),
             heatmap=HeatmapSettings(cells=(6, 4), samples=2, sigma=0.02)))
     return with_truth(scene, truth, guess)
+
+
+SWEEP = ((0.0, (-1.0, 0.1253, -0.1253)), (0.9, (0.9, 0.1253, -0.1253)))
+"""The arm's sweep (time s, joint values: shoulder yaw, shoulder pitch, elbow): the upper arm and the
+forearm level 5 cm above the table, turning from -1.0 to 0.9 rad about the base in 0.9 s."""
+
+
+def arm_sweeps_mug():
+    """A robot arm, replaying a logged joint trajectory, sweeps across a table and knocks a mug off
+    it; the mug is found lying on the floor. Where on the table did the mug stand?"""
+    arm = SceneObject(id="arm", urdf="../robots/arm.urdf", fixed=True,
+                      keyframes=tuple(JointKeyframe(t, q) for t, q in SWEEP))
+    table = SceneObject(id="table", shape="box", size=(0.4, 0.7, 0.3), fixed=True,
+                        pose=Pose((0.5, -0.05, 0.15)))
+    truth = movable("mug", "mug", (0.55, -0.08, 0.35), mass=0.35)
+    guess = movable("mug", "mug", (0.45, -0.15, 0.35), mass=0.35)
+    scene = Scene(
+        name="arm-sweeps-mug",
+        objects=(floor(), table, arm, truth),
+        simulation=SimulationSettings(dt=0.002, duration=4.0, friction=0.5, restitution=0.2),
+        inference=InferenceSettings(
+            source="mug", targets=(Target((0, 0, 0)),),
+            loss="pose", evaluate="final",
+            optimize=Optimize(position=True, orientation=False, linear_velocity=False,
+                              angular_velocity=False),
+            start_area=StartArea((0.38, -0.3, 0.35), (0.66, 0.1, 0.35)),
+            heatmap=HeatmapSettings(cells=(7, 10), samples=1, sigma=0.02)))
+    return with_truth(scene, truth, guess, engine="native")
 
 
 TRACKED_TIMES = (0.15, 0.35, 0.6)
@@ -352,6 +382,7 @@ BUILDERS = {
     "box_along_shelf": box_along_shelf,
     "box_among_boxes": box_among_boxes,
     "box_hits_arm": box_hits_arm,
+    "arm_sweeps_mug": arm_sweeps_mug,
     "ball_down_ramp": ball_down_ramp,
     "box_down_ramp": box_down_ramp,
     "box_tossed_tracked": box_tossed_tracked,

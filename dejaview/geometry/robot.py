@@ -34,7 +34,7 @@ from dejaview.geometry import MESH_SUFFIXES
 from dejaview.geometry.transforms import matrix_to_quat, quat_to_matrix, rigid_transform, rpy_to_matrix
 
 __all__ = ["LinkGeometry", "RobotJoint", "RobotModel", "RobotPiece", "joint_problems", "link_transforms",
-           "read_robot", "robot_model", "robot_pieces"]
+           "link_transforms_batch", "read_robot", "robot_model", "robot_pieces"]
 
 MAX_ROBOT_BYTES = 4 << 20
 """Largest URDF or MJCF file read (4 MiB)."""
@@ -390,12 +390,13 @@ def _mjcf_mesh(path: Path, model, g: int, body: str, origin: np.ndarray, files: 
                         scale=float(scale[0]), convex_hull=True)
 
 
-def joint_problems(model: RobotModel, values) -> list[str]:
-    """Reasons the joint values do not fit the model (wrong count, outside limits); empty when they do."""
+def joint_problems(model: RobotModel, values, what: str = "'joints'") -> list[str]:
+    """Reasons the joint values do not fit the model (wrong count, outside limits); empty when they do.
+    ``what``: how the messages name the values (a keyframe: ``<joints time="0.5">``)."""
     values = tuple(values or ())
     if len(values) != len(model.joints):
         names = " ".join(j.name for j in model.joints) or "none"
-        return [f"'joints' needs {len(model.joints)} values, one per movable joint of "
+        return [f"{what} needs {len(model.joints)} values, one per movable joint of "
                 f"{model.path.name} ({names}), got {len(values)}"]
     problems = []
     for joint, q in zip(model.joints, values):
@@ -421,8 +422,16 @@ def link_transforms(model: RobotModel, values) -> dict[str, np.ndarray]:
     problems = joint_problems(model, values)
     if problems:
         raise SceneError(problems[0], str(model.path))
+    values = np.asarray([tuple(values or ())], dtype=np.float64).reshape(1, len(model.joints))
+    return {name: t[0] for name, t in link_transforms_batch(model, values).items()}
+
+
+def link_transforms_batch(model: RobotModel, values: np.ndarray) -> dict[str, np.ndarray]:
+    """Robot-frame transforms (T, 4, 4) of every link at T joint vectors ``values`` (T, J), in one
+    batched forward kinematics (a moving robot's path); the values are not checked here."""
     if not model.joints and model.format == "urdf":  # no joint: one link (pk finds no root then)
-        return {g.link: np.eye(4) for g in model.geometry}
+        return {g.link: np.repeat(np.eye(4)[None], len(values), 0) for g in model.geometry}
+    values = np.asarray(values, dtype=np.float64).reshape(-1, len(model.joints))
     import torch
 
     with torch.no_grad():
@@ -435,13 +444,13 @@ def link_transforms(model: RobotModel, values) -> dict[str, np.ndarray]:
                 chain = _mjcf_chain(pk, model)
             chain = chain.to(dtype=torch.float64)
             names = chain.get_joint_parameter_names()
-            by_name = {j.name: float(q) for j, q in zip(model.joints, values)}
-            th = torch.tensor([[by_name[n] for n in names]], dtype=torch.float64)
+            order = {j.name: i for i, j in enumerate(model.joints)}
+            th = torch.as_tensor(values[:, [order[n] for n in names]], dtype=torch.float64)
             fk = chain.forward_kinematics(th)
         except Exception as exc:  # pytorch-kinematics' errors are of every kind
             raise SceneError(f"pytorch-kinematics cannot pose the robot: {' '.join(str(exc).split())}",
                              str(model.path)) from None
-    return {name: t.get_matrix()[0].numpy().copy() for name, t in fk.items()}
+    return {name: t.get_matrix().numpy().copy() for name, t in fk.items()}
 
 
 def _mjcf_chain(pk, model: RobotModel):
@@ -497,8 +506,9 @@ def robot_model(scene, obj) -> RobotModel:
     return read_robot(scene.resolve(obj.robot), fmt, root=scene.root)
 
 
-def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece]:
-    """Every collision geometry of a robot object, posed in the world.
+def robot_pieces(scene, obj, model: RobotModel | None = None, time: float = 0.0) -> list[RobotPiece]:
+    """Every collision geometry of a robot object, posed in the world at ``time`` (s; a robot that
+    stands: at its ``joints``, one that moves: at its keyframes' values then, ``obj.joints_at``).
 
     Args:
         scene: the Scene (files resolve against it).
@@ -509,7 +519,7 @@ def robot_pieces(scene, obj, model: RobotModel | None = None) -> list[RobotPiece
     """
     try:
         model = model or robot_model(scene, obj)
-        links = link_transforms(model, obj.joints)
+        links = link_transforms(model, obj.joints_at(time))
     except SceneError as exc:
         raise SceneError(f"object {obj.id!r}: {exc}", str(scene.path) if scene.path else None, obj.line,
                          "object") from None

@@ -60,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from dejaview.errors import DejaViewError, SceneError
+from dejaview.io.mjcf_text import _num, _vec, _xml
 
 # MuJoCo settings shared by the export, tests/sim/test_mujoco_crosscheck.py and bench/crossengine.py
 MJ_TIMESTEP = 0.0005
@@ -179,14 +180,6 @@ def scene_frequency(scene) -> float:
     return float(frequency) if frequency else DEFAULT_OMEGA_H * substeps / scene.simulation.dt
 
 
-def _num(x) -> str:
-    return f"{float(x):.10g}"
-
-
-def _vec(values) -> str:
-    return " ".join(_num(v) for v in values)
-
-
 # -------------------------------------------------------------------- export
 def _initial_states(scene, state: dict | None) -> dict[str, dict]:
     """Initial state per movable object: the scene's, with ``state`` (result.json) for its source."""
@@ -270,11 +263,6 @@ def _geom_text(attrs: dict, contact: dict, fixed: bool) -> str:
     return "<geom " + " ".join(f'{k}="{_xml(v)}"' for k, v in attrs.items()) + "/>"
 
 
-def _xml(text) -> str:
-    return (str(text).replace("&", "&amp;").replace('"', "&quot;").replace("<", "&lt;")
-            .replace(">", "&gt;"))
-
-
 def _mass_properties(scene, obj):
     from dejaview.geometry.mesh import load_mesh, mass_properties, primitive_mass_properties
 
@@ -307,7 +295,17 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     assets: list[str] = []
     geoms: list[tuple] = []
     world, qpos, qvel = [], [], []
+    mocap: list[str] = []  # a moving robot's link geometries, as mocap bodies (dejaview.io.mjcf_motion)
     for obj in scene.objects:
+        if obj.fixed and obj.moving:
+            from dejaview.io.mjcf_motion import mocap_bodies
+            from dejaview.scene.robot_links import link_objects
+
+            parts = link_objects(scene, obj)
+            world.extend(mocap_bodies([(p.object, _geom(scene, p.object, assets, timestep, "", geoms, p))
+                                       for p in parts]))
+            mocap.extend(p.object.id for p in parts)
+            continue
         if obj.fixed:
             from dejaview.scene.robot_links import link_objects
 
@@ -339,8 +337,14 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     if scene.inference is not None:
         comment = (f"\n  <!-- DejaView inference source: {_xml(scene.inference.source)}; "
                    "the <inference> element has no MJCF counterpart -->")
-    keyframe = (f'\n  <keyframe>\n    <key name="initial" qpos="{_vec(qpos)}" qvel="{_vec(qvel)}"/>'
-                f"\n  </keyframe>" if qpos else "")
+    motion, keys = "", []
+    if mocap:  # where the links stand at each time, and at the start
+        from dejaview.io.mjcf_motion import motion_keys
+
+        motion, keys = motion_keys(scene, mocap)
+    keyframe = ("\n  <keyframe>\n    " + "\n    ".join(
+        [f'<key name="initial" qpos="{_vec(qpos)}" qvel="{_vec(qvel)}"{motion}/>'] + keys)
+        + "\n  </keyframe>" if qpos else "")
     asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
     body = "\n    ".join(world)
     pairs = _contact_pairs(scene, geoms, timestep)

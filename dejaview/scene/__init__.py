@@ -10,6 +10,7 @@ from dejaview.scene.model import (
     Exploration,
     HeatmapSettings,
     InferenceSettings,
+    JointKeyframe,
     ModelUncertainty,
     PhysicsPrior,
     Observation,
@@ -29,6 +30,7 @@ from dejaview.scene.model import (
 __all__ = [
     "EVALUATES", "GRADIENTS", "LOSSES", "OPTIMIZERS", "SHAPES",
     "Exploration", "HeatmapSettings", "InferenceSettings", "ModelUncertainty", "PhysicsPrior", "Observation", "Optimize", "Penalty",
-    "Pose", "PosteriorRequest", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings", "StartArea",
+    "JointKeyframe", "Pose", "PosteriorRequest", "Prior", "Scene", "SceneError", "SceneObject", "SimulationSettings",
+    "StartArea",
     "Target", "Velocity",
 ]

@@ -43,14 +43,25 @@ class Velocity:
 
 
 @dataclass(frozen=True)
+class JointKeyframe:
+    """``<joints time values>`` inside a robot object: its joint values (radians or metres, in the
+    order of the model's movable joints) at ``time`` (s from the start of the simulation)."""
+
+    time: float
+    values: tuple[float, ...]
+    line: int | None = field(default=None, compare=False, repr=False)
+
+
+@dataclass(frozen=True)
 class SceneObject:
     """One rigid body of the scene.
 
     Geometry is either a primitive (``shape`` with ``size``/``radius``/``height``),
     a mesh file (``mesh``) or a fixed robot (``urdf`` or ``mjcf``, posed by forward
     kinematics at the ``joints`` values, radians or metres in the order of the
-    model's movable joints). File names are kept as written in the file;
-    ``Scene.resolve`` turns them into paths.
+    model's movable joints). A robot with ``keyframes`` moves: its joint values follow them,
+    linearly interpolated in time, held before the first and after the last (``joints_at``).
+    File names are kept as written in the file; ``Scene.resolve`` turns them into paths.
     """
 
     id: str
@@ -70,7 +81,27 @@ class SceneObject:
     urdf: str | None = None
     mjcf: str | None = None
     joints: tuple[float, ...] | None = None
+    keyframes: tuple[JointKeyframe, ...] = ()
     line: int | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def moving(self) -> bool:
+        """Whether this is a robot that moves (``<joints time values>`` children)."""
+        return bool(self.keyframes)
+
+    def joints_at(self, time: float) -> tuple[float, ...] | None:
+        """The robot's joint values at ``time`` (s): ``joints`` for a robot that stands, else the
+        keyframes linearly interpolated, held before the first and after the last."""
+        if not self.keyframes:
+            return self.joints
+        keys = self.keyframes
+        if time <= keys[0].time:
+            return tuple(keys[0].values)
+        for a, b in zip(keys, keys[1:]):
+            if time < b.time:
+                u = (time - a.time) / (b.time - a.time)
+                return tuple(qa + u * (qb - qa) for qa, qb in zip(a.values, b.values))
+        return tuple(keys[-1].values)
 
     @property
     def geometry_kind(self) -> str:

@@ -287,6 +287,8 @@ class _Checker:
             self.robot(key, obj)
         if obj.joints is not None and obj.urdf is None and obj.mjcf is None:
             self.report(key, "'joints' applies to a robot only (urdf=... or mjcf=...)")
+        if obj.keyframes and obj.urdf is None and obj.mjcf is None:
+            self.report(key + ("joints", 0), "<joints> keyframes apply to a robot only (urdf=... or mjcf=...)")
         if obj.spheres is not None:
             self.file_exists(key, "spheres", obj.spheres)
 
@@ -379,6 +381,8 @@ class _Checker:
             for q in obj.joints:
                 if not self.number(key, "joints", q, limit=B.MAX_LENGTH):
                     return
+        if not self.keyframe_times(key, obj):
+            return
         value = obj.robot
         if not isinstance(value, str) or not value.strip():
             self.report(key, f"'{kind}' names no file")
@@ -394,8 +398,12 @@ class _Checker:
         except SceneError as exc:
             self.report(key, f"{kind} {value!r}: {exc}")
             return
-        for reason in joint_problems(model, obj.joints):
-            self.report(key, f"robot {obj.id!r}: {reason}")
+        if obj.joints is not None or not obj.keyframes:  # a moving robot may leave 'joints' out
+            for reason in joint_problems(model, obj.joints):
+                self.report(key, f"robot {obj.id!r}: {reason}")
+        for j, frame in enumerate(obj.keyframes):
+            for reason in joint_problems(model, frame.values, what=f"<joints time=\"{frame.time:g}\">"):
+                self.report(key + ("joints", j), f"robot {obj.id!r}: {reason}")
         for path in model.files:
             try:
                 ok = Path(path).is_file()
@@ -403,6 +411,24 @@ class _Checker:
                 ok = False
             if not ok:
                 self.report(key, f"robot {obj.id!r}: mesh file {str(path)!r} named by {value!r} not found")
+
+    def keyframe_times(self, key, obj: SceneObject) -> bool:
+        """A moving robot's ``<joints time values>``: finite times from 0 on, increasing, finite
+        values (the spec's "Robots as users have them"); False where one is not."""
+        previous = None
+        for j, frame in enumerate(obj.keyframes):
+            where = key + ("joints", j)
+            if not self.number(where, "time", frame.time, nonnegative=True, limit=B.MAX_LENGTH, unit=" s"):
+                return False
+            for q in frame.values:
+                if not self.number(where, "values", q, limit=B.MAX_LENGTH):
+                    return False
+            if previous is not None and not frame.time > previous:
+                self.report(where, f"robot {obj.id!r}: <joints> times must increase: {frame.time:g} s "
+                                   f"follows {previous:g} s")
+                return False
+            previous = frame.time
+        return True
 
     def inference(self) -> None:
         inf = self.scene.inference

@@ -105,6 +105,10 @@ def _object_element(obj: SceneObject) -> etree._Element:
         vel = etree.SubElement(el, "velocity")
         vel.set("linear", _v(obj.velocity.linear))
         vel.set("angular", _v(obj.velocity.angular))
+    for key in obj.keyframes:
+        joints = etree.SubElement(el, "joints")
+        joints.set("time", _f(key.time))
+        joints.set("values", _v(key.values))
     return el
 
 

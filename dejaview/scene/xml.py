@@ -30,6 +30,7 @@ from dejaview.scene.inference_elements import INFERENCE_ELEMENTS
 from dejaview.scene.model import (
     DEFAULT_GRAVITY,
     InferenceSettings,
+    JointKeyframe,
     Optimize,
     Pose,
     Scene,
@@ -56,9 +57,10 @@ __all__ = [
 # Counts that XML Schema 1.0 cannot express together with free element order.
 _AT_MOST_ONCE = {
     "scene": ("simulation", "inference"),
+    "object": ("pose", "velocity"),
     "inference": tuple(e.tag for e in INFERENCE_ELEMENTS if not e.repeated),
 }
-_REQUIRED_CHILDREN = {"inference": ("target",)}
+_REQUIRED_CHILDREN = {"inference": ("target",), "object": ("pose",)}
 
 _SIMULATION_ATTRS = ("dt", "duration", "friction", "restitution")
 
@@ -320,6 +322,11 @@ class _SceneReader:
             self.lines[("object", index, "velocity")] = vel_el.sourceline
             velocity = Velocity(linear=self.vector_attr(vel_el, "linear", 3, velocity.linear),
                                 angular=self.vector_attr(vel_el, "angular", 3, velocity.angular))
+        keyframes = []
+        for j, key_el in enumerate(groups.get("joints", ())):
+            self.lines[("object", index, "joints", j)] = key_el.sourceline
+            keyframes.append(JointKeyframe(time=self.float_attr(key_el, "time"),
+                                           values=self.floats_attr(key_el, "values"), line=key_el.sourceline))
         return SceneObject(
             id=el.get("id"),
             pose=pose,
@@ -338,6 +345,7 @@ class _SceneReader:
             urdf=el.get("urdf"),
             mjcf=el.get("mjcf"),
             joints=self.floats_attr(el, "joints"),
+            keyframes=tuple(keyframes),
             line=el.sourceline,
         )
 

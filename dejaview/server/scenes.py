@@ -126,7 +126,9 @@ def _check_robot(scene, obj, root: Path, filename: str) -> None:
         if not path.resolve().is_file():
             raise SceneError(f"mesh file {_shown(path, root)!r} named by {obj.robot!r} not found in the scene root",
                              filename, obj.line, "object")
-    problems = joint_problems(model, obj.joints)
+    problems = joint_problems(model, obj.joints) if obj.joints is not None or not obj.keyframes else []
+    for frame in obj.keyframes:  # a moving robot's keyframes, as dejaview.scene.validate checks them
+        problems += joint_problems(model, frame.values, what=f"<joints time=\"{frame.time:g}\">")
     if problems:
         raise SceneError(f"robot {obj.id!r}: {problems[0]}", filename, obj.line, "object")
 

@@ -71,7 +71,10 @@ def robot_link_geometry(root: Path, path: str, object_id: str) -> dict:
     """The collision geometry of robot ``object_id`` of the scene file ``path`` (inside ``root``), posed
     by forward kinematics in the robot's frame (its ``<pose>`` places the whole), for the viewer:
     ``{"object": id, "links": [{"name", "link", "shape", "size", "radius", "height", "mesh", "scale",
-    "position", "orientation"}, ...]}``; ``mesh`` relative to the root (served by ``/files``).
+    "position", "orientation"}, ...]}``; ``mesh`` relative to the root (served by ``/files``). A moving
+    robot's links (``<joints time values>``) also carry ``"motion": {"time": [...], "position": [[x, y,
+    z], ...], "orientation": [[w, x, y, z], ...]}``, their poses every 10 ms to the last keyframe (the
+    pose above is the first), which the viewer plays with the trajectory.
 
     Raises:
         ServiceError: the scene's checks (``dejaview.server.scenes``: files inside the root, the robot
@@ -93,12 +96,26 @@ def robot_link_geometry(root: Path, path: str, object_id: str) -> dict:
         pieces = robot_pieces(scene, replace(obj, pose=Pose()))
     except SceneError as exc:
         raise ServiceError("invalid_scene", f"{path}: {exc.reason}", 422) from None
+    motion = {}
+    if obj.moving:  # where each link is every MOTION_INTERVAL, for the viewer's playback
+        from dejaview.io.mjcf_motion import MOTION_INTERVAL
+        from dejaview.sim.motion import link_poses, sample_times
+
+        times = sample_times(obj.keyframes[-1].time, MOTION_INTERVAL)
+        try:
+            poses = link_poses(scene, replace(obj, pose=Pose()), times)
+        except SceneError as exc:
+            raise ServiceError("invalid_scene", f"{path}: {exc.reason}", 422) from None
+        motion = {name: {"time": times.tolist(), "position": pos.round(6).tolist(),
+                         "orientation": quat.round(7).tolist()} for name, (pos, quat) in poses.items()}
     links = []
     for p in pieces:
         mesh = None if p.mesh is None else p.mesh.resolve().relative_to(root).as_posix()
         links.append({"name": p.name, "link": p.link, "shape": p.kind, "size": p.size, "radius": p.radius,
                       "height": p.height, "mesh": mesh, "scale": p.scale, "position": list(p.position),
                       "orientation": list(p.orientation)})
+        if p.name in motion:
+            links[-1]["motion"] = motion[p.name]
     return {"object": obj.id, "links": links}
 
 

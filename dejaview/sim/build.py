@@ -115,12 +115,18 @@ def static_from_object(scene, obj, sdf_spacing: float = 0.01) -> StaticShape:
                             grid_spacing=grid.spacing, **common)
 
 
-def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShape]:
+def statics_from_robot(scene, obj, sdf_spacing: float = 0.01, motion: tuple[float, int] | None = None
+                       ) -> list[StaticShape]:
     """Static shapes of a fixed robot object (``urdf``/``mjcf``): one per link collision geometry,
     posed by forward kinematics (``dejaview.geometry.robot``) and named ``robot-id/link``; meshes
     as signed distance grids of their solids (``RobotPiece.solid``: the convex hull of a mesh with
-    holes), a uniform ``scale`` scaling the grid."""
+    holes), a uniform ``scale`` scaling the grid. A moving robot's (``<joints time values>``) shapes
+    stand where they are at time 0 and carry their paths (``dejaview.sim.motion``) at the substep
+    and step budget ``motion`` = (h, total substeps)."""
     from dejaview.geometry.robot import robot_pieces
+
+    if obj.moving and motion is None:
+        raise SceneError(f"robot {obj.id!r} moves: its links need the substep (motion=)", **_where(scene, obj))
 
     sim = scene.simulation
     material = dict(friction=sim.friction if obj.friction is None else obj.friction,
@@ -149,6 +155,14 @@ def statics_from_robot(scene, obj, sdf_spacing: float = 0.01) -> list[StaticShap
             statics.append(StaticShape.make(p.name, "grid", grid=p.scale * np.asarray(grid.values),
                                             grid_origin=p.scale * np.asarray(grid.origin),
                                             grid_spacing=p.scale * grid.spacing, **common))
+    if obj.moving:
+        from dataclasses import replace
+
+        from dejaview.sim.motion import path_length, robot_paths
+
+        h, limit = motion
+        paths = robot_paths(scene, obj, np.arange(path_length(obj.keyframes, h, limit)) * h)
+        statics = [replace(st, path=paths[st.name]).at(0) for st in statics]
     return statics
 
 
@@ -196,11 +210,14 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
     extras = simulation_extras(scene)
     spacing = sdf_spacing or extras.get("sdf-spacing", 0.01)
     say = progress or (lambda _msg: None)
+    sim = scene.simulation
+    substeps, frequency = step_settings(scene, extras)
     bodies, statics = [], []
     for obj in scene.objects:
         if obj.fixed and obj.robot is not None:
             say(f"robot {obj.id}")
-            statics.extend(statics_from_robot(scene, obj, spacing))
+            statics.extend(statics_from_robot(scene, obj, spacing,
+                                              motion=(sim.dt / substeps, bounds.max_steps(max_steps))))
         elif obj.fixed:
             say(f"static {obj.id}")
             statics.append(static_from_object(scene, obj, spacing))
@@ -210,8 +227,6 @@ def world_from_scene(scene, *, dtype: torch.dtype = torch.float64, device=None,
     if not bodies:
         raise SceneError("the scene has no movable object to simulate",
                          file=str(scene.path) if scene.path else None, element="scene")
-    sim = scene.simulation
-    substeps, frequency = step_settings(scene, extras)
     world = World.build(bodies, statics, gravity=scene.gravity, dt=sim.dt,
                         substeps=substeps, duration=sim.duration,
                         friction=sim.friction, restitution=sim.restitution,

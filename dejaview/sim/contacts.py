@@ -145,6 +145,7 @@ import torch
 from dejaview.sim.box_edges import CORNER_KINDS, box_corners, on_static_edge, static_edge_contacts
 from dejaview.sim.epsilons import NORMAL_EPS2, TINY
 from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
+from dejaview.sim.motion import static_point_velocity
 from dejaview.sim.physics import candidate_material
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
@@ -374,6 +375,13 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     v = state.linear_velocity[:, :, None, None, :]
     w = state.angular_velocity[:, :, None, None, :]
     vel = _point_velocity(v, w, arm)
+    moving = [world.statics[k].velocity is not None for k in which]
+    lines = ~is_box if edges else None
+    if any(moving):  # relative to a moving static's own point there (dejaview.sim.motion)
+        vel = vel - static_point_velocity([world.statics[k] for k in which], state.position, arm)
+        # no roll stick against a moving static (line_contact: it holds a line on still geometry)
+        on_moving = (depth[:, :, torch.tensor(moving, device=depth.device)] > 0).flatten(2).any(-1)  # (B, N)
+        lines = ~on_moving if lines is None else lines & ~on_moving
     vn = (vel * normal).sum(-1)
     vt = vel - vn.unsqueeze(-1) * normal
     k, s = depth.shape[2:]
@@ -396,7 +404,7 @@ def static_contact_wrench(world, state, spheres: torch.Tensor, h: float,
     ft = friction_force(vt, mu * fn, stick)
     fn = line_roll_stick(fn.reshape(b, nb, k * s), weight, arm.reshape(b, nb, k * s, 3),
                          normal.reshape(b, nb, k * s, 3), state.angular_velocity, m, inv_inertia_w,
-                         roll_stop_time(h, omega), ~is_box if edges else None).reshape(b, nb, k, s)
+                         roll_stop_time(h, omega), lines).reshape(b, nb, k, s)
     force = fn.unsqueeze(-1) * normal + ft  # (B, N, K, C, 3)
     torque = torch.linalg.cross(arm, force, dim=-1)
     return force.sum((2, 3)), torque.sum((2, 3))

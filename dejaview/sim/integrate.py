@@ -100,18 +100,20 @@ def substep(world: World, state: State, h: float, broadphase: bool | None = None
     return State(x, q, v, w)
 
 
-def step(world: World, state: State, broadphase: bool | None = None) -> State:
+def step(world: World, state: State, broadphase: bool | None = None, index: int = 0) -> State:
     """Advance ``state`` by one step ``world.dt`` (``world.substeps`` substeps).
 
     Args:
         world: the World.
         state: State with batch dimension B.
+        index: which step of a rollout from time 0 this is (0 the first): where a moving robot's
+            links are (``World.posed``); nothing else depends on it.
     Returns:
         the State after dt.
     """
     h = world.dt / world.substeps
-    for _ in range(world.substeps):
-        state = substep(world, state, h, broadphase)
+    for k in range(world.substeps):
+        state = substep(world.posed(index * world.substeps + k), state, h, broadphase)
     return state
 
 
@@ -160,7 +162,8 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
         checkpoint_every: if set, run chunks of this many steps under
             ``torch.utils.checkpoint`` so reverse mode stores only chunk
             boundaries (memory O(steps / chunk + chunk) instead of O(steps)).
-        step_fn: replacement for ``step``, called as ``step_fn(world, state)``.
+        step_fn: replacement for ``step``, called as ``step_fn(world, state, index=i)`` (i: the
+            step's number from 0, ``step``'s ``index``).
         broadphase: see ``wrench``.
         compile: run chunks of ``compile_chunk`` steps through ``compiled_chunk``
             (the remainder runs eagerly); not combined with checkpointing.
@@ -192,6 +195,9 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
             if step_fn is not None:
                 raise ValueError("step_fn replaces the torch engine's step; it needs engine='torch'")
             return native.native_rollout(world, state, steps, record_every, physics=physics)
+    if compile and world.moving:
+        raise SimulationError("a rollout with a moving robot does not compile (its links' poses change "
+                              "every substep); run it without compile")
     if physics is not None:
         if compile:
             raise ValueError("a rollout with per-candidate physics does not compile")
@@ -209,11 +215,11 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
         elif use_ckpt:
             n = min(checkpoint_every, steps - i)
 
-            def chunk(*ts, n=n):
+            def chunk(*ts, n=n, first=i):
                 s = State(*ts)
                 outs = []
-                for _ in range(n):
-                    s = fn(world, s, broadphase) if step_fn is None else fn(world, s)
+                for j in range(first, first + n):
+                    s = fn(world, s, broadphase, index=j) if step_fn is None else fn(world, s, index=j)
                     outs.append(s)
                 return tuple(t for o in outs for t in o.tensors())
 
@@ -221,7 +227,7 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
             chunk_states = [State(*flat[4 * j: 4 * j + 4]) for j in range(n)]
         else:
             n = 1
-            chunk_states = [fn(world, state, broadphase) if step_fn is None else fn(world, state)]
+            chunk_states = [fn(world, state, broadphase, index=i) if step_fn is None else fn(world, state, index=i)]
         for s in chunk_states:
             i += 1
             if i % record_every == 0 or i == steps:

@@ -161,11 +161,11 @@ def simulate(scene, *, steps: int | None = None, record_every: int = 1,
     state = initial_state(world, scene)
     done = 0
 
-    def step_with_hooks(world_, state_, broadphase=None):
+    def step_with_hooks(world_, state_, broadphase=None, index=0):
         nonlocal done
         if should_stop is not None and should_stop():
             raise SimulationStopped(f"stopped after {done} of {n} steps")
-        out = step(world_, state_, broadphase)
+        out = step(world_, state_, broadphase, index=index)
         done += 1
         divergence.check(world_, out, done)
         if callback is not None:

@@ -59,6 +59,10 @@ class StaticShape:
         friction, restitution: material of this shape.
         edge_points: a box's (E, 3) points along its edges in the world (``box_edges``), made
             with it; None for the other kinds.
+        path: where the shape moves (a moving robot's link, ``dejaview.sim.motion.ShapePath``);
+            None for a shape that stands. Its pose above is the path's start; ``at`` poses it.
+        velocity, angular_velocity: (3,) a posed moving shape's velocity at its origin and its
+            angular velocity (``at``); None for a shape that stands.
     """
 
     name: str
@@ -74,6 +78,9 @@ class StaticShape:
     grid_origin: torch.Tensor = field(default_factory=lambda: torch.zeros(3, dtype=torch.float64))
     grid_spacing: float = 1.0
     edge_points: torch.Tensor | None = field(default=None, repr=False, compare=False)
+    path: object = field(default=None, repr=False, compare=False)
+    velocity: torch.Tensor | None = field(default=None, repr=False, compare=False)
+    angular_velocity: torch.Tensor | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.kind == "box" and self.edge_points is None:  # made once, outside any compiled code
@@ -102,7 +109,22 @@ class StaticShape:
                            restitution=float(restitution), **kw)
 
     def to(self, device=None, dtype=None) -> "StaticShape":
-        return _tensor_fields_to(self, device, dtype)
+        moved = _tensor_fields_to(self, device, dtype)
+        return moved if self.path is None else replace(moved, path=self.path.to(device, dtype))
+
+    def at(self, substep: int) -> "StaticShape":
+        """This moving shape where its path puts it at substep number ``substep`` (the path's last
+        row after its end), with that row's velocities; a shape that stands is itself."""
+        p = self.path
+        if p is None:
+            return self
+        j = p.row(substep)
+        rot, trans = p.rotation[j], p.translation[j]
+        edges = None
+        if self.edge_points is not None:  # the same points, carried along: R_j R_0^T (e - t_0) + t_j
+            edges = small_matmul(small_matmul(self.edge_points - self.translation, self.rotation), rot.T) + trans
+        return replace(self, rotation=rot, translation=trans, edge_points=edges, velocity=p.velocity[j],
+                       angular_velocity=p.angular_velocity[j])
 
     def distance(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance and outward normal at world points.
@@ -423,6 +445,9 @@ class World:
         """This world integrated in ``substeps`` substeps per step at the same contact frequency
         (stiffness), each unloading factor re-mapped so that it rebounds with the same restitution:
         the same model at a finer (or coarser) step, to measure the step's share of a result."""
+        if self.moving and substeps != self.substeps:
+            raise SimulationError("a moving robot's paths are sampled at the world's substep; build the world "
+                                  "again (World.from_scene) with <simulation substeps> for another")
         om = self.contact.frequency
         h0, h = self.dt / self.substeps, self.dt / substeps
         return replace(self, substeps=int(substeps),
@@ -435,6 +460,18 @@ class World:
         return replace(w, statics=tuple(s.to(device, dtype) for s in self.statics))
 
     # -------------------------------------------------------------- queries
+    @property
+    def moving(self) -> bool:
+        """Whether some static shape moves (a moving robot's links, ``dejaview.sim.motion``)."""
+        return any(s.path is not None for s in self.statics)
+
+    def posed(self, substep: int) -> "World":
+        """This world with its moving statics where they are at substep number ``substep`` of a
+        rollout from time 0 (``StaticShape.at``); a world without any is itself."""
+        if not self.moving:
+            return self
+        return replace(self, statics=tuple(s.at(substep) for s in self.statics))
+
     @property
     def num_bodies(self) -> int:
         return len(self.names)

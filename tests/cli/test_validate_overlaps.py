@@ -58,13 +58,14 @@ def test_one_line_per_pair_and_other_scenes_still_checked(tmp_path):
   <object id="a" shape="box" size="0.2 0.2 0.2"><pose position="0 0 0.05"/></object>
   <object id="b" shape="box" size="0.1 0.1 0.1"><pose position="0 0 0.1"/></object>
 </scene>""")
-    result = CliRunner().invoke(cli, ["validate", str(boxes), str(SCENES[0])])
+    ramp = ROOT / "examples" / "scenes" / "ball_down_ramp.xml"
+    result = CliRunner().invoke(cli, ["validate", str(boxes), str(ramp)])
     assert result.exit_code == 2
     errors = result.stderr.strip().splitlines()
     assert len(errors) == 2
     assert f"{boxes}:3: <object> 'floor' and 'a' interpenetrate by 0.0500 m" in errors[0]
     assert f"{boxes}:3: <object> 'a' and 'b' interpenetrate by 0.1000 m" in errors[1]
-    assert result.stdout.strip() == f"OK {SCENES[0]}: 3 objects, source=ball"
+    assert result.stdout.strip() == f"OK {ramp}: 3 objects, source=ball"
 
 
 def test_no_file_check_skips_the_overlap_check(tmp_path):

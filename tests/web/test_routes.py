@@ -51,7 +51,8 @@ def test_the_viewer_is_served_at_the_root(client):
 
 
 def test_scenes_lists_scene_files_inside_the_root_only(client):
-    assert client.get("/scenes").json() == {"scenes": ["scenes/arm.xml", "scenes/toss.xml"]}
+    assert client.get("/scenes").json() == {"scenes": ["scenes/arm.xml", "scenes/arm_moving.xml",
+                                                         "scenes/toss.xml"]}
 
 
 def test_files_serves_scenes_meshes_and_packings(client):
@@ -88,7 +89,24 @@ def test_robot_links_are_posed_by_the_server(client):
     assert links[0]["shape"] == "cylinder" and links[0]["position"] == pytest.approx([0, 0, 0.05])
     assert links[4]["shape"] == "mesh" and links[4]["mesh"] == "meshes/cube.obj"  # served by /files
     assert client.get("/files/" + links[4]["mesh"]).status_code == 200
+    assert all("motion" not in link for link in links)  # it stands
     missing = client.get("/robot-links/scenes/arm.xml", params={"object": "floor"})
     assert missing.status_code == 404 and missing.json()["code"] == "not_found"
     outside = client.get("/robot-links/linked/secret.xml", params={"object": "arm"})
     assert outside.status_code == 400 and outside.json()["code"] == "path_outside_root"
+
+
+def test_a_moving_robots_links_come_with_their_motion(client):
+    """<joints time values>: each link's poses every 10 ms to the last keyframe, in the robot's frame,
+    starting where the link stands (its pose), for the viewer's playback."""
+    import math
+
+    links = client.get("/robot-links/scenes/arm_moving.xml", params={"object": "arm"}).json()["links"]
+    forearm = next(link for link in links if link["name"] == "arm/forearm")
+    motion = forearm["motion"]
+    assert motion["time"] == pytest.approx([0.01 * k for k in range(21)])
+    assert motion["position"][0] == pytest.approx(forearm["position"], abs=1e-6)
+    reach = 0.4 * math.cos(0.35) + 0.15  # the forearm's centre turns 1 rad about the base
+    assert motion["position"][-1] == pytest.approx([reach * math.cos(1.0), reach * math.sin(1.0),
+                                                    0.4 - 0.4 * math.sin(0.35)], abs=1e-6)
+    assert motion["orientation"][10] == pytest.approx([math.cos(0.25), 0, 0, math.sin(0.25)], abs=1e-6)

@@ -187,3 +187,28 @@ def test_robot_links_are_drawn(page, web_server, artifacts):
     x, y = round(at["x"]), round(at["y"])
     a, b = shown.getpixel((x, y)), hidden.getpixel((x, y))
     assert sum(abs(p - q) for p, q in zip(a, b)) > 30, (a, b)
+
+
+def test_a_moving_robot_is_played_with_the_trajectory(page, web_server):
+    """A robot with joint keyframes: the set-up view shows it where it stands at time 0, a trajectory's
+    playback moves its links (scrubbing to 0.1 s turns the arm by half of its 1 rad). (A job run from
+    the viewer sends the scene's text, and a robot file named relative to it is refused there: the
+    playback is fed a trajectory.csv.)"""
+    open_viewer(page, web_server)
+    load_scene(page, "scenes/arm_moving.xml")
+    reach = 0.4 * math.cos(0.35) + 0.15
+    height = 0.4 - 0.4 * math.sin(0.35)
+    assert state(page)["linkPositions"]["arm/forearm"] == pytest.approx([reach, 0, height], abs=1e-4)
+    # a trajectory of the ball (as a simulation's trajectory.csv) to play the scene along
+    rows = "\n".join(f"{k},{0.01 * k:.2f},ball,-0.3,0.3,{0.6 - 0.5 * 9.81 * (0.01 * k) ** 2:.6f},1,0,0,0"
+                     for k in range(31))
+    page.evaluate("csv => window.dejaview.showTrajectoryCsv(csv)", "step,time,object,x,y,z,qw,qx,qy,qz\n" + rows)
+    page.click("#play") if state(page)["animation"]["playing"] else None
+    page.evaluate("window.dejaview.seek(0.1)")
+    at = state(page)["linkPositions"]["arm/forearm"]
+    assert at == pytest.approx([reach * math.cos(0.5), reach * math.sin(0.5), height], abs=1e-4)
+    page.evaluate("window.dejaview.seek(0.3)")  # held after the last keyframe
+    end = state(page)["linkPositions"]["arm/forearm"]
+    assert end == pytest.approx([reach * math.cos(1.0), reach * math.sin(1.0), height], abs=1e-4)
+    page.evaluate("window.dejaview.showSetup()")
+    assert state(page)["linkPositions"]["arm/forearm"] == pytest.approx([reach, 0, height], abs=1e-4)

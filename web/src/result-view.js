@@ -5,7 +5,7 @@ import {
   applyPose, heatmapDecal, parsePosterior, parsePosteriorPaths, sampleCloud, samplePaths, summarizeResult,
   trajectorySpline,
 } from './results.js';
-import { highlightObservations, placeFromModel, placeObservations } from './scene-view.js';
+import { highlightObservations, placeFromModel, placeObservations, poseRobots } from './scene-view.js';
 import { updateSelectionText } from './selection.js';
 import { gizmo, world } from './stage.js';
 import { $, app, notify } from './state.js';
@@ -115,6 +115,7 @@ export function showSetup() {
   app.playing = false;
   if (!app.model) return;
   for (const id of app.nodes.keys()) placeFromModel(id);
+  poseRobots(0);
   placeObservations();
   highlightObservations(null);
   updatePlayback();
@@ -126,6 +127,7 @@ export function applyTime(t) {
     const node = app.nodes.get(id);
     if (node && node.group.parent === world) applyPose(track, t, node.group); // not while held in VR
   }
+  poseRobots(t);
   highlightObservations(t);
 }
 

@@ -7,7 +7,7 @@ import { loadMesh, parseSpheres, primitiveGeometry, spheresMesh } from './geomet
 import {
   buildObservation, highlightObservation, observationLine, updateObservationLine,
 } from './observations.js';
-import { observationTimes } from './results.js';
+import { applyPose, observationTimes } from './results.js';
 import { observationId, toQuat } from './selection.js';
 import { camera, orbit, renderer, world } from './stage.js';
 import { $, app, notify } from './state.js';
@@ -122,10 +122,22 @@ async function loadRobot(obj, mat) {
     part.position.set(...link.position);
     part.quaternion.copy(toQuat(link.orientation));
     part.name = link.name;
+    if (link.motion) part.userData.motion = link.motion; // a moving robot: its poses over time
     group.add(part);
     group.userData.robotLinks.push(link.name);
   }
   return group;
+}
+
+// Moving robots' links where they are at time t (s; 0: the set-up view), from the poses the server
+// sampled (robot-links' motion), as the trajectory's objects are played.
+export function poseRobots(t) {
+  for (const node of app.nodes.values()) {
+    if (!node.visual?.userData.robotLinks) continue;
+    for (const part of node.visual.children) {
+      if (part.userData.motion) applyPose(part.userData.motion, t, part);
+    }
+  }
 }
 
 // The start area (a box that bounds the initial position) as a wire box; a flat area as a square.

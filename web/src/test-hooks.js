@@ -2,7 +2,8 @@
 // drive (state(), loadScenePath(), setPose(), run(), ...).
 import * as THREE from 'three';
 
-import { pause, play, seek, showSetup } from './result-view.js';
+import { pause, play, seek, showSetup, showTrajectory } from './result-view.js';
+import { parseTrajectory } from './results.js';
 import { buildObservations } from './scene-view.js';
 import { groupOf, poseEdited, toQuat } from './selection.js';
 import { camera, gizmo, renderer, scene, world } from './stage.js';
@@ -28,6 +29,10 @@ export function installTestHooks({ chart, connection, vr, live, actions }) {
       meshesLoaded: [...app.nodes.values()].filter((n) => n.visual).length,
       robotLinks: Object.fromEntries([...app.nodes].filter(([, n]) => n.visual?.userData.robotLinks)
         .map(([id, n]) => [id, n.visual.userData.robotLinks])),
+      // each robot link's position in the world (a moving robot's: where playback put it)
+      linkPositions: Object.fromEntries([...app.nodes.values()].filter((n) => n.visual?.userData.robotLinks)
+        .flatMap((n) => n.visual.children.map((part) => [
+          part.name, world.worldToLocal(part.getWorldPosition(new THREE.Vector3())).toArray()]))),
       packings: Object.fromEntries([...app.nodes].filter(([, n]) => n.packing)
         .map(([id, n]) => [id, { spheres: n.packing.count, visible: n.packing.visible }])),
       source: app.model?.source ?? null,
@@ -63,6 +68,8 @@ export function installTestHooks({ chart, connection, vr, live, actions }) {
       live: live.state(),
     }),
     ...actions, play, pause, seek, showSetup,
+    // a trajectory.csv shown as a job's would be (playback without running a job)
+    showTrajectoryCsv: (csv) => showTrajectory(parseTrajectory(csv)),
     // the scene's observations: edit one ({position, orientation, time, moving}; null removes), add, remove
     setObservation: (index, fields) => { app.model.setObservation(index, fields); buildObservations(); },
     addObservation: (fields) => { const i = app.model.addObservation(fields); buildObservations(); return i; },

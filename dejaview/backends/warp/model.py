@@ -245,6 +245,10 @@ class WarpSimulator:
                 if obj.fixed and obj.robot is not None:  # a robot: one static per link geometry
                     from dejaview.scene.robot_links import link_objects
 
+                    if obj.moving:
+                        raise SceneError(f"robot {obj.id!r} moves (<joints time values>): the warp backend "
+                                         "has no kinematically driven links; use the spheres backend", **where)
+
                     statics.extend(_Static(p.object.id, _shape_of(scene, p.object, p.solid), friction,
                                            restitution, np.asarray(p.object.pose.position, dtype=np.float64),
                                            np.asarray(p.object.pose.orientation, dtype=np.float64))

@@ -348,7 +348,8 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
         check_divergence: forward simulation: end with the error of ``dejaview.sim.divergence``
             when a state turns non-finite or out of range (no gradients then). Off, a diverged
             candidate of a batch just carries its NaN or inf to its loss.
-        first_step: number of the first step, for the error (simulations run in chunks).
+        first_step: number of the first step (simulations run in chunks): for the error, and where a
+            moving robot's links start (``dejaview.sim.motion``).
         physics: optional (B, 3) float64, each candidate's physics as the logs of factors on every
             pair's friction, unloading factor (capped at 1) and the contact stiffness
             (``dejaview.sim.physics``); differentiable in reverse mode.
@@ -362,6 +363,11 @@ def native_rollout(world, state: State, steps: int, record_every: int = 1, *,
     from dejaview.sim.state import Trajectory
 
     packed = pack_world(world)
+    if first_step and world.moving:  # the moving statics stand where step first_step finds them
+        tensors, floats, ints = packed
+        ints = list(ints)
+        ints[schema.INTS.index("first_substep")] = int(first_step) * world.substeps
+        packed = (tensors, floats, ints)
     if state.position.dtype != torch.float64 or state.position.device.type != "cpu":
         raise SimulationError("the native simulator runs in float64 on the CPU; the state is "
                               f"{state.position.dtype} on {state.position.device}")

@@ -21,6 +21,8 @@ struct StaticAdjoint {
     S r, c[3], p[3], d, gd[3], jn[9], arm[3];
     S pb[3], depthb;  // the way back
     S fnb, vtb[3], nb[3], armb[3], weightb;  // the way back, between its two passes
+    bool moving;  // on a moving static, whose angular velocity is angvel
+    S angvel[3];
   };
   std::vector<Contact> contacts;
   S rot[9], inv_w[9], total, x[3], q[4], v[3], om[3];
@@ -84,6 +86,7 @@ struct StaticAdjoint {
     }
     const S tiny = std::numeric_limits<S>::min();
     const S mass = w.mass[a];
+    bool on_moving = false;
     S fsum[3] = {0, 0, 0};  // the set's normal wrench, summed in pick order as static_wrench
     for (int i = 0; i < 3; ++i) tsum[i] = 0;
     for (int j = 0; j < m; ++j) {
@@ -94,6 +97,18 @@ struct StaticAdjoint {
       S wr[3];
       cross3(om, ct.arm, wr);
       for (int i = 0; i < 3; ++i) law.vel[i] = v[i] + wr[i];
+      const Shape<S>& sh = w.shapes[ct.shape];
+      if (sh.path != nullptr) {  // relative to the moving static's point x + arm (static_wrench)
+        S pt[3], sv[3];
+        for (int i = 0; i < 3; ++i) pt[i] = x[i] + ct.arm[i];
+        shape_point_velocity(sh, pt, sv);
+        for (int i = 0; i < 3; ++i) law.vel[i] -= sv[i];
+        for (int i = 0; i < 3; ++i) ct.angvel[i] = sh.angvel[i];
+        ct.moving = true;
+        on_moving = on_moving || law.depth > 0;
+      } else {
+        ct.moving = false;
+      }
       law.stiff = contact_stiffness(w, mass);
       law.unload = scaled_unload(w, w.unload_static[a * w.k + ct.shape]);
       law.mu = scaled_mu(w, w.mu_static[a * w.k + ct.shape]);
@@ -142,7 +157,7 @@ struct StaticAdjoint {
         it.n[i] = ct.law.n[i];
       }
     }
-    if (is_box_body(w, a))  // no roll stick on a box's corners (static_contacts.h, static_wrench)
+    if (is_box_body(w, a) || on_moving)  // no roll stick on a box's corners, nor against a moving static
       roll.on = false;
     else
       roll.forward(om, inv_w, inv_m, roll_stop_time(w));
@@ -241,10 +256,14 @@ struct StaticAdjoint {
       S weightb = ct.weightb;
       law.backward_normal_and_sum(ct.fnb, yb, ct.vtb, nb, velb, depthb, weightb);
       law.add_material_gradient(gp);
-      // vel = v + om x arm
+      // vel = v + om x arm (- sv - sw x (x + arm - st) on a moving static)
       for (int i = 0; i < 3; ++i) vb[i] += velb[i];
       add_cross(ct.arm, velb, omb);
       add_cross(velb, om, armb);
+      if (ct.moving) {
+        add_cross(ct.angvel, velb, armb);
+        add_cross(ct.angvel, velb, xb);
+      }
       // weight = depth / (total + tiny)
       const S tt = total + tiny;
       depthb += weightb / tt;

@@ -24,7 +24,7 @@ inline void check_world(const std::vector<torch::Tensor>& t, const std::vector<d
   TORCH_CHECK(f.size() == FLOAT_COUNT || (limits_allowed && f.size() == FLOAT_COUNT + 2), "native world: ",
               f.size(), " floats, the schema has ", FLOAT_COUNT, limits_allowed ? " (+2 divergence limits)" : "");
   TORCH_CHECK(iv.size() == INT_COUNT, "native world: ", iv.size(), " ints, the schema has ", INT_COUNT);
-  int64_t sizes[6] = {-1, -1, -1, -1, -1, SHAPE_WIDTH};  // N, S, K, P, G, F
+  int64_t sizes[7] = {-1, -1, -1, -1, -1, SHAPE_WIDTH, -1};  // N, S, K, P, G, F, Q
   for (int i = 0; i < WORLD_FIELD_COUNT; ++i) {
     const FieldSpec& spec = WORLD_SPECS[i];
     const torch::Tensor& x = t[i];
@@ -46,6 +46,7 @@ inline void check_world(const std::vector<torch::Tensor>& t, const std::vector<d
   }
   TORCH_CHECK(iv[I_SUBSTEPS] >= 1 && iv[I_MAX_STATIC_CONTACTS] >= 1 && iv[I_MAX_PAIR_CONTACTS] >= 1,
               "native world: substeps and contact capacities must be >= 1");
+  TORCH_CHECK(iv[I_FIRST_SUBSTEP] >= 0, "native world: first_substep must be >= 0");
 }
 
 template <typename S>
@@ -117,6 +118,14 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
       TORCH_CHECK(offset >= 0 && offset + sh.nx * sh.ny * sh.nz <= grid_size, "native world field 'grid': static ",
                   k, "'s samples run past its end");
     sh.grid = sh.kind == KIND_GRID ? grid + offset : nullptr;
+    const int64_t path_at = static_cast<int64_t>(r[SHAPE_PATH_OFFSET]);
+    sh.path_len = static_cast<int64_t>(r[SHAPE_PATH_LENGTH]);
+    if (path_at >= 0) {
+      TORCH_CHECK(sh.path_len >= 1 && path_at + sh.path_len * PATH_WIDTH <= t[PATHS].numel(),
+                  "native world field 'paths': static ", k, "'s path runs past its end");
+      sh.path = t[PATHS].data_ptr<S>() + path_at;
+      w.moving = true;
+    }
     w.shapes.push_back(sh);
   }
   w.gravity[0] = static_cast<S>(f[F_GRAVITY_X]);
@@ -128,6 +137,8 @@ World<S> make_world(const std::vector<torch::Tensor>& t, const std::vector<doubl
   w.substeps = static_cast<int>(iv[I_SUBSTEPS]);
   w.cap_static = static_cast<int>(iv[I_MAX_STATIC_CONTACTS]);
   w.cap_pair = static_cast<int>(iv[I_MAX_PAIR_CONTACTS]);
+  w.first_substep = iv[I_FIRST_SUBSTEP];
+  if (w.moving) pose_shapes(w, 0);
   return w;
 }
 

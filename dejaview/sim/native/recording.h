@@ -92,10 +92,30 @@ void init_scratch(const World<S>& w, Scratch<S>& sc) {
 // init), else 0.
 inline int trace_first(int64_t record_every) { return record_every == 1 ? 1 : 0; }
 
+// a moving robot's statics change pose every substep: a candidate poses its own copy of the World
 template <typename S>
-void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every, bool with_jac,
+struct Posed {
+  World<S> own;
+  const World<S>* at;
+  explicit Posed(const World<S>& w) : at(&w) {
+    if (w.moving) {
+      own = w;
+      at = &own;
+    }
+  }
+  // the statics at substep number j of the rollout (from its first_substep)
+  const World<S>& operator()(int64_t j) {
+    if (at == &own) pose_shapes(own, j);
+    return *at;
+  }
+};
+
+template <typename S>
+void run_candidate(const World<S>& world, const S* init, int64_t steps, int64_t record_every, bool with_jac,
                    S* rec_states, S* rec_phi, const S* limits, int64_t* status, S* trace = nullptr,
                    PickLog* log = nullptr) {
+  Posed<S> posed(world);
+  const World<S>& w = world;
   const int n = w.n;
   const int dim = STATE_WIDTH * n;
   Scratch<S> sc;
@@ -117,8 +137,9 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
         std::copy(state.begin(), state.end(), trace);
         trace += dim;
       }
+      const World<S>& wk = posed((step - 1) * w.substeps + k);
       if (!with_jac) {
-        substep<S>(w, state.data(), sc, nullptr);
+        substep<S>(wk, state.data(), sc, nullptr);
         if (log != nullptr)
           for (int a = 0; a < n; ++a) {
             log->counts.push_back(static_cast<int32_t>(sc.picks[a].size()));
@@ -128,7 +149,7 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
           }
         continue;
       }
-      substep(w, state.data(), sc, sc.jac.data());
+      substep(wk, state.data(), sc, sc.jac.data());
       phi_update<S>(dim, sc.jac.data(), phi.data(), tmp.data(), sc.blk);  // phi <- J phi
       phi.swap(tmp);
     }
@@ -160,10 +181,12 @@ void run_candidate(const World<S>& w, const S* init, int64_t steps, int64_t reco
 // grad_init = sum_t Phi_t^T grad_t, as lam <- J^T lam backwards through the substeps; out_phys (3),
 // where given, the gradient with respect to the logs of w's physics factors (World::mu_scale, ...).
 template <typename S>
-void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t record_every,
+void adjoint_candidate(const World<S>& world, const S* init, int64_t steps, int64_t record_every,
                        const S* rec_states, const S* trace, const S* grad, S* out,
                        const int32_t* counts = nullptr, const uint32_t* picks = nullptr, int64_t total = 0,
                        S* out_phys = nullptr) {
+  Posed<S> posed(world);
+  const World<S>& w = world;
   const int n = w.n;
   const int dim = STATE_WIDTH * n;
   Scratch<S> sc;
@@ -187,7 +210,7 @@ void adjoint_candidate(const World<S>& w, const S* init, int64_t steps, int64_t 
         for (int a = 0; a < n; ++a) total -= sc.logged[a];
         sc.logged_picks = picks + total;
       }
-      substep_adjoint(w, s, sc, lam.data());
+      substep_adjoint(posed((step - 1) * w.substeps + k), s, sc, lam.data());
     }
   }
   std::copy(lam.begin(), lam.end(), out);

@@ -26,11 +26,12 @@ enum WorldField : int {
   PAIR_SURFACE = 15,  // int64 (P): which body's box surface the other's spheres meet: 0 a, 1 b, -1 none
   SHAPES = 16,  // float64 (K, F): one row of SHAPE_COLUMNS per static shape
   GRID = 17,  // float64 (G): the sampled distances of every grid static, one after another
-  WORLD_FIELD_COUNT = 18
+  PATHS = 18,  // float64 (Q): the PATH_COLUMNS rows of every moving static, one after another
+  WORLD_FIELD_COUNT = 19
 };
 
 // symbolic dimensions of the arrays' shapes
-enum Dim : int { DIM_N = -1, DIM_S = -2, DIM_K = -3, DIM_P = -4, DIM_G = -5, DIM_F = -6 };
+enum Dim : int { DIM_N = -1, DIM_S = -2, DIM_K = -3, DIM_P = -4, DIM_G = -5, DIM_F = -6, DIM_Q = -7 };
 struct FieldSpec { const char* name; bool is_int; int ndim; int dims[3]; };
 constexpr FieldSpec WORLD_SPECS[WORLD_FIELD_COUNT] = {
   {"mass", false, 1, {DIM_N, 0, 0}},
@@ -51,6 +52,7 @@ constexpr FieldSpec WORLD_SPECS[WORLD_FIELD_COUNT] = {
   {"pair_surface", true, 1, {DIM_P, 0, 0}},
   {"shapes", false, 2, {DIM_K, DIM_F, 0}},
   {"grid", false, 1, {DIM_G, 0, 0}},
+  {"paths", false, 1, {DIM_Q, 0, 0}},
 };
 
 // one static shape's row (SHAPE_COLUMNS): first index of each column
@@ -65,7 +67,16 @@ constexpr int SHAPE_GRID_SPACING = 21;  // 1 number(s)
 constexpr int SHAPE_LIPSCHITZ = 22;  // 1 number(s)
 constexpr int SHAPE_GRID_SHAPE = 23;  // 3 number(s)
 constexpr int SHAPE_GRID_OFFSET = 26;  // 1 number(s)
-constexpr int SHAPE_WIDTH = 27;
+constexpr int SHAPE_PATH_OFFSET = 27;  // 1 number(s)
+constexpr int SHAPE_PATH_LENGTH = 28;  // 1 number(s)
+constexpr int SHAPE_WIDTH = 29;
+
+// one row of a moving static's path (PATH_COLUMNS): first index of each column
+constexpr int PATH_ROTATION = 0;  // 9 number(s)
+constexpr int PATH_TRANSLATION = 9;  // 3 number(s)
+constexpr int PATH_VELOCITY = 12;  // 3 number(s)
+constexpr int PATH_ANGULAR_VELOCITY = 15;  // 3 number(s)
+constexpr int PATH_WIDTH = 18;
 
 // static shape kinds (KINDS)
 constexpr int KIND_PLANE = 0;
@@ -86,7 +97,8 @@ constexpr int FLOAT_COUNT = 6;
 constexpr int I_SUBSTEPS = 0;
 constexpr int I_MAX_STATIC_CONTACTS = 1;
 constexpr int I_MAX_PAIR_CONTACTS = 2;
-constexpr int INT_COUNT = 3;
+constexpr int I_FIRST_SUBSTEP = 3;
+constexpr int INT_COUNT = 4;
 
 // one body's state row (STATE): first index of each part
 constexpr int STATE_POSITION = 0;  // 3 number(s)

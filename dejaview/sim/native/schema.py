@@ -63,6 +63,7 @@ WORLD_FIELDS = (
     Field("pair_surface", "int64", ("P",), "which body's box surface the other's spheres meet: 0 a, 1 b, -1 none"),
     Field("shapes", "float64", ("K", "F"), "one row of SHAPE_COLUMNS per static shape"),
     Field("grid", "float64", ("G",), "the sampled distances of every grid static, one after another"),
+    Field("paths", "float64", ("Q",), "the PATH_COLUMNS rows of every moving static, one after another"),
 )
 """The World's arrays, in the order they travel (``pack``; ``dv::schema::WorldField``)."""
 
@@ -78,8 +79,21 @@ SHAPE_COLUMNS = (
     ("lipschitz", 1, "bound on |grad distance| (1 for analytic shapes)"),
     ("grid_shape", 3, "grid: samples per axis"),
     ("grid_offset", 1, "grid: index of its first value in the grid array"),
+    ("path_offset", 1, "a moving static (a moving robot's link): index of its first path row's first "
+                       "number in the paths array; -1 for a static that stands"),
+    ("path_length", 1, "a moving static: its path's rows, one per substep time j h (held after the last)"),
 )
 """One static shape's parameters: (name, width, meaning), in row order."""
+
+PATH_COLUMNS = (
+    ("rotation", 9, "world-from-shape rotation at substep time j h, row-major"),
+    ("translation", 3, "shape origin in the world then, m"),
+    ("velocity", 3, "velocity of the shape's origin then, m/s"),
+    ("angular_velocity", 3, "the shape's angular velocity then, rad/s"),
+)
+"""One row of a moving static's path (``dejaview.sim.motion.ShapePath``): (name, width, meaning)."""
+
+PATH_WIDTH = sum(width for _, width, _ in PATH_COLUMNS)
 
 KINDS = {kind: code for code, kind in enumerate(STATIC_KINDS)}
 """Static shape kind -> the code in the shape row's ``kind`` column."""
@@ -87,8 +101,9 @@ KINDS = {kind: code for code, kind in enumerate(STATIC_KINDS)}
 FLOATS = ("gravity_x", "gravity_y", "gravity_z", "substep_dt", "contact_frequency", "unload_velocity")
 """Scalars (s, rad/s, m/s); the rollout may append its divergence limits (reach, speed)."""
 
-INTS = ("substeps", "max_static_contacts", "max_pair_contacts")
-"""Integer settings."""
+INTS = ("substeps", "max_static_contacts", "max_pair_contacts", "first_substep")
+"""Integer settings (``first_substep``: the substep number the rollout starts at, where moving statics
+stand; 0 in ``pack``, a rollout continued from step i passes ``i * substeps``)."""
 
 CONSTANTS = {
     "SLIP_EPS": (contacts.SLIP_EPS, "m/s: friction direction regulariser (dejaview.sim.contacts)"),
@@ -173,10 +188,17 @@ def pack(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
     cols = shape_offsets()
     shapes = torch.zeros(len(world.statics), SHAPE_WIDTH, **f64)
     grids, offset = [], 0
+    paths, path_at = [], 0
     for k, s in enumerate(world.statics):
         values = {"kind": KINDS[s.kind], "rotation": s.rotation.reshape(9), "translation": s.translation,
                   "half": s.half, "radius": s.radius, "half_height": s.half_height,
-                  "grid_origin": s.grid_origin, "grid_spacing": s.grid_spacing, "lipschitz": 1.0}
+                  "grid_origin": s.grid_origin, "grid_spacing": s.grid_spacing, "lipschitz": 1.0,
+                  "path_offset": -1.0, "path_length": 0.0}
+        if s.path is not None:
+            rows = s.path.rows().to(torch.float64)  # (T, PATH_WIDTH)
+            values.update(path_offset=float(path_at), path_length=float(rows.shape[0]))
+            paths.append(rows.reshape(-1))
+            path_at += rows.numel()
         if s.kind == "grid":
             values.update(lipschitz=grid_lipschitz(s.grid, s.grid_spacing),
                           grid_shape=torch.tensor(s.grid.shape, **f64), grid_offset=offset)
@@ -196,13 +218,14 @@ def pack(world) -> tuple[list[torch.Tensor], list[float], list[int]]:
         "mass_pair": world.mass_pair, "box_half": world.box_half,
         "pair_surface": torch.tensor(world.pair_surface, dtype=torch.int64).reshape(-1), "shapes": shapes,
         "grid": torch.cat(grids) if grids else torch.zeros(0, **f64),
+        "paths": torch.cat(paths) if paths else torch.zeros(0, **f64),
     }
     tensors = [arrays[f.name].contiguous() for f in WORLD_FIELDS]
     scalars = {"gravity_x": world.gravity[0], "gravity_y": world.gravity[1], "gravity_z": world.gravity[2],
                "substep_dt": world.dt / world.substeps, "contact_frequency": world.contact.frequency,
                "unload_velocity": world.contact.unload_velocity}
     integers = {"substeps": world.substeps, "max_static_contacts": world.contact.max_static_contacts,
-                "max_pair_contacts": world.contact.max_pair_contacts}
+                "max_pair_contacts": world.contact.max_pair_contacts, "first_substep": 0}
     return tensors, [float(scalars[n]) for n in FLOATS], [int(integers[n]) for n in INTS]
 
 
@@ -212,7 +235,7 @@ def _cpp_name(name: str) -> str:
 
 def header() -> str:
     """``schema.h``: this module's tables as C++ names (generated; do not edit by hand)."""
-    dims = {"N": 0, "S": 1, "K": 2, "P": 3, "G": 4, "F": 5}
+    dims = {"N": 0, "S": 1, "K": 2, "P": 3, "G": 4, "F": 5, "Q": 6}
     lines = ["// Generated by dejaview.sim.native.schema.header() from dejaview/sim/native/schema.py:",
              "// edit that file and regenerate (its docstring says how), not this one.",
              "#pragma once", "#include <cstdint>", "", "namespace dv {", "namespace schema {", ""]
@@ -234,6 +257,12 @@ def header() -> str:
     for name, (first, width) in shape_offsets().items():
         lines.append(f"constexpr int SHAPE_{_cpp_name(name)} = {first};  // {width} number(s)")
     lines += [f"constexpr int SHAPE_WIDTH = {SHAPE_WIDTH};", ""]
+    lines.append("// one row of a moving static's path (PATH_COLUMNS): first index of each column")
+    at = 0
+    for name, width, _ in PATH_COLUMNS:
+        lines.append(f"constexpr int PATH_{_cpp_name(name)} = {at};  // {width} number(s)")
+        at += width
+    lines += [f"constexpr int PATH_WIDTH = {PATH_WIDTH};", ""]
     lines.append("// static shape kinds (KINDS)")
     lines += [f"constexpr int KIND_{_cpp_name(kind)} = {code};" for kind, code in KINDS.items()]
     lines += [f"constexpr int KIND_COUNT = {len(KINDS)};", ""]

@@ -27,7 +27,9 @@ void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, s
   const Shape<S>& sh = w.shapes[k];
   const S shift = sh.lipschitz * travel;
   const S thr = S(schema::CLEAR_MARGIN) + shift;  // a key above this cannot touch now
-  if (floor[k] > thr || keymin[k] > thr) return;
+  // a moving static's keys say nothing (it moves, not only the body): its spheres are looked at anew
+  const bool keyed = sh.path == nullptr;
+  if (keyed && (floor[k] > thr || keymin[k] > thr)) return;
   S dc;
   distance<S>(sh, x, dc, nullptr);
   const S far = dc - sh.lipschitz * w.bound[a];
@@ -39,7 +41,7 @@ void select_spheres(const World<S>& w, int a, int k, const S* x, const S* rot, s
   const S fl = floor[k];
   S low = std::numeric_limits<S>::infinity();
   for (int i = 0; i < cnt; ++i) {
-    if (!corners && std::max(kk[i], fl) > thr) {
+    if (!corners && keyed && std::max(kk[i], fl) > thr) {
       low = std::min(low, kk[i]);
       continue;
     }
@@ -231,16 +233,24 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     mu[j] = scaled_mu(w, w.mu_static[a * w.k + picks[j].shape]);
     unload[j] = scaled_unload(w, w.unload_static[a * w.k + picks[j].shape]);
   }
+  bool on_moving = false;  // touching a moving static: no roll stick (line_contact.py)
   for (int j = 0; j < m; ++j) {
     const T* n = nr + 3 * j;
     const T* r = ar + 3 * j;
     T wr[3], vel[3];
     cross3(om, r, wr);
 #pragma GCC unroll 3
-    for (int i = 0; i < 3; ++i) {
-      vel[i] = v[i] + wr[i];
-      velocity[i * m + j] = vel[i];
+    for (int i = 0; i < 3; ++i) vel[i] = v[i] + wr[i];
+    const Shape<S>& sh = w.shapes[picks[j].shape];
+    if (sh.path != nullptr) {  // relative to the moving static's point there
+      T pt[3], sv[3];
+      for (int i = 0; i < 3; ++i) pt[i] = x[i] + r[i];
+      shape_point_velocity(sh, pt, sv);
+      for (int i = 0; i < 3; ++i) vel[i] = vel[i] - sv[i];
+      on_moving = on_moving || val(dep[j]) > 0;
     }
+#pragma GCC unroll 3
+    for (int i = 0; i < 3; ++i) velocity[i * m + j] = vel[i];
     vn[j] = dot3(vel, n);
   }
   for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], uv);
@@ -307,7 +317,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
   std::vector<T>& dfn = scratch<T>(13);
   dfn.resize(m);
   // (not for a box body: it meets flat shapes with its exact corners, line_contact.py)
-  if (!is_box_body(w, a) &&
+  if (!is_box_body(w, a) && !on_moving &&
       line_roll_stick<T, S>(m, dep, denom, nr, ar, loading, om, iw, inv_m, roll_stop_time(w), dfn.data()))
     for (int j = 0; j < m; ++j) {
       T f[3], tq[3];

@@ -24,6 +24,12 @@ struct Shape {
   S rot[9], trans[3], half[3], radius, half_height, origin[3], spacing, lipschitz;
   const S* grid;
   int64_t nx, ny, nz;
+  // a moving static (a moving robot's link): its path (path_len rows of schema::PATH_WIDTH, one per
+  // substep time, held after the last; pose_shapes copies the substep's row into rot and trans) and
+  // its velocity now, which contacts' relative velocities take off; null for a static that stands
+  const S* path = nullptr;
+  int64_t path_len = 0;
+  S vel[3] = {S(0), S(0), S(0)}, angvel[3] = {S(0), S(0), S(0)};
 };
 
 template <typename S>
@@ -45,7 +51,36 @@ struct World {
   // one candidate's physics, as factors on every pair's friction and unloading factor and on the
   // contact stiffness (rollout's `physics`: their logs; 1 where none is given)
   S mu_scale = S(1), unload_scale = S(1), stiff_scale = S(1);
+  bool moving = false;        // some static has a path (a moving robot)
+  int64_t first_substep = 0;  // the substep number the rollout starts at (where the paths stand)
 };
+
+// the moving statics of w posed at substep number j (from the rollout's start: first_substep + j):
+// pose and velocity from their paths' row j, the last row after their ends
+template <typename S>
+void pose_shapes(World<S>& w, int64_t j) {
+  using namespace schema;
+  for (Shape<S>& sh : w.shapes) {
+    if (sh.path == nullptr) continue;
+    const S* row = sh.path + std::min(w.first_substep + j, sh.path_len - 1) * PATH_WIDTH;
+    for (int i = 0; i < 9; ++i) sh.rot[i] = row[PATH_ROTATION + i];
+    for (int i = 0; i < 3; ++i) {
+      sh.trans[i] = row[PATH_TRANSLATION + i];
+      sh.vel[i] = row[PATH_VELOCITY + i];
+      sh.angvel[i] = row[PATH_ANGULAR_VELOCITY + i];
+    }
+  }
+}
+
+// velocity (3) of the point pt (3) of static shape sh, moving with it: vel + angvel x (pt - trans)
+template <typename T, typename S>
+inline void shape_point_velocity(const Shape<S>& sh, const T* pt, T* out) {
+  T d[3];
+  for (int i = 0; i < 3; ++i) d[i] = pt[i] - sh.trans[i];
+  out[0] = sh.vel[0] + (sh.angvel[1] * d[2] - sh.angvel[2] * d[1]);
+  out[1] = sh.vel[1] + (sh.angvel[2] * d[0] - sh.angvel[0] * d[2]);
+  out[2] = sh.vel[2] + (sh.angvel[0] * d[1] - sh.angvel[1] * d[0]);
+}
 
 // the contact law's material of a pair, the candidate's physics applied: friction, unloading
 // factor (kept within [0, 1]: a restitution above 1 is impossible), stiffness of a contact with
