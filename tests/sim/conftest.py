@@ -31,3 +31,22 @@ def floor():
 
 def make_world(bodies, statics, **kw) -> World:
     return World.build(bodies, statics, **kw)
+
+
+def trajectory_loss(traj) -> "torch.Tensor":
+    """A smooth scalar of the whole trajectory: every record's pose and velocity."""
+    s = traj.states
+    return ((s.position ** 2).sum() + 0.3 * (s.orientation[..., 1:] ** 2).sum()
+            + 0.01 * (s.linear_velocity ** 2).sum() + 0.001 * (s.angular_velocity ** 2).sum())
+
+
+def state_gradient(world, state, engine, steps):
+    """(13 N B,) reverse gradient of ``trajectory_loss`` after ``steps`` of ``engine`` w.r.t. the state."""
+    import torch
+
+    from dejaview.sim.integrate import rollout
+    from dejaview.sim.state import State
+
+    tensors = [t.detach().clone().requires_grad_(True) for t in state.tensors()]
+    loss = trajectory_loss(rollout(world, State(*tensors), steps=steps, engine=engine))
+    return torch.cat([g.flatten() for g in torch.autograd.grad(loss, tensors)])

@@ -14,7 +14,7 @@ from dejaview.sim import StaticShape
 from dejaview.sim.integrate import rollout
 from dejaview.sim.motion import ShapePath, joint_path
 from dejaview.sim.state import State
-from tests.sim.conftest import ball_body, box_body, make_world
+from tests.sim.conftest import ball_body, box_body, make_world, state_gradient as _grad, trajectory_loss as _loss
 
 ATOL = 1e-9
 
@@ -51,18 +51,6 @@ def _world(body: str, steps: int, substeps: int = 2, dt: float = 0.002, **paddle
     return world, world.state(pos, batch_size=2).replace(
         position=world.state(pos, batch_size=2).position
         + torch.tensor([[[0.0, 0.0, 0.0]], [[0.02, -0.03, 0.0]]], dtype=torch.float64))
-
-
-def _loss(traj) -> torch.Tensor:
-    s = traj.states
-    return ((s.position ** 2).sum() + 0.3 * (s.orientation[..., 1:] ** 2).sum()
-            + 0.01 * (s.linear_velocity ** 2).sum() + 0.001 * (s.angular_velocity ** 2).sum())
-
-
-def _grad(world, state, engine, steps):
-    tensors = [t.detach().clone().requires_grad_(True) for t in state.tensors()]
-    loss = _loss(rollout(world, State(*tensors), steps=steps, engine=engine))
-    return torch.cat([g.flatten() for g in torch.autograd.grad(loss, tensors)])
 
 
 @pytest.mark.parametrize("body", ["ball", "packed box", "box", "two"])

@@ -20,7 +20,7 @@ from dejaview.sim.integrate import rollout
 from dejaview.sim.sdf import sdf_box, sdf_grid
 from dejaview.sim.simulate import SimulationStopped, simulate
 from dejaview.sim.state import State
-from tests.sim.conftest import ball_body, box_body, make_world
+from tests.sim.conftest import ball_body, box_body, make_world, state_gradient as _grad, trajectory_loss as _loss
 
 ATOL = 1e-9  # states agree to round-off (the sums run in another order)
 
@@ -115,19 +115,6 @@ def test_record_every_and_batches_match():
     solo = rollout(world, state.index(1), steps=101, record_every=7, engine="native")
     for a, b in zip(out.states.tensors(), solo.states.tensors()):
         assert torch.equal(a[:, 1:2], b)
-
-
-def _loss(traj: State) -> torch.Tensor:
-    """A smooth scalar of the whole trajectory: every record's pose and velocity."""
-    s = traj.states
-    return ((s.position ** 2).sum() + 0.3 * (s.orientation[..., 1:] ** 2).sum()
-            + 0.01 * (s.linear_velocity ** 2).sum() + 0.001 * (s.angular_velocity ** 2).sum())
-
-
-def _grad(world, state, engine, steps):
-    tensors = [t.detach().clone().requires_grad_(True) for t in state.tensors()]
-    loss = _loss(rollout(world, State(*tensors), steps=steps, engine=engine))
-    return torch.cat([g.flatten() for g in torch.autograd.grad(loss, tensors)])
 
 
 @pytest.mark.parametrize("kind", ["grid", "box"])

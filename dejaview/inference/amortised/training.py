@@ -47,7 +47,7 @@ def _setup(scene):
 def _chunk(post, item, report, stopped):
     """One chunk: (index, draws, seed) -> (x (M, P), y (M, D), draws, feasible) of its feasible,
     finite simulations."""
-    from dejaview.inference.amortised.observables import noisy, simulated
+    from dejaview.inference.amortised.observables import noisy, simulated, width
     from dejaview.inference.reference import prior_draws
 
     index, n, seed = item
@@ -56,7 +56,7 @@ def _chunk(post, item, report, stopped):
     ok = post.feasible(x)
     x = x[ok]
     if x.shape[0] == 0 or stopped():
-        return x, torch.zeros(0, _width(post), dtype=torch.float64), n, 0
+        return x, torch.zeros(0, width(post), dtype=torch.float64), n, 0
     with torch.no_grad():
         y = simulated(post, post.trajectories(x)[0]).to(torch.float64)
     y = noisy(post, y, gen)
@@ -65,10 +65,6 @@ def _chunk(post, item, report, stopped):
     return x[finite], y[finite], n, int(ok.sum())
 
 
-def _width(post) -> int:
-    from dejaview.inference.amortised.observables import width
-
-    return width(post)
 
 
 def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=None):
@@ -84,7 +80,6 @@ def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=Non
     t0 = time.perf_counter()
     xs, ys, draws, feasible, index = [], [], 0, 0, 0
     have = 0
-    workers = p.workers if p.ray is None else p.workers
 
     def report(_i, m):
         if callback is not None:
@@ -99,7 +94,7 @@ def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=Non
         need = math.ceil((p.simulations - have) / max(share, 1e-3) * (1.05 if draws else 1.0))
         chunks = [(index + i, p.chunk, p.seed) for i in range(max(1, math.ceil(need / p.chunk)))]
         index += len(chunks)
-        out = map_chunks(_chunk, chunks, setup=_setup, setup_args=(scene,), workers=workers, ray=p.ray,
+        out = map_chunks(_chunk, chunks, setup=_setup, setup_args=(scene,), workers=p.workers, ray=p.ray,
                          on_report=report, should_stop=should_stop)
         if should_stop is not None and should_stop():
             raise InferenceError("stopped while simulating the training set")
