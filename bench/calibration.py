@@ -100,7 +100,7 @@ def base_scene(name: str):
                      SceneObject(id="box", shape="box", size=(0.12, 0.08, 0.06), mass=0.3,
                                  pose=Pose((0.0, 0.0, 0.3)))),
             inference=InferenceSettings(
-                source="box", targets=(Target(position=(0.0, 0.0, 0.03), moving=True),), loss="pose", evaluate="final",
+                source="box", targets=(Target(position=(0.0, 0.0, 0.03), orientation=(1.0, 0.0, 0.0, 0.0), moving=True),), loss="pose", evaluate="final",
                 optimize=Optimize(position=True, orientation=True, linear_velocity=True, angular_velocity=True),
                 start_area=StartArea(min=(-0.3, -0.3, 0.3), max=(0.3, 0.3, 0.3)),
                 prior=Prior(speed=1.0, spin=3.0, tilt=0.3), observation=Observation(sigma=0.01, angle_sigma=0.1)))
