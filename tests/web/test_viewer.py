@@ -51,7 +51,8 @@ def test_load_move_solve_animate_heatmap_export(page, web_server, web_root, arti
     assert 0.01 < moved[0] < 0.15 and moved[1:] == pytest.approx([0, 0.4], abs=1e-6), moved
     page.screenshot(path=artifacts / "2-moved.png")
 
-    # inference settings through the panel
+    # inference settings through the panel: the seed's optimiser settings under "advanced"
+    page.click("#advanced summary")
     page.fill("#iterations", "3")
     page.select_option("#optimizer", "adam")
     page.select_option("#gradient", "reverse")
