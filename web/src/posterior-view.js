@@ -210,6 +210,6 @@ function showRegionLine() {
   const cm2 = app.region.area * 1e4;
   const from = app.region.from === 'heatmap' ? 'the heatmap' : 'the samples';
   view.prepend(el('div', { className: 'region muted',
-    textContent: `90 % region (cyan on the floor): ${cm2 < 100 ? cm2.toFixed(1) : Math.round(cm2)} cm² of the start `
+    textContent: `90 % region (cyan, on the surface under the start area): ${cm2 < 100 ? cm2.toFixed(1) : Math.round(cm2)} cm² of the start `
       + `area, ${app.region.cells} of ${app.region.cellCount} cells, from ${from}` }));
 }
