@@ -144,7 +144,7 @@ def test_add_a_box_and_a_mesh_make_them_the_source_and_fixed(page, web_server, w
     page.click("#spawn")
     page.wait_for_function("window.dejaview.state().meshesLoaded === 5")
     assert state(page)["selected"] == "box1" and state(page)["gizmoAttached"]
-    page.evaluate("window.dejaview.setPose('box1', [-0.2, 0.15, 0.3])")
+    page.evaluate("window.dejaview.setPose('box1', [0.25, -0.2, 0.3])")
     page.check("#objects tr[data-id='box1'] input[type=radio]")
     page.select_option("#spawn-kind", "mesh:meshes/cube.obj")
     page.click("#spawn")
@@ -152,7 +152,7 @@ def test_add_a_box_and_a_mesh_make_them_the_source_and_fixed(page, web_server, w
     page.check("#objects tr[data-id='cube1'] input[type=checkbox]")
     s = state(page)
     assert s["objects"][-2:] == ["box1", "cube1"] and s["source"] == "box1"
-    assert s["setup"]["box1"] == pytest.approx([-0.2, 0.15, 0.3])
+    assert s["setup"]["box1"] == pytest.approx([0.25, -0.2, 0.3])
     page.screenshot(path=artifacts / "spawned-box-source.png")
 
     scene = read_scene_string(page.evaluate("window.dejaview.exportXml()"), base_dir=web_root / "scenes",
@@ -160,7 +160,7 @@ def test_add_a_box_and_a_mesh_make_them_the_source_and_fixed(page, web_server, w
     box = next(o for o in scene.objects if o.id == "box1")
     cube = next(o for o in scene.objects if o.id == "cube1")
     assert box.shape == "box" and box.size == pytest.approx((0.1, 0.1, 0.1)) and not box.fixed
-    assert box.pose.position == pytest.approx((-0.2, 0.15, 0.3)) and scene.inference.source == "box1"
+    assert box.pose.position == pytest.approx((0.25, -0.2, 0.3)) and scene.inference.source == "box1"
     assert cube.fixed and cube.mesh.endswith("meshes/cube.obj") and cube.spheres.endswith("packings/cube.spheres")
     # removed again: gone from the table and the export
     page.evaluate("window.dejaview.select('cube1')")

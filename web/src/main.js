@@ -68,9 +68,14 @@ async function loadScene(text, origin = '', files = null) {
   live.sceneChanged();
   live.clear();
   live.moved(null);
-  $('scene-name').textContent = `${model.name}${origin ? ` (${origin})` : ''}: ${model.objects.length} objects`;
+  showSceneName();
   notify(`loaded ${model.name}`);
   return model.objects.map((o) => o.id);
+}
+
+function showSceneName() {
+  const { model } = app;
+  $('scene-name').textContent = `${model.name}${model.origin ? ` (${model.origin})` : ''}: ${model.objects.length} objects`;
 }
 
 async function loadScenePath(path) {
@@ -140,6 +145,7 @@ async function spawn(kind, position) {
   const id = await spawnObject(kind, position);
   live.sceneChanged();
   fillObjects();
+  showSceneName();
   select(id);
   notify(`added ${id}`);
   return id;
@@ -152,6 +158,7 @@ function removeSelected(id = app.selected) {
   removeObject(id);
   live.sceneChanged();
   fillObjects();
+  showSceneName();
   updateSelectionText();
 }
 
@@ -352,11 +359,14 @@ async function listScenes() {
 // ------------------------------------------------------------------ VR and the frame loop
 const vr = setupVR({
   renderer, scene, world,
+  // fixed objects are picked (selected, for the menu's "fixed" and "source") but not moved
   grabbable: () => {
-    const groups = [...app.nodes].filter(([id]) => !app.model.isFixed(id)).map(([, n]) => n.group);
+    const groups = [...app.nodes].filter(([id]) => app.model.object(id).shape !== 'plane' && !app.model.object(id).robot)
+      .map(([, n]) => n.group);
     for (const obs of app.observations) if (obs.group.visible) groups.push(obs.group);
     return groups;
   },
+  movable: (group) => group.userData.observation !== undefined || !app.model.isFixed(group.userData.objectId),
   onGrab: (group) => {
     showSetup();
     app.selected = group.userData.observation !== undefined ? observationIdOf(group) : group.userData.objectId;

@@ -9,7 +9,9 @@ import { VRMenu } from './vr-menu.js';
 const AHEAD = 0.5; // m: where the menu's "add" buttons put a target or an object, in front of the eyes
 
 // onMenu(name, at): a menu button pressed, at: half a metre in front of the eyes, in the scene (z up).
-export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, onSolve, onMenu }) {
+// grabbable(): the groups a ray may pick; movable(group): whether a picked one is carried (else it is
+// only selected: onGrab without a release).
+export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, onRelease, onSolve, onMenu }) {
   renderer.xr.enabled = true;
   const button = VRButton.createButton(renderer);
   document.body.appendChild(button);
@@ -59,6 +61,7 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
       while (group.parent && group.parent !== world) group = group.parent;
       if (group.parent !== world) return;
       onGrab(group);
+      if (!movable(group)) return; // selected, not carried
       controller.attach(group); // keeps its world pose; follows the controller from now on
       state.held[index] = group;
       state.grabs += 1;
