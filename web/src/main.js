@@ -24,11 +24,12 @@ import {
 } from './posterior-view.js';
 import { removeObject, setMeshes, spawnObject } from './spawn.js';
 import {
-  TARGET, groupOf, isObservation, observationId, observationOf, poseEdited, updateSelectionText,
+  TARGET, groupOf, isObservation, observationOf, poseEdited, updateSelectionText,
 } from './selection.js';
 import { camera, gizmo, renderer, scene, world } from './stage.js';
 import { $, app, notify } from './state.js';
 import { installTestHooks } from './test-hooks.js';
+import { menuStatus, observationIdOf, pressMenu } from './vr-actions.js';
 import { setupVR } from './vr.js';
 
 gizmo.addEventListener('objectChange', () => {
@@ -371,84 +372,21 @@ const vr = setupVR({
     showSetup();
     app.selected = group.userData.observation !== undefined ? observationIdOf(group) : group.userData.objectId;
     updateSelectionText();
-    menuStatus();
+    menuStatus(vr.menu);
   },
-  onRelease: (group) => { poseEdited(group); live.moved(group); fillTargets(); menuStatus(); },
+  onRelease: (group) => { poseEdited(group); live.moved(group); fillTargets(); menuStatus(vr.menu); },
   onSolve: () => run('solve'),
-  onMenu: (name, at) => vrMenu(name, at).then(menuStatus, (err) => {
+  onMenu: (name, at) => pressMenu(name, at, menuActions).then(() => menuStatus(vr.menu), (err) => {
     notify(err.message, 'error');
     vr.menu.setStatus(err.message);
   }),
 });
-
-function observationIdOf(group) {
-  const target = app.model.targets[group.userData.observation];
-  return target ? observationId(target) : null;
-}
-
-// What the VR menu's top line says: the selection (the object or target grabbed last).
-function menuStatus() {
-  const id = app.selected;
-  let text = 'grab an object or a target to select it';
-  if (isObservation(id)) {
-    const t = observationOf(id) && app.model.targets[observationOf(id).index];
-    text = t ? `${t.last ? 'target' : `target ${t.index + 1}`}: ${t.time == null ? 'at the end' : `${t.time.toFixed(2)} s`}` : text;
-  } else if (id && app.model?.object(id)) {
-    text = `${id}: ${id === app.model.source ? 'the source' : (app.model.isFixed(id) ? 'fixed' : 'movable')}`;
-  }
-  vr.menu.setStatus(text);
-}
-
-// A VR menu button (vr-menu.js): at, the pressing controller's position in the scene.
-async function vrMenu(name, at) {
-  if (!app.model) throw new Error('load a scene first');
-  const id = app.selected;
-  const obs = observationOf(id);
-  const object = !isObservation(id) && id && app.model.object(id) ? id : null;
-  const nudge = (dt) => {
-    const t = obs && app.model.targets[obs.index];
-    if (!t || t.time == null) throw new Error('grab a timed target first');
-    app.model.setObservation(t.index, { time: Math.max(0, Number((t.time + dt).toFixed(3))) });
-    live.sceneChanged();
-    buildObservations();
-    fillTargets();
-  };
-  switch (name) {
-    case 'add-target': addTimedTarget(null, at); break;
-    case 'delete-target': {
-      const timed = app.model.targets.filter((t) => t.time != null);
-      const index = obs ? obs.index : timed[timed.length - 1]?.index;
-      if (index === undefined) throw new Error('no timed target to delete');
-      deleteTarget(index);
-      break;
-    }
-    case 'time-down': nudge(-0.05); break;
-    case 'time-up': nudge(0.05); break;
-    case 'box': case 'sphere': case 'cylinder': await spawn(name, at); break;
-    case 'mesh': {
-      const kind = $('spawn-kind').value.startsWith('mesh:') ? $('spawn-kind').value
-        : [...$('spawn-kind').options].map((o) => o.value).find((v) => v.startsWith('mesh:'));
-      if (!kind) throw new Error('the scene root has no meshes to add');
-      await spawn(kind, at);
-      break;
-    }
-    case 'source':
-      if (!object) throw new Error('grab an object first');
-      setSource(object);
-      break;
-    case 'fixed':
-      if (!object || object === app.model.source) throw new Error('grab an object (not the source) first');
-      setFixed(object, !app.model.isFixed(object));
-      fillObjects();
-      break;
-    case 'remove':
-      if (!object) throw new Error('grab an object first');
-      removeSelected(object);
-      break;
-    case 'solve': run('solve'); break;
-    default: break;
-  }
-}
+const menuActions = {
+  addTimedTarget, deleteTarget, spawn, setSource, setFixed, removeSelected, run,
+  changed: () => live.sceneChanged(),
+  observationsChanged: () => { buildObservations(); fillTargets(); },
+  objectsChanged: () => fillObjects(),
+};
 
 const timer = new THREE.Timer();
 renderer.setAnimationLoop(() => {
