@@ -116,6 +116,7 @@ def test_belief_and_observations_round_trip_through_the_export(page, web_server,
     page.select_option("#targets tr[data-index='1'] select", "rest")  # lay still at its moment too
     page.click("#add-target")
     page.click("#targets tr[data-index='1'] button")  # and delete the first timed one
+    page.check("#targets tr[data-index='1'] input.pose")  # the other saw a pose: the set-up orientation
     scene = read_scene_string(page.evaluate("window.dejaview.exportXml()"), base_dir=web_root / "scenes",
                               filename="exported.xml")
     inf = scene.inference
@@ -124,6 +125,7 @@ def test_belief_and_observations_round_trip_through_the_export(page, web_server,
     assert (inf.physics_prior.friction, inf.physics_prior.restitution, inf.physics_prior.stiffness) == (0.3, None, 0.5)
     assert inf.model_uncertainty.restitution == 0.1 and inf.posterior.samples == 7 and inf.iterations == 200
     assert [(t.time, t.moving) for t in inf.targets] == [(None, None), (pytest.approx(0.1), None)]
+    assert inf.targets[0].orientation is None and inf.targets[1].orientation == pytest.approx((1, 0, 0, 0))
     for selector in ("#prior-tilt", "#phys-friction", "#phys-stiffness", "#mu-restitution", "#samples"):
         change(page, selector, "")
     xml = page.evaluate("window.dejaview.exportXml()")

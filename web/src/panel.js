@@ -34,7 +34,7 @@ export function setupPanel(h) {
   for (const id of Object.keys(BELIEF_INPUTS)) $(id).addEventListener('change', () => guarded(readBelief));
   $('samples').addEventListener('change', () => guarded(readBelief));
   for (const id of SETTINGS_INPUTS) {
-    $(id).addEventListener('change', () => guarded(() => { readSettings(); hooks.settingsChanged(); }));
+    $(id).addEventListener('change', () => guarded(() => settingsInput(id)));
   }
   $('add-target').onclick = () => guarded(() => addTimedTarget());
 }
@@ -110,6 +110,15 @@ function readBelief() {
   values.samples = $('samples').value.trim() === '' ? 0 : Number($('samples').value);
   app.model.setBelief(values);
   hooks.changed();
+  warnSamplesNeedTheSearch();
+}
+
+// Samples are drawn around the default search's modes: a local optimiser's solve would fail on them.
+function warnSamplesNeedTheSearch() {
+  if (app.model.belief.samples > 0 && app.model.settings.optimizer !== 'auto') {
+    notify(`samples need the default search: set "advanced" > optimizer back to the default search `
+      + `(now ${app.model.settings.optimizer})`, 'warning');
+  }
 }
 
 export function readSettings() {
@@ -122,6 +131,12 @@ export function readSettings() {
     heatmap: $('heatmap').checked,
     cells: [Number($('cells-x').value), Number($('cells-y').value)],
   });
+}
+
+function settingsInput(id) {
+  readSettings();
+  hooks.settingsChanged();
+  if (id === 'optimizer') warnSamplesNeedTheSearch();
 }
 
 // ------------------------------------------------------------------ the observations' table
@@ -182,9 +197,32 @@ export function fillTargets() {
     button.disabled = targets.length <= 1;
     button.onclick = () => guarded(() => deleteTarget(target.index));
     del.appendChild(button);
-    tr.append(seen, time, how, del);
+    const pose = document.createElement('td');
+    const check = document.createElement('input');
+    Object.assign(check, { type: 'checkbox', checked: Boolean(target.orientation), className: 'pose',
+      title: 'the orientation was seen too (a pose); unticked: the position alone' });
+    check.setAttribute('aria-label', `observation ${target.index + 1} saw the orientation`);
+    check.onchange = () => guarded(() => {
+      app.model.setObservation(target.index, { orientation: check.checked ? orientationAt(target) : null });
+      observationsChanged();
+    });
+    pose.appendChild(check);
+    tr.append(seen, time, how, pose, del);
     body.appendChild(tr);
   });
+}
+
+// The source's orientation when it was seen: on the answer's path at the target's time where a
+// trajectory is shown, else its set-up orientation (w x y z).
+function orientationAt(target) {
+  const track = app.trajectory?.objects[app.model.source];
+  if (track) {
+    const probe = new THREE.Object3D();
+    applyPose(track, target.time ?? app.trajectory.duration, probe);
+    const q = probe.quaternion;
+    return [q.w, q.x, q.y, q.z];
+  }
+  return app.model.object(app.model.source).orientation;
 }
 
 function setHow(target, how) {
