@@ -88,7 +88,10 @@ export function fillInference() {
   const has = Boolean(app.model?.inference);
   $('add-target').disabled = !has;
   fillTargets();
-  if (!has) return;
+  if (!has) { // a scene without <inference>: nothing to show until a source is chosen
+    for (const id of [...Object.keys(BELIEF_INPUTS), 'samples']) $(id).value = '';
+    return;
+  }
   const belief = app.model.belief;
   for (const [id, [group, key]] of Object.entries(BELIEF_INPUTS)) $(id).value = show(belief[group][key]);
   $('samples').value = belief.samples ? String(belief.samples) : '';
@@ -102,7 +105,8 @@ export function fillInference() {
 }
 
 function readBelief() {
-  if (!app.model?.inference) return;
+  if (!app.model) return;
+  if (!app.model.inference) throw new Error('choose a source first: the scene has no <inference>');
   const values = {};
   for (const [id, [group, key]] of Object.entries(BELIEF_INPUTS)) {
     (values[group] ??= {})[key] = $(id).value.trim() === '' ? null : Number($(id).value);
