@@ -242,6 +242,7 @@ async function handleMessage(msg) {
       break;
     case 'done':
       job.state = msg.state;
+      if (msg.job_id === app.current) chart.setNote('');
       notify(`${job.kind || 'job'} ${msg.state}`, msg.state === 'done' ? 'done' : 'error');
       if (msg.state === 'done' && (job.kind === 'heatmap' || job.kind === 'solve')) {
         const samples = await showSamples(msg.job_id);

@@ -71,9 +71,22 @@ export function showRegion(grid, from) {
   const shade = new THREE.Mesh(area, new THREE.MeshBasicMaterial({
     color: REGION_COLOUR, transparent: true, opacity: 0.3, depthWrite: false, side: THREE.DoubleSide,
   }));
+  // the outline as a band a few millimetres wide (a WebGL line is one pixel, lost over a heatmap)
+  const band = [];
+  const half = Math.max(0.0015, 0.02 * Math.min(dx * nx, dy * ny));
+  for (let k = 0; k < edges.length; k += 6) {
+    const [ax, ay, , bx, by] = edges.slice(k, k + 6);
+    const [ex, ey] = ax === bx ? [half, 0] : [0, half]; // across the edge
+    const [sx, sy] = ax === bx ? [0, Math.sign(by - ay) * half] : [Math.sign(bx - ax) * half, 0]; // past its ends
+    const p = [[ax - ex - sx, ay - ey - sy], [bx - ex + sx, by - ey + sy], [bx + ex + sx, by + ey + sy],
+      [ax + ex - sx, ay + ey - sy]].map(([x, y]) => [x, y, z + 0.001]);
+    band.push(...p[0], ...p[1], ...p[2], ...p[0], ...p[2], ...p[3]);
+  }
   const outline = new THREE.BufferGeometry();
-  outline.setAttribute('position', new THREE.Float32BufferAttribute(edges, 3));
-  const line = new THREE.LineSegments(outline, new THREE.LineBasicMaterial({ color: REGION_COLOUR }));
+  outline.setAttribute('position', new THREE.Float32BufferAttribute(band, 3));
+  const line = new THREE.Mesh(outline, new THREE.MeshBasicMaterial({
+    color: REGION_COLOUR, depthWrite: false, side: THREE.DoubleSide,
+  }));
   shade.renderOrder = 4;
   line.renderOrder = 5;
   shade.raycast = () => {};
@@ -116,7 +129,7 @@ export function agreementWords(posterior) {
   const runs = posterior?.sampler?.runs;
   if (!a) {
     return { kind: 'unknown', text: `One sampler run${runs === 1 ? ' (too few samples for two)' : ''}: whether `
-      + 'the samples found every branch of the posterior is not checked. Draw 40 or more to check.' };
+      + 'the samples found every branch of the posterior is not checked. Draw 20 or more to check.' };
   }
   if (a.runs_agree) {
     return { kind: 'good', text: `The sampler's ${runs ?? 2} independent runs agree (R-hat at most `
