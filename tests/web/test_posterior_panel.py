@@ -163,6 +163,9 @@ def test_add_a_box_and_a_mesh_make_them_the_source_and_fixed(page, web_server, w
     cube = next(o for o in scene.objects if o.id == "cube1")
     assert box.shape == "box" and box.size == pytest.approx((0.1, 0.1, 0.1)) and not box.fixed
     assert box.pose.position == pytest.approx((0.25, -0.2, 0.3)) and scene.inference.source == "box1"
+    # the cube's start area (0.2 m wide, at 0.4 m) did not hold the box: it moved, its size kept
+    area = scene.inference.start_area
+    assert area.min == pytest.approx((0.15, -0.3, 0.3)) and area.max == pytest.approx((0.35, -0.1, 0.3))
     assert cube.fixed and cube.mesh.endswith("meshes/cube.obj") and cube.spheres.endswith("packings/cube.spheres")
     # removed again: gone from the table and the export
     page.evaluate("window.dejaview.select('cube1')")

@@ -102,7 +102,10 @@ function select(id) {
 }
 
 function setSource(id) {
-  app.model.setSource(id);
+  if (app.model.setSource(id)) {
+    buildStartArea();
+    notify(`the start area moved to ${id}: it did not hold its set-up position`, 'warning');
+  }
   live.sceneChanged();
   buildObservations();
   recolour();

@@ -199,7 +199,9 @@ export class SceneModel {
     return this.inference?.getAttribute('source') || null;
   }
 
-  // Make `id` the source; a scene without <inference> gets one, its target where the object is.
+  // Make `id` the source; a scene without <inference> gets one, its target where the object is. A
+  // <start-area> that does not hold the new source's set-up position is moved, its size kept, to
+  // centre on it (it bounded another object's start); returns true where it was moved.
   setSource(id) {
     const obj = this.object(id);
     let inf = this.inference;
@@ -210,6 +212,13 @@ export class SceneModel {
     inf.setAttribute('source', id);
     ensureChild(inf, 'target', { position: vec(obj.position), orientation: vec(obj.orientation) });
     this.setFixed(id, false);
+    const area = this.startArea;
+    if (!area || obj.position.every((v, i) => area.min[i] - 1e-9 <= v && v <= area.max[i] + 1e-9)) return false;
+    const shift = obj.position.map((v, i) => v - (area.min[i] + area.max[i]) / 2);
+    const el = child(inf, 'start-area');
+    el.setAttribute('min', vec(area.min.map((v, i) => v + shift[i])));
+    el.setAttribute('max', vec(area.max.map((v, i) => v + shift[i])));
+    return true;
   }
 
   // ---------------------------------------------------------------- observations (<target>s)
