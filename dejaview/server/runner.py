@@ -81,6 +81,7 @@ ARTEFACTS = {
     "iterations.csv": "text/csv; charset=utf-8",
     "posterior.csv": "text/csv; charset=utf-8",
     "posterior_paths.csv": "text/csv; charset=utf-8",
+    "posterior.nc": "application/x-netcdf",  # where the server has the analysis extra (arviz)
 }
 
 

@@ -1,7 +1,7 @@
 """The web viewer's routes: the built app at ``/``, the scenes of the scene root, and their files.
 
 The viewer (sources in ``web/``, built by ``npm run build`` into ``dejaview/server/static``) is a
-static three.js page; it lists scenes with ``GET /scenes``, reads a scene and its meshes and sphere
+static three.js page; it lists scenes (and the meshes it can add to one) with ``GET /scenes``, reads a scene and its meshes and sphere
 packings with ``GET /files/{path}``, and runs jobs over ``/ws``. ``/files`` serves only scene,
 mesh and packing files, and only inside the scene root, with the same resolve-then-check as job
 scenes (``dejaview.server.scenes``), so a default scene root of ``.`` exposes no other file.
@@ -65,6 +65,41 @@ def list_scenes(root: Path, limit: int = MAX_LISTED) -> list[str]:
                 if len(found) >= limit:
                     return sorted(found)
     return sorted(found)
+
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb")
+MAX_MESHES = 200
+
+
+def list_meshes(root: Path, limit: int = MAX_MESHES) -> list[dict]:
+    """Mesh files below ``root`` that the viewer can add to a scene: ``[{"mesh": path, "spheres": path
+    or None}]`` (relative POSIX paths, sorted), ``spheres`` a packing of the same name beside the
+    mesh or in a ``packings`` folder beside the mesh's folder (as ``examples/`` keeps them). The same
+    walk and limits as ``list_scenes``; robot folders' meshes (a ``robots`` folder) are links of
+    robots, not objects, and are left out."""
+    found = []
+    visited = 0
+    for folder, dirs, files in os.walk(root, followlinks=False):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and d not in SKIPPED_DIRS and d != "robots")
+        visited += len(files)
+        if visited > MAX_VISITED:
+            break
+        for name in sorted(files):
+            path = Path(folder) / name
+            if name.startswith(".") or path.suffix.lower() not in MESH_SUFFIXES or not inside(path, root):
+                continue
+            if path.resolve().suffix.lower() not in MESH_SUFFIXES:  # a link to another kind of file
+                continue
+            packing = next((p for p in (path.with_suffix(".spheres"),
+                                        path.parent.parent / "packings" / f"{path.stem}.spheres")
+                            if p.is_file() and inside(p, root)), None)
+            found.append({"mesh": path.relative_to(root).as_posix(),
+                          "spheres": None if packing is None else packing.relative_to(root).as_posix()})
+            if len(found) >= limit:
+                break
+        if len(found) >= limit:
+            break
+    return sorted(found, key=lambda m: m["mesh"])
 
 
 def robot_link_geometry(root: Path, path: str, object_id: str) -> dict:
@@ -147,9 +182,10 @@ def add_viewer_routes(app: FastAPI, root: Path, token: str | None = None) -> Non
         headers = {"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"} if token else None
         return HTMLResponse(index_page(token), headers=headers)
 
-    @app.get("/scenes", summary="Scene files in the scene root (for the web viewer)")
-    async def scenes():
-        return {"scenes": list_scenes(root)}
+    @app.get("/scenes", summary="Scene files in the scene root, and the meshes a scene can add (for the "
+                                "web viewer)")
+    def scenes():
+        return {"scenes": list_scenes(root), "meshes": list_meshes(root)}
 
     @app.get("/files/{path:path}", response_class=FileResponse,
              summary="A scene, mesh or sphere packing file inside the scene root")

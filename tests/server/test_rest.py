@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sqlite3
 import subprocess
@@ -112,6 +113,10 @@ def test_solve_job_with_posterior_samples(client):
     assert post["samples"] == 64 and set(post["intervals"]) == {"position.x", "position.y", "linear_velocity.x",
                                                                  "linear_velocity.y", "linear_velocity.z"}
     assert status["progress"]["phase"] == "sample" and status["progress"]["fraction"] == 1.0
+    if importlib.util.find_spec("arviz") is not None:  # the analysis extra: posterior.nc for ArviZ as well
+        nc = client.get(f"/jobs/{job_id}/posterior.nc")
+        assert nc.status_code == 200 and nc.headers["content-type"] == "application/x-netcdf"
+        assert nc.content[:4] == b"\x89HDF" and "posterior.nc" in status["artefacts"]
 
 
 @pytest.mark.parametrize("overrides, status_code, code, fragment", [

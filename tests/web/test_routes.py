@@ -51,8 +51,13 @@ def test_the_viewer_is_served_at_the_root(client):
 
 
 def test_scenes_lists_scene_files_inside_the_root_only(client):
-    assert client.get("/scenes").json() == {"scenes": ["scenes/arm.xml", "scenes/arm_moving.xml",
-                                                         "scenes/toss.xml"]}
+    assert client.get("/scenes").json()["scenes"] == ["scenes/arm.xml", "scenes/arm_moving.xml", "scenes/toss.xml"]
+
+
+def test_scenes_lists_the_meshes_a_scene_can_add_with_their_packings(client):
+    """The viewer's Add list: meshes of the scene root with the packing of the same name beside them
+    or in a ``packings`` folder beside their folder; robots' meshes are their links, not objects."""
+    assert client.get("/scenes").json()["meshes"] == [{"mesh": "meshes/cube.obj", "spheres": "packings/cube.spheres"}]
 
 
 def test_files_serves_scenes_meshes_and_packings(client):

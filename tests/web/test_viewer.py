@@ -51,7 +51,8 @@ def test_load_move_solve_animate_heatmap_export(page, web_server, web_root, arti
     assert 0.01 < moved[0] < 0.15 and moved[1:] == pytest.approx([0, 0.4], abs=1e-6), moved
     page.screenshot(path=artifacts / "2-moved.png")
 
-    # inference settings through the panel
+    # inference settings through the panel: the seed's optimiser settings under "advanced"
+    page.click("#advanced summary")
     page.fill("#iterations", "3")
     page.select_option("#optimizer", "adam")
     page.select_option("#gradient", "reverse")
@@ -73,6 +74,11 @@ def test_load_move_solve_animate_heatmap_export(page, web_server, web_root, arti
     assert "error" not in kinds, s["notifications"]
     assert s["trajectoryShown"] and {"cube", "ball"} <= set(s["trajectoryObjects"])
     assert s["heatmapShown"] and s["heatmapCells"] == [2, 2]
+    # the 90 % credible region from the heatmap's cells: the most probable of the 4 until 90 %
+    probability = sorted((p for row in s["live"]["probability"] for p in row), reverse=True)
+    need = next(k for k in range(1, 5) if sum(probability[:k]) >= 0.9 * sum(probability) - 1e-12)
+    assert s["region"]["shown"] and s["region"]["from"] == "heatmap" and s["region"]["cells"] == need
+    assert s["region"]["mass"] == pytest.approx(sum(probability[:need]) / sum(probability))
     assert s["result"]["source"] == "cube"
     # the heatmap is the posterior's marginal: its samples' start points are drawn as a cloud
     # with a few of them re-simulated as faint trajectories

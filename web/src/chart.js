@@ -1,13 +1,21 @@
-// The live loss curve of a running job: loss and best loss per iteration, log scale, on a canvas.
+// The live loss curve of a running job: loss and best loss per iteration, log scale, on a canvas;
+// a note under it for a phase that is no loss curve (the posterior sampler's progress).
 
 export class LossChart {
   constructor(canvas) {
     this.canvas = canvas;
     this.points = []; // {iteration, loss, best}
+    this.note = '';
   }
 
   reset() {
     this.points = [];
+    this.note = '';
+    this.draw();
+  }
+
+  setNote(text) {
+    this.note = text;
     this.draw();
   }
 
@@ -59,9 +67,10 @@ export class LossChart {
     g.fillText(`${(10 ** hi).toPrecision(2)}`, 2, 12);
     g.fillText(`${(10 ** lo).toPrecision(2)}`, 2, h - 16);
     g.fillText(`iteration ${pts[pts.length - 1].iteration}`, w - 80, h - 3);
+    if (this.note) g.fillText(this.note, pad + 4, h - 3);
     g.fillStyle = '#5b8fd9';
-    g.fillText('loss', pad + 4, 12);
+    g.fillText('loss', w - 62, 12);
     g.fillStyle = '#ff9f40';
-    g.fillText('best', pad + 34, 12);
+    g.fillText('best', w - 34, 12);
   }
 }

@@ -17,11 +17,19 @@ import {
 } from './scene-view.js';
 import { SceneModel } from './scene-xml.js';
 import {
+  addTimedTarget, deleteTarget, fillObjects, fillPanel, fillTargets, readSettings, setupPanel,
+} from './panel.js';
+import {
+  clearPosterior, setupPosteriorView, showPosteriorSummary, showRegion, showRegionFromSamples,
+} from './posterior-view.js';
+import { removeObject, setMeshes, spawnObject } from './spawn.js';
+import {
   TARGET, groupOf, isObservation, observationOf, poseEdited, updateSelectionText,
 } from './selection.js';
 import { camera, gizmo, renderer, scene, world } from './stage.js';
 import { $, app, notify } from './state.js';
 import { installTestHooks } from './test-hooks.js';
+import { menuStatus, observationIdOf, pressMenu } from './vr-actions.js';
 import { setupVR } from './vr.js';
 
 gizmo.addEventListener('objectChange', () => {
@@ -61,9 +69,14 @@ async function loadScene(text, origin = '', files = null) {
   live.sceneChanged();
   live.clear();
   live.moved(null);
-  $('scene-name').textContent = `${model.name}${origin ? ` (${origin})` : ''}: ${model.objects.length} objects`;
+  showSceneName();
   notify(`loaded ${model.name}`);
   return model.objects.map((o) => o.id);
+}
+
+function showSceneName() {
+  const { model } = app;
+  $('scene-name').textContent = `${model.name}${model.origin ? ` (${model.origin})` : ''}: ${model.objects.length} objects`;
 }
 
 async function loadScenePath(path) {
@@ -72,55 +85,27 @@ async function loadScenePath(path) {
   return loadScene(await response.text(), path);
 }
 
-// ------------------------------------------------------------------ panel
-function fillPanel() {
-  const body = $('objects').querySelector('tbody');
-  body.innerHTML = '';
-  for (const obj of app.model.objects) {
-    const tr = document.createElement('tr');
-    tr.dataset.id = obj.id;
-    const id = document.createElement('td');
-    id.className = 'id';
-    id.textContent = obj.id;
-    id.onclick = () => select(obj.id);
-    const src = document.createElement('td');
-    const radio = document.createElement('input');
-    Object.assign(radio, { type: 'radio', name: 'source', checked: obj.id === app.model.source });
-    radio.disabled = obj.shape === 'plane';
-    radio.onchange = () => setSource(obj.id);
-    src.appendChild(radio);
-    const fixed = document.createElement('td');
-    const box = document.createElement('input');
-    Object.assign(box, { type: 'checkbox', checked: app.model.isFixed(obj.id) });
-    box.disabled = obj.shape === 'plane' || obj.id === app.model.source;
-    box.onchange = () => setFixed(obj.id, box.checked);
-    fixed.appendChild(box);
-    tr.append(id, src, fixed);
-    body.appendChild(tr);
-  }
-  const s = app.model.settings;
-  $('iterations').value = s.iterations;
-  $('optimizer').value = s.optimizer;
-  $('gradient').value = s.gradient;
-  $('heatmap').checked = s.heatmap;
-  $('cells-x').value = s.cells[0];
-  $('cells-y').value = s.cells[1];
-  updateSelectionText();
-}
-
+// ------------------------------------------------------------------ panel (panel.js)
 // id: an object's id, TARGET (the last observation) or '#target:<index>' (any observation).
 function select(id) {
   showSetup();
   if (observationOf(id)?.last) id = TARGET;
   app.selected = id;
   const group = groupOf(id);
-  if (group && (isObservation(id) || app.model.object(id).shape !== 'plane')) gizmo.attach(group);
+  // in VR the controllers move things: no gizmo there
+  if (group && !renderer.xr.isPresenting && (isObservation(id) || app.model.object(id).shape !== 'plane')) {
+    gizmo.attach(group);
+  }
   else gizmo.detach();
   updateSelectionText();
+  fillTargets();
 }
 
 function setSource(id) {
-  app.model.setSource(id);
+  if (app.model.setSource(id)) {
+    buildStartArea();
+    notify(`the start area moved to ${id}: it did not hold its set-up position`, 'warning');
+  }
   live.sceneChanged();
   buildObservations();
   recolour();
@@ -133,33 +118,52 @@ function setFixed(id, fixed) {
   recolour();
 }
 
-function readSettings() {
-  if (!app.model?.inference) return;
-  live.sceneChanged();
-  app.model.setSettings({
-    iterations: Number($('iterations').value),
-    optimizer: $('optimizer').value,
-    gradient: $('gradient').value,
-    heatmap: $('heatmap').checked,
-    cells: [Number($('cells-x').value), Number($('cells-y').value)],
-  });
-}
-
 function setSettings(settings) {
   app.model.setSettings(settings);
   buildStartArea();
   fillPanel();
 }
 
-for (const id of ['iterations', 'optimizer', 'gradient', 'heatmap', 'cells-x', 'cells-y']) {
-  $(id).addEventListener('change', () => {
-    try {
-      readSettings();
-      buildStartArea();
-    } catch (err) {
-      notify(err.message, 'error');
-    }
-  });
+function setBelief(values) {
+  app.model.setBelief(values);
+  live.sceneChanged();
+  fillPanel();
+}
+
+setupPanel({
+  select, setSource, setFixed,
+  changed: () => live.sceneChanged(),
+  observationsChanged: () => {
+    showSetup();
+    buildObservations();
+    // the gizmo follows the selected observation's new group (or lets go of one deleted)
+    const group = isObservation(app.selected) ? groupOf(app.selected) : null;
+    if (group && !renderer.xr.isPresenting) gizmo.attach(group);
+    else if (isObservation(app.selected)) { gizmo.detach(); app.selected = null; }
+    updateSelectionText();
+  },
+  settingsChanged: () => buildStartArea(),
+});
+
+async function spawn(kind, position) {
+  const id = await spawnObject(kind, position);
+  live.sceneChanged();
+  fillObjects();
+  showSceneName();
+  select(id);
+  notify(`added ${id}`);
+  return id;
+}
+
+function removeSelected(id = app.selected) {
+  if (!id || isObservation(id)) throw new Error('select an object to remove (a target: its × in the table)');
+  gizmo.detach();
+  app.selected = null;
+  removeObject(id);
+  live.sceneChanged();
+  fillObjects();
+  showSceneName();
+  updateSelectionText();
 }
 
 // ------------------------------------------------------------------ jobs
@@ -175,6 +179,7 @@ function run(kind = 'solve') {
   readSettings();
   if (kind === 'solve' && app.model.settings.heatmap) kind = 'heatmap';
   showSetup();
+  clearPosterior();
   const requestId = connection.submit(kind, app.model.toServerXml());
   app.requests.set(requestId, kind);
   notify(`${kind}: submitted`);
@@ -194,6 +199,10 @@ async function handleMessage(msg) {
   switch (msg.type) {
     case 'accepted':
       Object.assign(job, { kind: msg.kind, state: msg.state, requestId: msg.request_id });
+      if (app.modeRequests.has(msg.request_id)) { // a mode's past: the solve's chart and results stay
+        job.mode = app.modeRequests.get(msg.request_id);
+        break;
+      }
       app.current = msg.job_id;
       chart.reset();
       notify(`${msg.kind} accepted${msg.queue_position ? ` (queue position ${msg.queue_position})` : ''}`);
@@ -201,7 +210,10 @@ async function handleMessage(msg) {
     case 'progress':
       job.state = 'running';
       job.progress = msg;
-      if (msg.job_id === app.current) chart.add(msg.iteration, msg.loss, msg.best_loss);
+      if (msg.job_id !== app.current) break;
+      // the sampler's progress is no loss curve (its numbers are the search's answer): a note
+      if (msg.phase === 'sample') chart.setNote(`sampling: ${Math.round(100 * (msg.fraction ?? 0))} %`);
+      else chart.add(msg.iteration, msg.loss, msg.best_loss);
       break;
     case 'trajectory':
       try {
@@ -212,7 +224,9 @@ async function handleMessage(msg) {
       break;
     case 'heatmap':
       try {
-        showHeatmap(msg.grid ?? JSON.parse(await fetchText(msg.grid_url)));
+        const grid = msg.grid ?? JSON.parse(await fetchText(msg.grid_url));
+        showHeatmap(grid);
+        showRegion(grid, 'heatmap');
       } catch (err) {
         notify(`heatmap: ${err.message}`, 'error');
       }
@@ -223,6 +237,7 @@ async function handleMessage(msg) {
       warnIfRunsDisagree(app.result?.posterior?.agreement);
       for (const warning of app.result?.warnings ?? []) notify(warning, 'warning');
       showResultSummary(app.result);
+      showPosteriorSummary(app.result);
       break;
     case 'error':
       if (job) job.error = msg;
@@ -230,9 +245,11 @@ async function handleMessage(msg) {
       break;
     case 'done':
       job.state = msg.state;
+      if (msg.job_id === app.current) chart.setNote('');
       notify(`${job.kind || 'job'} ${msg.state}`, msg.state === 'done' ? 'done' : 'error');
       if (msg.state === 'done' && (job.kind === 'heatmap' || job.kind === 'solve')) {
-        await showSamples(msg.job_id);
+        const samples = await showSamples(msg.job_id);
+        if (samples && app.region?.from !== 'heatmap') showRegionFromSamples(samples);
       }
       if (msg.state === 'done' && job.kind === 'train') live.moved(null); // its model answers now
       break;
@@ -260,6 +277,8 @@ $('cancel').onclick = () => { if (app.current) connection.cancel(app.current); }
 $('live').onchange = () => live.setEnabled($('live').checked);
 $('train').onclick = guard(() => trainModel());
 $('select-target').onclick = () => select(TARGET);
+$('spawn').onclick = guard(() => spawn($('spawn-kind').value));
+$('remove-object').onclick = guard(() => removeSelected());
 $('mode-translate').onclick = () => setMode('translate');
 $('mode-rotate').onclick = () => setMode('rotate');
 $('export').onclick = guard(() => {
@@ -281,6 +300,19 @@ function setMode(mode) {
   $('mode-translate').classList.toggle('on', mode === 'translate');
   $('mode-rotate').classList.toggle('on', mode === 'rotate');
 }
+
+// A mode of the posterior (result.json's posterior.modes, or the search's): its past, played as the
+// answer's is (a simulate job of the scene with the source started there); the solve's results stay.
+function playMode(mode, k) {
+  const requestId = connection.submit('simulate', app.model.toServerXml(mode.initial_state));
+  app.requests.set(requestId, 'simulate');
+  app.modeRequests.set(requestId, k);
+  app.modePlaying = k;
+  for (const b of document.querySelectorAll('#modes button')) b.classList.toggle('on', b.dataset.mode === String(k));
+  notify(`playing past ${k + 1}: simulating it`);
+  return requestId;
+}
+setupPosteriorView({ playMode });
 
 // A train job for the scene as it is now: the server's model of it, which live answers come from.
 function trainModel() {
@@ -322,7 +354,8 @@ window.addEventListener('keydown', (e) => {
 
 async function listScenes() {
   const response = await serverFetch('scenes');
-  const { scenes } = await response.json();
+  const { scenes, meshes } = await response.json();
+  setMeshes(meshes);
   $('scene-list').innerHTML = '';
   for (const path of scenes) $('scene-list').append(new Option(path, path));
   return scenes;
@@ -331,15 +364,33 @@ async function listScenes() {
 // ------------------------------------------------------------------ VR and the frame loop
 const vr = setupVR({
   renderer, scene, world,
+  // fixed objects are picked (selected, for the menu's "fixed" and "source") but not moved
   grabbable: () => {
-    const groups = [...app.nodes].filter(([id]) => !app.model.isFixed(id)).map(([, n]) => n.group);
+    const groups = [...app.nodes].filter(([id]) => app.model.object(id).shape !== 'plane' && !app.model.object(id).robot)
+      .map(([, n]) => n.group);
     for (const obs of app.observations) if (obs.group.visible) groups.push(obs.group);
     return groups;
   },
-  onGrab: () => showSetup(),
-  onRelease: (group) => { poseEdited(group); live.moved(group); },
+  movable: (group) => group.userData.observation !== undefined || !app.model.isFixed(group.userData.objectId),
+  onGrab: (group) => {
+    showSetup();
+    app.selected = group.userData.observation !== undefined ? observationIdOf(group) : group.userData.objectId;
+    updateSelectionText();
+    menuStatus(vr.menu);
+  },
+  onRelease: (group) => { poseEdited(group); live.moved(group); fillTargets(); menuStatus(vr.menu); },
   onSolve: () => run('solve'),
+  onMenu: (name, at) => pressMenu(name, at, menuActions).then(() => menuStatus(vr.menu), (err) => {
+    notify(err.message, 'error');
+    vr.menu.setStatus(err.message);
+  }),
 });
+const menuActions = {
+  addTimedTarget, deleteTarget, spawn, setSource, setFixed, removeSelected, run,
+  changed: () => live.sceneChanged(),
+  observationsChanged: () => { buildObservations(); fillTargets(); },
+  objectsChanged: () => fillObjects(),
+};
 
 const timer = new THREE.Timer();
 renderer.setAnimationLoop(() => {
@@ -359,7 +410,8 @@ renderer.setAnimationLoop(() => {
 installTestHooks({
   chart, connection, vr, live,
   actions: {
-    listScenes, loadScenePath, select, setSource, setFixed, setSettings, run, exportXml, trainModel,
+    listScenes, loadScenePath, select, setSource, setFixed, setSettings, setBelief, run, exportXml, trainModel,
+    spawn, removeObject: removeSelected, addTimedTarget, deleteTarget, playMode,
     loadSceneXml: (text, origin = '') => loadScene(text, origin, null),
   },
 });

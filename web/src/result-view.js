@@ -5,6 +5,7 @@ import {
   applyPose, heatmapDecal, parsePosterior, parsePosteriorPaths, sampleCloud, samplePaths, summarizeResult,
   trajectorySpline,
 } from './results.js';
+import { clearPosterior } from './posterior-view.js';
 import { highlightObservations, placeFromModel, placeObservations, poseRobots } from './scene-view.js';
 import { updateSelectionText } from './selection.js';
 import { gizmo, world } from './stage.js';
@@ -18,6 +19,7 @@ export function clearResults() {
   app.trajectory = null;
   app.heatmapGrid = null;
   app.result = null;
+  clearPosterior();
   app.playing = false;
   app.time = 0;
   showResultSummary(null);
@@ -84,22 +86,24 @@ export function showResultSummary(result) {
   }
 }
 
-// The posterior's samples of a done job (solve with samples, heatmap), when it drew any.
+// The posterior's samples of a done job (solve with samples, heatmap), when it drew any: returns
+// them ([{weight, position}]), or null.
 export async function showSamples(jobId) {
   const response = await serverFetch(`jobs/${jobId}/posterior.csv`);
-  if (!response.ok) return; // a job that drew no samples has no posterior.csv
+  if (!response.ok) return null; // a job that drew no samples has no posterior.csv
+  let samples;
   try {
-    const samples = parsePosterior(await response.text());
+    samples = parsePosterior(await response.text());
     if (app.samples) app.samples.removeFromParent();
     app.samples = sampleCloud(samples);
     app.samples.visible = $('show-samples').checked;
     world.add(app.samples);
   } catch (err) {
     notify(`posterior samples: ${err.message}`, 'error');
-    return;
+    return null;
   }
   const paths = await serverFetch(`jobs/${jobId}/posterior_paths.csv`);
-  if (!paths.ok) return;
+  if (!paths.ok) return samples;
   try {
     if (app.samplePaths) app.samplePaths.removeFromParent();
     app.samplePaths = samplePaths(parsePosteriorPaths(await paths.text()));
@@ -108,6 +112,7 @@ export async function showSamples(jobId) {
   } catch (err) {
     notify(`posterior paths: ${err.message}`, 'error');
   }
+  return samples;
 }
 
 // Set-up poses back (the gizmos edit those), playback stopped.

@@ -258,7 +258,7 @@ export function observationTimes(targets, result, duration) {
 // result.json in lines for the panel, [{kind, text}]: the best loss; how far the END is from where
 // the source was last seen (`end_error`: "ends 0.2 mm / 0.6° from where it was seen lying"); when it
 // came to rest (`rest`); for a tracked source, the answer against each observation at its moment
-// (`observations`); the warnings (`warnings`, and the sampler's runs disagreeing).
+// (`observations`); the warnings (`warnings`; the sampler's agreement: posterior-view.js).
 export function summarizeResult(result) {
   const lines = [];
   if (!result) return lines;
@@ -295,11 +295,6 @@ export function summarizeResult(result) {
         lines.push({ kind: 'observation', text: `  passes it at ${at} s: ${off(row.matched)}` });
       }
     }
-  }
-  const agreement = result.posterior?.agreement;
-  if (agreement && agreement.runs_agree === false) {
-    lines.push({ kind: 'warning', text: `posterior: the sampler's independent runs disagree (R-hat up to `
-      + `${Number(agreement.max_rhat).toFixed(2)}); do not trust these samples` });
   }
   for (const warning of result.warnings ?? []) lines.push({ kind: 'warning', text: String(warning) });
   return lines;

@@ -2,6 +2,8 @@
 // edited scene is written back with everything the viewer does not touch (comments, backend
 // attributes of <simulation>, penalties, exploration) exactly as it was.
 
+import { readBelief, writeBelief } from './scene-belief.js';
+
 const XML_HEADER = '<?xml version="1.0" encoding="UTF-8"?>\n';
 
 // The declaration, then the document's top-level nodes (comments, <scene>) one per line.
@@ -64,6 +66,24 @@ function lastOf(els) {
   return best;
 }
 
+// An <object> element as the viewer's record of it.
+function objectOf(el) {
+  const pose = child(el, 'pose');
+  return {
+    id: el.getAttribute('id'),
+    el,
+    shape: el.getAttribute('shape'),
+    mesh: el.getAttribute('mesh'),
+    spheres: el.getAttribute('spheres'),
+    robot: el.getAttribute('urdf') || el.getAttribute('mjcf'), // its links come from the server
+    size: numbers(el.getAttribute('size'), [1, 1, 1]),
+    radius: Number(el.getAttribute('radius') ?? 0.5),
+    height: Number(el.getAttribute('height') ?? 1),
+    position: numbers(pose?.getAttribute('position'), [0, 0, 0]),
+    orientation: numbers(pose?.getAttribute('orientation'), [1, 0, 0, 0]),
+  };
+}
+
 export class SceneModel {
   // text: the XML; origin: the scene's path inside the server's scene root ('' for an upload).
   constructor(text, origin = '') {
@@ -77,22 +97,74 @@ export class SceneModel {
     this.root = doc.documentElement;
     this.origin = origin;
     this.name = this.root.getAttribute('name') || origin || 'scene';
-    this.objects = [...this.root.children].filter((e) => e.tagName === 'object').map((el) => {
-      const pose = child(el, 'pose');
-      return {
-        id: el.getAttribute('id'),
-        el,
-        shape: el.getAttribute('shape'),
-        mesh: el.getAttribute('mesh'),
-        spheres: el.getAttribute('spheres'),
-        robot: el.getAttribute('urdf') || el.getAttribute('mjcf'), // its links come from the server
-        size: numbers(el.getAttribute('size'), [1, 1, 1]),
-        radius: Number(el.getAttribute('radius') ?? 0.5),
-        height: Number(el.getAttribute('height') ?? 1),
-        position: numbers(pose?.getAttribute('position'), [0, 0, 0]),
-        orientation: numbers(pose?.getAttribute('orientation'), [1, 0, 0, 0]),
-      };
-    });
+    this.objects = [...this.root.children].filter((e) => e.tagName === 'object').map(objectOf);
+  }
+
+  // ---------------------------------------------------------------- objects
+  // A new object after the last <object> (before <inference>): {shape: box|sphere|cylinder, size,
+  // radius, height} or {mesh, spheres} (paths inside the scene root, written relative to the
+  // scene's folder), at position [x, y, z], movable unless `fixed`. Returns its record; its id is
+  // the shape's or mesh's name with the first free number ("box1", "mug2").
+  addObject({ shape = null, size, radius, height, mesh = null, spheres = null, position, fixed = false }) {
+    const stem = shape || (mesh.split('/').pop().replace(/\.[^.]*$/, '').replace(/[^A-Za-z0-9_-]/g, '_') || 'mesh');
+    let n = 1;
+    while (this.object(`${stem}${n}`)) n += 1;
+    const el = this.doc.createElementNS(null, 'object');
+    el.setAttribute('id', `${stem}${n}`);
+    if (mesh) {
+      el.setAttribute('mesh', this.relativePath(mesh));
+      if (spheres) el.setAttribute('spheres', this.relativePath(spheres));
+    } else if (shape === 'box') {
+      el.setAttribute('shape', 'box');
+      el.setAttribute('size', vec(size ?? [0.1, 0.1, 0.1]));
+    } else if (shape === 'sphere' || shape === 'cylinder') {
+      el.setAttribute('shape', shape);
+      el.setAttribute('radius', fmt(radius ?? 0.05));
+      if (shape === 'cylinder') el.setAttribute('height', fmt(height ?? 0.1));
+    } else {
+      throw new Error(`unknown shape ${shape}: box, sphere, cylinder or a mesh`);
+    }
+    if (fixed) el.setAttribute('fixed', 'true');
+    const pose = this.doc.createElementNS(null, 'pose');
+    pose.setAttribute('position', vec(position));
+    pose.setAttribute('orientation', '1 0 0 0');
+    el.appendChild(pose);
+    const objects = [...this.root.children].filter((e) => e.tagName === 'object');
+    if (objects.length) objects[objects.length - 1].after(el);
+    else if (this.inference) this.inference.before(el);
+    else this.root.appendChild(el);
+    const record = objectOf(el);
+    this.objects.push(record);
+    return record;
+  }
+
+  // Remove an object that is not the source; its penalties go with it.
+  removeObject(id) {
+    if (id === this.source) throw new Error(`${id} is the source: choose another source first`);
+    const obj = this.object(id);
+    if (!obj) throw new Error(`no object ${id}`);
+    obj.el.remove();
+    this.objects = this.objects.filter((o) => o !== obj);
+    for (const p of this.inference ? [...this.inference.children] : []) {
+      if (p.tagName === 'penalty' && (p.getAttribute('between') || '').split(/\s+/).includes(id)) p.remove();
+    }
+  }
+
+  // <simulation duration> (s; the spec's reader's default 1.5 where it is left out).
+  get duration() {
+    const sim = child(this.root, 'simulation');
+    const d = Number(sim?.getAttribute('duration'));
+    return Number.isFinite(d) && d > 0 ? d : 1.5;
+  }
+
+  // ---------------------------------------------------------------- what is believed (scene-belief.js)
+  get belief() {
+    return readBelief(this.inference);
+  }
+
+  setBelief(values) {
+    if (!this.inference) throw new Error('choose a source first: the scene has no <inference>');
+    writeBelief(this.inference, values);
   }
 
   object(id) {
@@ -127,7 +199,9 @@ export class SceneModel {
     return this.inference?.getAttribute('source') || null;
   }
 
-  // Make `id` the source; a scene without <inference> gets one, its target where the object is.
+  // Make `id` the source; a scene without <inference> gets one, its target where the object is. A
+  // <start-area> that does not hold the new source's set-up position is moved, its size kept, to
+  // centre on it (it bounded another object's start); returns true where it was moved.
   setSource(id) {
     const obj = this.object(id);
     let inf = this.inference;
@@ -138,6 +212,13 @@ export class SceneModel {
     inf.setAttribute('source', id);
     ensureChild(inf, 'target', { position: vec(obj.position), orientation: vec(obj.orientation) });
     this.setFixed(id, false);
+    const area = this.startArea;
+    if (!area || obj.position.every((v, i) => area.min[i] - 1e-9 <= v && v <= area.max[i] + 1e-9)) return false;
+    const shift = obj.position.map((v, i) => v - (area.min[i] + area.max[i]) / 2);
+    const el = child(inf, 'start-area');
+    el.setAttribute('min', vec(area.min.map((v, i) => v + shift[i])));
+    el.setAttribute('max', vec(area.max.map((v, i) => v + shift[i])));
+    return true;
   }
 
   // ---------------------------------------------------------------- observations (<target>s)
@@ -244,12 +325,13 @@ export class SceneModel {
     return { min: numbers(a.getAttribute('min')), max: numbers(a.getAttribute('max')) };
   }
 
-  // The inference settings the panel edits; '' means "the default" (attribute absent).
+  // The inference settings the panel edits; '' means "the default" (attribute absent: 200
+  // iterations, the default search).
   get settings() {
     const inf = this.inference;
     const heat = inf && child(inf, 'heatmap');
     return {
-      iterations: Number(inf?.getAttribute('iterations') || 200),
+      iterations: inf?.hasAttribute('iterations') ? Number(inf.getAttribute('iterations')) : '',
       optimizer: inf?.getAttribute('optimizer') || 'auto',
       gradient: inf?.getAttribute('gradient') || '',
       heatmap: Boolean(heat),
@@ -260,7 +342,8 @@ export class SceneModel {
   setSettings({ iterations, optimizer, gradient, heatmap, cells }) {
     const inf = this.inference;
     if (!inf) throw new Error('choose a source first: the scene has no <inference>');
-    if (iterations !== undefined) inf.setAttribute('iterations', String(Math.max(1, Math.round(iterations))));
+    if (iterations === '' || iterations === null) inf.removeAttribute('iterations');
+    else if (iterations !== undefined) inf.setAttribute('iterations', String(Math.max(1, Math.round(iterations))));
     if (optimizer !== undefined) {
       // 'auto' is the default: the attribute stays out, as the Python writer leaves it
       if (optimizer && optimizer !== 'auto') inf.setAttribute('optimizer', optimizer);
@@ -297,11 +380,30 @@ export class SceneModel {
     return normalizePath(dir + name);
   }
 
+  // A path inside the scene root as the scene's files name it: relative to the scene's folder.
+  relativePath(rootPath) {
+    const dir = this.origin.includes('/') ? this.origin.slice(0, this.origin.lastIndexOf('/')).split('/') : [];
+    const parts = normalizePath(rootPath).split('/');
+    let common = 0;
+    while (common < dir.length && common < parts.length - 1 && dir[common] === parts[common]) common += 1;
+    return [...dir.slice(common).map(() => '..'), ...parts.slice(common)].join('/');
+  }
+
   // The scene as a job's scene_xml: mesh and packing names rewritten relative to the scene root.
-  toServerXml() {
+  // start: an initial state of the source ({position, orientation, linear_velocity,
+  // angular_velocity}, result.json's initial_state) to simulate from instead of its set-up one.
+  toServerXml(start = null) {
     const doc = this.doc.cloneNode(true);
     for (const el of doc.documentElement.children) {
       if (el.tagName !== 'object') continue;
+      if (start && el.getAttribute('id') === this.source) {
+        const pose = ensureChild(el, 'pose');
+        pose.setAttribute('position', vec(start.position));
+        pose.setAttribute('orientation', vec(start.orientation));
+        const velocity = ensureChild(el, 'velocity');
+        velocity.setAttribute('linear', vec(start.linear_velocity));
+        velocity.setAttribute('angular', vec(start.angular_velocity));
+      }
       for (const attr of ['mesh', 'spheres']) {
         const name = el.getAttribute(attr);
         if (name) el.setAttribute(attr, this.rootPath(name));

@@ -20,6 +20,9 @@ export const app = {
   playing: false,
   jobs: new Map(), // job_id -> {kind, state, requestId}
   requests: new Map(), // request_id -> kind
+  modeRequests: new Map(), // request_id -> the mode whose past a simulate job plays
+  modePlaying: null, // that mode's index in the Result panel's list
+  region: null, // the 90 % credible region drawn: {group, from, mass, cells, cellCount, area, level}
   current: null, // the job the chart follows
   result: null,
   notifications: [],

@@ -64,10 +64,22 @@ export function installTestHooks({ chart, connection, vr, live, actions }) {
       notifications: app.notifications,
       connected: connection.connected,
       settings: app.model?.inference ? app.model.settings : null,
+      belief: app.model?.inference ? app.model.belief : null,
+      // the 90 % credible region on the floor, and the Result panel's posterior (posterior-view.js)
+      region: app.region ? { shown: Boolean(app.region.group.parent && app.region.group.visible),
+        from: app.region.from, mass: app.region.mass, cells: app.region.cells, area: app.region.area } : null,
+      intervals: [...document.querySelectorAll('#intervals tr[data-parameter]')]
+        .map((tr) => ({ parameter: tr.dataset.parameter, text: tr.textContent })),
+      modes: [...document.querySelectorAll('#modes button')].map((b) => b.textContent),
+      agreement: document.querySelector('#posterior-view .agreement')?.textContent ?? null,
+      physics: [...document.querySelectorAll('#physics li')].map((li) => li.textContent),
+      modePlaying: app.modePlaying,
       xr: vr.state(),
       live: live.state(),
     }),
     ...actions, play, pause, seek, showSetup,
+    // where to hold a controller to press a VR menu button: {position, quaternion} (XR frame)
+    vrMenuAim: (name) => vr.menu.aim(name),
     // a trajectory.csv shown as a job's would be (playback without running a job)
     showTrajectoryCsv: (csv) => showTrajectory(parseTrajectory(csv)),
     // the scene's observations: edit one ({position, orientation, time, moving}; null removes), add, remove

@@ -1,14 +1,24 @@
 // WebXR: the "Enter VR" button, and two controllers that grab and move objects (trigger) and
-// start a solve (squeeze).
+// start a solve (squeeze); a menu above the left controller (vr-menu.js) whose buttons the
+// trigger presses: timed targets, new objects, source and fixed, solve.
 import * as THREE from 'three';
 import { VRButton } from 'three/addons/webxr/VRButton.js';
 
-export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, onSolve }) {
+import { VRMenu } from './vr-menu.js';
+
+const AHEAD = 0.5; // m: where the menu's "add" buttons put a target or an object, in front of the eyes
+
+// onMenu(name, at): a menu button pressed, at: half a metre in front of the eyes, in the scene (z up).
+// grabbable(): the groups a ray may pick; movable(group): whether a picked one is carried (else it is
+// only selected: onGrab without a release).
+export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, onRelease, onSolve, onMenu }) {
   renderer.xr.enabled = true;
   const button = VRButton.createButton(renderer);
   document.body.appendChild(button);
 
-  const state = { sessions: 0, connected: 0, selects: 0, grabs: 0, releases: 0, solves: 0, held: [null, null] };
+  const state = { sessions: 0, connected: 0, selects: 0, grabs: 0, releases: 0, solves: 0, held: [null, null],
+    menu: [] };
+  const menu = new VRMenu();
   renderer.xr.addEventListener('sessionstart', () => { state.sessions += 1; });
 
   const raycaster = new THREE.Raycaster();
@@ -25,9 +35,25 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
 
     controller.addEventListener('connected', () => { state.connected += 1; });
     controller.addEventListener('disconnected', () => { state.connected -= 1; });
+    if (index === 0) controller.add(menu.mesh);
     controller.addEventListener('selectstart', () => {
       state.selects += 1;
       raycaster.setFromXRController(controller);
+      const button = raycaster.intersectObject(menu.mesh, false).map((h) => menu.buttonAt(h.uv)).find(Boolean);
+      if (button) {
+        menu.press(button);
+        state.menu.push(button);
+        // half a metre in front of the eyes: where the user sees it, and can point at it to grab it
+        const head = renderer.xr.getCamera();
+        const eye = head.getWorldPosition(new THREE.Vector3());
+        const at = world.worldToLocal(eye.addScaledVector(head.getWorldDirection(new THREE.Vector3()), AHEAD)).toArray();
+        try {
+          Promise.resolve(onMenu(button, at)).catch((err) => console.error(err));
+        } catch (err) {
+          console.error(err);
+        }
+        return;
+      }
       const hits = raycaster.intersectObjects(grabbable(), true);
       const hit = hits.find((h) => h.object.visible);
       if (!hit) return;
@@ -35,6 +61,7 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
       while (group.parent && group.parent !== world) group = group.parent;
       if (group.parent !== world) return;
       onGrab(group);
+      if (!movable(group)) return; // selected, not carried
       controller.attach(group); // keeps its world pose; follows the controller from now on
       state.held[index] = group;
       state.grabs += 1;
@@ -61,6 +88,7 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
   return {
     button,
     controllers,
+    menu,
     update() {},
     state: () => ({
       presenting: renderer.xr.isPresenting,
@@ -72,6 +100,8 @@ export function setupVR({ renderer, scene, world, grabbable, onGrab, onRelease, 
       releases: state.releases,
       solves: state.solves,
       holding: state.held.map((g) => g?.userData.objectId ?? null),
+      menuPresses: [...state.menu],
+      menuStatus: menu.status,
       button: button.textContent,
     }),
   };
