@@ -11,10 +11,13 @@ prior), z the physics' standard normals (``dejaview.sim.physics``), counted once
 ``identify`` finds its maximum in steps: each scene's own most probable past with the physics free
 (``MapSearch`` on the scene's ``Posterior``); Levenberg-Marquardt on the joint vector from the best
 of each scene's physics and their mean (exact Jacobians: a scene's residuals see only its start and
-z); then, ``rounds`` times while it gains, each scene's start searched again with the physics fixed
+z); then the physics scanned over its prior, each scene's start refined at each node, and the
+joint refined from the best nodes (``physics_marginal.scan``: tracked bounces are explained by
+more than one restitution); then, ``rounds`` times while it gains, each scene's start searched again with the physics fixed
 at the joint maximum's (``physics_fixed``: a search in the start alone finds a tumbling box's basin
 that one with the physics free misses) and the joint refined again; finally the Laplace
-approximation at the maximum, (J^T J)^-1, for the intervals.
+approximation at the maximum, (J^T J)^-1, and the physics' marginal posterior on a grid around it,
+each scene's start integrated out (``physics_marginal.physics_grid``), for the intervals.
 With ``samples``, draws from that Gaussian are weighted by the exact joint posterior over it
 (importance sampling; the effective sample size is reported), so the intervals hold where the
 Gaussian is off, as long as it covers the posterior.
@@ -178,6 +181,7 @@ class IdentifyResult:
         x: (P,) the most probable joint parameters; cost: their negative log posterior.
         covariance: (P, P) the Laplace approximation's.
         samples: (N, P) importance samples and weights (N,), or None; ess: their effective size.
+        grid: the physics' marginal posterior on a grid (``physics_marginal.PhysicsGrid``), or None.
         seconds: wall time.
         notes: warnings for the user (one line each).
     """
@@ -190,6 +194,7 @@ class IdentifyResult:
     samples: torch.Tensor | None = None
     weights: torch.Tensor | None = None
     ess: float | None = None
+    grid: object = None
     seconds: float = 0.0
     notes: list = field(default_factory=list)
 
@@ -199,14 +204,19 @@ class IdentifyResult:
 
     def physics(self) -> dict:
         """``result.json``'s ``physics``: the most probable values, each inferred one's median and
-        central intervals (weighted samples where drawn, else the Laplace Gaussian's), the prior."""
+        central intervals (the grid's marginal where computed, else weighted samples where drawn,
+        else the Laplace Gaussian's), the prior."""
+        from dejaview.inference.physics_marginal import marginal_quantiles
         from dejaview.inference.posterior_report import (PHYSICS_COLUMNS, interval_entry, interval_levels,
                                                          weighted_quantiles)
 
         model, f = self.model, self.joint.f
         values = model.values(self.x[None, -f:])[0].tolist()
         qs = interval_levels()
-        if self.samples is not None:
+        if self.grid is not None:
+            quant = marginal_quantiles(self.grid, model, qs)
+            how = "marginal posterior on a grid of the physics, each start integrated out (nested Laplace)"
+        elif self.samples is not None:
             quant = weighted_quantiles(model.values(self.samples[:, -f:]), self.weights, qs)
             how = "importance samples of the joint posterior"
         else:  # each value is monotone in its own z: the Gaussian's quantiles map through
@@ -237,6 +247,10 @@ class IdentifyResult:
                                   "observed": post.num_observed})
         if self.samples is not None:
             out["samples"] = {"count": int(self.samples.shape[0]), "effective": self.ess}
+        if self.grid is not None:
+            out["grid"] = {"nodes": int(self.grid.z.shape[0]), "passes": self.grid.passes,
+                           "half_widths": [float(w) for w in self.grid.widths],
+                           "effective_nodes": float(1.0 / (self.grid.weights ** 2).sum())}
         return out
 
     def write(self, out_dir) -> dict[str, Path]:
@@ -306,6 +320,17 @@ def identify(scenes: list, params: IdentifyParams | None = None, *, callback=Non
     if not math.isfinite(float(cost[0])):
         raise InferenceError("identify: no joint start of the scenes has a finite posterior")
     x, cost = x[0], float(cost[0])
+    if params.scan:  # the physics over its prior: another restitution may explain the throws better
+        from dejaview.inference.physics_marginal import scan
+
+        trial = scan(joint, x, params)
+        if trial.shape[0]:
+            x_new, c_new = levenberg_marquardt(joint, trial, params.lm_iterations)
+            best = int(torch.argmin(c_new))
+            if float(c_new[best]) < cost:
+                x, cost = x_new[best], float(c_new[best])
+        if callback is not None:
+            callback(f"physics scanned over its prior (-log posterior {cost:.4g})")
     model = posts[0].layout.physics
     for round_ in range(params.rounds if "stiffness" not in model.names else 0):
         # the starts searched again under the joint physics (a search with the physics fixed finds a
@@ -334,6 +359,13 @@ def identify(scenes: list, params: IdentifyParams | None = None, *, callback=Non
     result = IdentifyResult(scenes, joint, x, cost, covariance)
     if callback is not None:
         callback(f"joint most probable physics found (-log posterior {cost:.4g})")
+    if params.grid:
+        from dejaview.inference.physics_marginal import physics_grid
+
+        result.grid = physics_grid(joint, x, covariance, params)
+        if callback is not None:
+            callback(f"physics' marginal posterior on {result.grid.z.shape[0]} nodes "
+                     f"({result.grid.passes} grid(s), half-widths {[round(float(w), 3) for w in result.grid.widths]})")
     if params.samples:
         samples, weights, ess = _importance_samples(joint, x, covariance, params)
         if math.isfinite(ess) and ess >= params.min_ess_share * params.samples:

@@ -364,6 +364,18 @@ class IdentifyParams:
         rounds: most rounds of searching the starts again under the joint physics.
         min_ess_share: importance samples are kept where their effective size is at least this
             share of their count (else the intervals are the Laplace approximation's).
+        grid: nodes of the physics' marginal posterior grid in all (``physics_marginal``; odd per
+            axis, at most ``grid_axis`` per axis); 0: the intervals are the joint Laplace
+            approximation's (or the importance samples').
+        grid_sds: the grid's first half-width per axis, in the joint Laplace standard deviations ...
+        grid_min_width, grid_max_width: ... at least and at most these (z, prior standard deviations).
+        grid_widen: an axis whose edge holds mass (within ``grid_edge_nats`` of the largest node)
+            is widened by this factor, up to ``grid_passes`` grids in all.
+        grid_iterations: Levenberg-Marquardt iterations of each scene's start at each node.
+        scan: before the rounds, the physics scanned over the prior on this many nodes in all
+            (``physics_marginal.scan``; 0: no scan) ...
+        scan_width: ... over +- this many prior standard deviations; the ``scan_keep`` nodes of
+            least joint cost refined jointly.
     """
 
     friction: float = 0.5
@@ -375,10 +387,25 @@ class IdentifyParams:
     lm_iterations: int = 60
     rounds: int = 2
     min_ess_share: float = 0.02
+    grid: int = 121
+    grid_axis: int = 15
+    grid_sds: float = 4.0
+    grid_min_width: float = 0.5
+    grid_max_width: float = 4.0
+    grid_widen: float = 2.5
+    grid_edge_nats: float = 6.0
+    grid_passes: int = 3
+    grid_iterations: int = 12
+    scan: int = 81
+    scan_width: float = 2.5
+    scan_keep: int = 3
 
     def __post_init__(self):
-        check_params(self, nonnegative=("friction", "restitution", "stiffness"), naturals=("samples", "seed", "rounds"),
-                     counts=("lm_iterations",), fractions=("min_ess_share",))
+        check_params(self, nonnegative=("friction", "restitution", "stiffness"),
+                     naturals=("samples", "seed", "rounds", "grid", "scan"),
+                     counts=("lm_iterations", "grid_axis", "grid_passes", "grid_iterations", "scan_keep"),
+                     fractions=("min_ess_share",), positive=("grid_sds", "grid_min_width", "grid_max_width", "scan_width",
+                                                            "grid_widen", "grid_edge_nats"))
 
 
     named: int = 3

@@ -56,7 +56,7 @@ def _scene(k: int, prior: str = '<physics-prior friction="0.5" restitution="0.5"
                                           prior=prior, friction=0.5, restitution=0.4, x=0.0, z=0.4, vx=0.0))
 
 
-FAST = IdentifyParams(search=replace(SearchParams(), budget=1500), lm_iterations=25, rounds=1)
+FAST = IdentifyParams(search=replace(SearchParams(), budget=1500), lm_iterations=25, rounds=1, grid=25, scan=0)
 
 
 def test_identify_recovers_the_shared_physics_of_two_tracked_throws(tmp_path):
