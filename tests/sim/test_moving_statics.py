@@ -158,13 +158,10 @@ def test_a_rollout_continued_from_a_step_finds_the_links_there():
     assert not torch.allclose(again.final.position, whole.final.position, atol=1e-3)
 
 
-def test_a_moving_world_does_not_compile_nor_change_its_substeps():
-    """Its links' poses change every substep (no compiled graph holds them), and its paths are
-    sampled at its substep (another substep count would read them at the wrong times)."""
+def test_a_path_given_as_data_does_not_change_its_substeps():
+    """A path built by hand knows no motion to sample again (a robot's does: test_robots_motion)."""
     world, state = _world("ball", 10)
-    with pytest.raises(SimulationError, match="moving robot does not compile"):
-        rollout(world, state, steps=10, compile=True)
-    with pytest.raises(SimulationError, match="sampled at the world's substep"):
+    with pytest.raises(SimulationError, match="path given as data, sampled at the world's substep"):
         world.with_substeps(4)
     assert world.with_substeps(2) is not None  # the same substeps: the same world
 
