@@ -17,8 +17,9 @@ What is not warned about:
   may overlap): only a depth beyond the one at time 0 by more than the margin counts.
 - The robot's own links (neighbours overlap at their joints) and other moving robots' links.
 
-The links are posed every ``SAMPLE_INTERVAL`` from time 0 to the last keyframe (the viewer's and
-the export's sampling, finer), on the exact geometry (python-fcl, ``SceneCollision``).
+The links are posed every ``SAMPLE_INTERVAL`` from time 0 to the last keyframe and at each keyframe
+(forward kinematics of the interpolated joints, as the simulator's paths), on the exact geometry
+(python-fcl, ``SceneCollision``).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ def swept_overlaps(scene, collision, margin: float) -> list[SweptOverlap]:
     Returns:
         one ``SweptOverlap`` per moving robot and object it passes through, in file order.
     """
-    from dejaview.sim.motion import robot_paths, sample_times
+    from dejaview.geometry.robot import piece_transforms, robot_model
 
     moving = [o for o in scene.objects if o.moving]
     if not moving:
@@ -66,13 +67,13 @@ def swept_overlaps(scene, collision, margin: float) -> list[SweptOverlap]:
                 if collision.is_fixed(name) and name.split("/", 1)[0] not in links_of_moving]
     found = []
     for obj in moving:
-        times = np.union1d(sample_times(obj.keyframes[-1].time, SAMPLE_INTERVAL),
-                           [k.time for k in obj.keyframes])
-        paths = {name: p for name, p in robot_paths(scene, obj, times).items() if name in collision.ids}
+        times = np.union1d(np.arange(0.0, obj.keyframes[-1].time, SAMPLE_INTERVAL), [k.time for k in obj.keyframes])
+        poses = piece_transforms(obj, robot_model(scene, obj), np.array([obj.joints_at(t) for t in times]))
+        poses = {name: p for name, p in poses.items() if name in collision.ids}
         for other in standing:
             worst = None
-            for name, path in paths.items():
-                depth = collision.depths(name, path.rotation.numpy(), path.translation.numpy(), other)
+            for name, pose in poses.items():
+                depth = collision.depths(name, pose[:, :3, :3], pose[:, :3, 3], other)
                 i = int(np.argmax(depth))
                 if depth[i] > depth[0] + margin and (worst is None or depth[i] > worst.depth):
                     worst = SweptOverlap(obj.id, other, name, float(depth[i]), float(times[i]))

@@ -176,23 +176,17 @@ def robot_paths(scene, obj, times: np.ndarray, model=None, motion: RobotMotion |
     simulator's: substep times ``j h``): one batched forward kinematics at the joint values then,
     and two more ``VELOCITY_STEP`` before and after along the joints' velocities for the
     velocities. ``motion``: what the paths carry as their source (``ShapePath.motion``)."""
-    from dejaview.geometry.robot import link_transforms_batch, robot_model
-    from dejaview.geometry.transforms import quat_to_matrix, rigid_transform
+    from dejaview.geometry.robot import piece_transforms, robot_model
 
     model = model or robot_model(scene, obj)
     q, qdot = joint_path(obj.keyframes, np.asarray(times, dtype=np.float64))
-    at = link_transforms_batch(model, q)
-    minus = link_transforms_batch(model, q - VELOCITY_STEP * qdot)
-    plus = link_transforms_batch(model, q + VELOCITY_STEP * qdot)
-    base = rigid_transform(quat_to_matrix(obj.pose.orientation), obj.pose.position)
-    paths, seen = {}, {}
+    at = piece_transforms(obj, model, q)
+    minus = piece_transforms(obj, model, q - VELOCITY_STEP * qdot)
+    plus = piece_transforms(obj, model, q + VELOCITY_STEP * qdot)
+    paths = {}
     t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
-    for g in model.geometry:
-        k = seen.get(g.link, 0)
-        seen[g.link] = k + 1
-        name = f"{obj.id}/{g.link}" + (f"#{k}" if k else "")
-        pose = base @ at[g.link] @ g.origin  # (T, 4, 4)
-        v, w = pose_velocity(base @ minus[g.link] @ g.origin, base @ plus[g.link] @ g.origin, VELOCITY_STEP)
+    for name, pose in at.items():  # (T, 4, 4)
+        v, w = pose_velocity(minus[name], plus[name], VELOCITY_STEP)
         paths[name] = ShapePath(rotation=t(pose[:, :3, :3]), translation=t(pose[:, :3, 3]), velocity=t(v),
                                 angular_velocity=t(w), motion=motion)
     return paths
