@@ -204,6 +204,11 @@ def rollout(world: World, state: State, steps: int | None = None, record_every: 
             if step_fn is not None:
                 raise ValueError("step_fn replaces the torch engine's step; it needs engine='torch'")
             return native.native_rollout(world, state, steps, record_every, physics=physics)
+    if compile and torch.is_grad_enabled() and any(world.box_bodies) and any(
+            s.path is not None and s.kind == "box" for s in world.statics):
+        # measured: states exact, gradients 5e-3 off (of 7e-3) under inductor, exact under dynamo's tracing
+        raise SimulationError("a compiled rollout's gradients where a box body meets a moving box link are not "
+                              "right under inductor (docs/robotics.md, 'Robots that move'); run it without compile")
     if physics is not None:
         if compile:
             raise ValueError("a rollout with per-candidate physics does not compile")
