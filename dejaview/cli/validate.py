@@ -33,6 +33,10 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
     ``file:line: <object> 'a' and 'b' interpenetrate by D m``.
     A robot's collision mesh that is not watertight takes part as its convex
     hull: a ``note:`` line per mesh says so, and the scene stays valid.
+    A moving robot stands where its keyframes put it at time 0 for the
+    checks above; where its links pass through a fixed object later on
+    (they push movable objects, but pass through fixed ones), a
+    ``warning:`` line per robot and object says so, and the scene stays valid.
     Exit status 0 when every scene is valid, 2 otherwise.
     """
     from dejaview.scene.xml import read_scene_file
@@ -42,7 +46,9 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
         try:
             scene = read_scene_file(path, check_files=not no_file_check, max_steps=max_steps)
             notes = [] if no_file_check else _hull_notes(scene, path)
-            overlaps = [] if no_file_check else _interpenetrations(scene, path, margin)
+            collision = None if no_file_check else _collision(scene, path)
+            overlaps = [] if no_file_check else _interpenetrations(scene, path, collision, margin)
+            warnings = [] if no_file_check or overlaps else _sweeps(scene, path, collision, margin)
         except SceneError as exc:
             failed += 1
             click.echo(f"error: {exc}", err=True)
@@ -54,6 +60,8 @@ def command(scenes: tuple[str, ...], no_file_check: bool, margin: float, max_ste
             continue
         for line in notes:
             click.echo(f"note: {line}")
+        for line in warnings:
+            click.echo(f"warning: {line}")
         n = len(scene.objects)
         source = scene.inference.source if scene.inference is not None else "none"
         click.echo(f"OK {path}: {n} object{'' if n == 1 else 's'}, source={source}")
@@ -79,14 +87,18 @@ def _hull_notes(scene, path: str) -> list[str]:
     return out
 
 
-def _interpenetrations(scene, path: str, margin: float) -> list[str]:
-    """One message per pair of objects that overlap deeper than ``margin`` at their poses."""
+def _collision(scene, path: str):
     from dejaview.geometry.collision import SceneCollision
 
     try:
-        pairs = SceneCollision(scene).interpenetrations(margin=margin)
+        return SceneCollision(scene)
     except GeometryError as exc:
         raise SceneError(str(exc), file=path, element="object") from exc
+
+
+def _interpenetrations(scene, path: str, collision, margin: float) -> list[str]:
+    """One message per pair of objects that overlap deeper than ``margin`` at their poses."""
+    pairs = collision.interpenetrations(margin=margin)
     out = []
     for a, b, depth in pairs:
         # the line of the movable one: that is the pose to fix
@@ -95,6 +107,20 @@ def _interpenetrations(scene, path: str, margin: float) -> list[str]:
         where = f"{path}:{obj.line}" if obj.line is not None else path
         out.append(f"{where}: <object> {a!r} and {b!r} interpenetrate by {depth:.4f} m "
                    f"(more than the {margin:g} m accepted as resting contact)")
+    return out
+
+
+def _sweeps(scene, path: str, collision, margin: float) -> list[str]:
+    """One message per moving robot and fixed object its links pass through (``geometry.sweep``)."""
+    from dejaview.geometry.sweep import swept_overlaps
+
+    out = []
+    for s in swept_overlaps(scene, collision, margin):
+        obj = scene.object(s.robot)
+        where = f"{path}:{obj.line}" if obj.line is not None else path
+        out.append(f"{where}: <object> robot {s.robot!r} passes through {s.other!r} as it moves: link "
+                   f"{s.link.split('/', 1)[1]!r} by {s.depth:.4f} m at t = {s.time:.3f} s (its links push "
+                   f"movable objects but pass through fixed ones; check the keyframes)")
     return out
 
 

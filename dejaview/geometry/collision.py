@@ -436,6 +436,15 @@ class SceneCollision:
                     found.append((a.id, b.id, d))
         return found
 
+    def is_fixed(self, object_id: str) -> bool:
+        """Whether ``object_id`` stands (a fixed object or a robot's link)."""
+        return self._body(object_id).fixed
+
+    def depths(self, object_id: str, rotation: np.ndarray, position: np.ndarray, other_id: str) -> np.ndarray:
+        """Overlap (B,) in m of ``object_id`` placed at B poses, rotation (B, 3, 3) and position (B, 3)
+        of its frame, with ``other_id`` at its scene pose (a moving link's path: ``geometry.sweep``)."""
+        return self._pair_depths(self._body(object_id), rotation, position, self._body(other_id))
+
     # -- pairs -----------------------------------------------------------------
     def _body(self, object_id: str) -> _Body:
         if object_id not in self._bodies:

@@ -453,6 +453,20 @@ def link_transforms_batch(model: RobotModel, values: np.ndarray) -> dict[str, np
     return {name: t.get_matrix().numpy().copy() for name, t in fk.items()}
 
 
+def piece_transforms(obj, model: RobotModel, values: np.ndarray) -> dict[str, np.ndarray]:
+    """World transforms (T, 4, 4) of every collision geometry of a robot object at T joint vectors
+    ``values`` (T, J), by piece name (``robot-id/link``, ``#k`` for a link's further geometries, as
+    ``robot_pieces``), the object's ``<pose>`` placing the root (``link_transforms_batch``)."""
+    links = link_transforms_batch(model, values)
+    base = rigid_transform(quat_to_matrix(obj.pose.orientation), obj.pose.position)
+    out, seen = {}, {}
+    for g in model.geometry:
+        k = seen.get(g.link, 0)
+        seen[g.link] = k + 1
+        out[f"{obj.id}/{g.link}" + (f"#{k}" if k else "")] = base @ links[g.link] @ g.origin
+    return out
+
+
 def _mjcf_chain(pk, model: RobotModel):
     """A pytorch-kinematics chain of an MJCF body tree, built from MuJoCo's compiled model.
 

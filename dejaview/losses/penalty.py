@@ -6,7 +6,8 @@ once they touch: ``relu(min_t min_ij |c_i - c_j| - r_i - r_j)``. Against a
 fixed object (a static shape, not in the state) the gap of a sphere is the
 shape's signed distance at its centre minus its radius; a box body meets a
 plane or a static box with its corner spheres, as in the contacts
-(``dejaview.sim.box_edges``).
+(``dejaview.sim.box_edges``). A moving robot's link (``dejaview.sim.motion``)
+is met where it is at each record, as the rollout met it.
 
 The minimum is hard: the gradient flows through the closest sphere pair at the
 closest record only (a subgradient), and pulls that pair together. To keep
@@ -93,8 +94,17 @@ def contact_penalty(world, traj: Trajectory, body_a: str | int, body_b: str | in
     if kind_b == "body":
         gap = _body_body_gap(world, pos, quat, a, b, chunk_elements)
     else:
-        gap = _body_static_gap(world, pos, quat, a, world.statics[b], chunk_elements)
+        gap = _body_static_gap(world, pos, quat, a, _poses(world, traj, world.statics[b]), chunk_elements)
     return torch.relu(gap)
+
+
+def _poses(world, traj: Trajectory, static):
+    """``posed(t)``: the static shape where it is at record t (a moving robot's link moves along its
+    path, ``dejaview.sim.motion``: record t is at substep ``steps[t] * substeps``)."""
+    if static.path is None:
+        return lambda t: static
+    substeps = [int(s) * world.substeps for s in traj.steps.tolist()]
+    return lambda t: static.at(substeps[t])
 
 
 def _running_argmin(gaps_of_chunk, n_records: int, per_record: int, chunk_elements: int):
@@ -187,9 +197,10 @@ def _body_body_gap(world, pos, quat, a: int, b: int, chunk_elements: int) -> tor
     return dist - ra[i] - rb[j]
 
 
-def _body_static_gap(world, pos, quat, a: int, static, chunk_elements: int) -> torch.Tensor:
+def _body_static_gap(world, pos, quat, a: int, posed, chunk_elements: int) -> torch.Tensor:
     # the spheres body a meets the static with: a box's corners against a plane or a static box
-    # (dejaview.sim.box_edges, as the contacts), else its packing
+    # (dejaview.sim.box_edges, as the contacts), else its packing; ``posed(t)``: the static at record t
+    static = posed(0)
     if world.box_bodies[a] and static.kind in CORNER_KINDS:
         centres, ra = (t[a] for t in box_corners(world.box_half))
         invalid = torch.zeros_like(ra, dtype=torch.bool)
@@ -198,13 +209,24 @@ def _body_static_gap(world, pos, quat, a: int, static, chunk_elements: int) -> t
     far = torch.finfo(pos.dtype).max
     pos_d, quat_d = pos.detach(), quat.detach()
 
+    moving = static.path is not None
+
     def gaps(t0, t1):
         ca = _points(centres, pos_d[t0:t1, :, a], quat_d[t0:t1, :, a])  # (t, B, Sa, 3)
-        d, _ = static.distance(ca)
+        if moving:  # each record against the shape where it is then
+            d = torch.stack([posed(t).distance(ca[t - t0])[0] for t in range(t0, t1)])
+        else:
+            d, _ = static.distance(ca)
         return (d - ra).masked_fill(invalid, far)
 
     _, rec, i = _running_argmin(gaps, pos.shape[0], ra.shape[0], chunk_elements)
     pa, qa = _pick(pos[:, :, a], rec), _pick(quat[:, :, a], rec)
     ca = pa + quat_rotate(qa, centres[i])
-    d, _ = static.distance(ca)
+    if not moving:
+        d, _ = static.distance(ca)
+        return d - ra[i]
+    d = torch.zeros_like(ra[i])
+    for t in torch.unique(rec).tolist():  # each candidate against the shape at its own record
+        sel = rec == t
+        d = torch.where(sel, posed(t).distance(ca)[0], d)
     return d - ra[i]

@@ -158,10 +158,10 @@ def statics_from_robot(scene, obj, sdf_spacing: float = 0.01, motion: tuple[floa
     if obj.moving:
         from dataclasses import replace
 
-        from dejaview.sim.motion import path_length, robot_paths
+        from dejaview.sim.motion import RobotMotion
 
         h, limit = motion
-        paths = robot_paths(scene, obj, np.arange(path_length(obj.keyframes, h, limit)) * h)
+        paths = RobotMotion(scene, obj, limit).paths(h)
         statics = [replace(st, path=paths[st.name]).at(0) for st in statics]
     return statics
 

@@ -15,7 +15,7 @@ flow through the bodies' states only (exactly, in both engines).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -41,6 +41,8 @@ class ShapePath:
     translation: torch.Tensor
     velocity: torch.Tensor
     angular_velocity: torch.Tensor
+    motion: "RobotMotion | None" = field(default=None, repr=False, compare=False)
+    """What the path was sampled from (to sample it again at another substep), if known."""
 
     def __len__(self) -> int:
         return int(self.translation.shape[0])
@@ -57,7 +59,51 @@ class ShapePath:
 
     def to(self, device=None, dtype=None) -> "ShapePath":
         return replace(self, **{f.name: getattr(self, f.name).to(device=device, dtype=dtype)
-                                for f in fields(self)})
+                                for f in fields(self) if f.name != "motion"})
+
+
+class RobotMotion:
+    """A moving robot's keyframed motion, as its links' paths are sampled from it: ``paths(h)`` samples
+    them at another substep ``h`` (``World.with_substeps``). A plain class with a repr naming the
+    robot and its keyframes (what ``amortised.model.fingerprint`` hashes of it).
+
+    Args:
+        scene: the Scene; obj: the robot's SceneObject (with keyframes).
+        limit: the step budget in substeps (no path runs past it).
+    """
+
+    def __init__(self, scene, obj, limit: int):
+        self.scene, self.obj, self.limit = scene, obj, int(limit)
+
+    def paths(self, h: float) -> dict[str, "ShapePath"]:
+        """Each link geometry's path at substep times ``j h`` (``robot_paths``)."""
+        times = np.arange(path_length(self.obj.keyframes, h, self.limit)) * h
+        return robot_paths(self.scene, self.obj, times, motion=self)
+
+    def __repr__(self) -> str:
+        return f"RobotMotion({self.obj.id!r}, {self.obj.keyframes!r}, limit={self.limit})"
+
+
+def resampled(statics, h: float) -> tuple:
+    """``statics`` with each moving one's path sampled again at substep ``h`` (from its
+    ``ShapePath.motion``, one forward kinematics per robot), posed at substep 0.
+
+    Raises:
+        SimulationError: a moving static whose path knows no motion (built by hand).
+    """
+    from dejaview.errors import SimulationError
+
+    sampled = {}
+    for s in statics:
+        if s.path is not None:
+            if s.path.motion is None:
+                raise SimulationError(f"static {s.name!r} moves on a path given as data, sampled at the world's "
+                                      "substep; build the world again at the other substep")
+            sampled.setdefault(id(s.path.motion), s.path.motion.paths(h))
+    return tuple(s if s.path is None else
+                 replace(s, path=sampled[id(s.path.motion)][s.name].to(s.translation.device,
+                                                                       s.translation.dtype)).at(0)
+                 for s in statics)
 
 
 def static_point_velocity(shapes, position: torch.Tensor, arm: torch.Tensor) -> torch.Tensor:
@@ -123,31 +169,26 @@ def pose_velocity(poses_minus: np.ndarray, poses_plus: np.ndarray, dt: float) ->
     return v, _rotation_vector(rel) / (2.0 * dt)
 
 
-def robot_paths(scene, obj, times: np.ndarray, model=None) -> dict[str, ShapePath]:
+def robot_paths(scene, obj, times: np.ndarray, model=None, motion: RobotMotion | None = None
+                ) -> dict[str, ShapePath]:
     """The path of every collision geometry of a moving robot object, by its piece name
     (``dejaview.geometry.robot.robot_pieces``' ``robot-id/link``), at ``times`` (T,) s (the
     simulator's: substep times ``j h``): one batched forward kinematics at the joint values then,
     and two more ``VELOCITY_STEP`` before and after along the joints' velocities for the
-    velocities."""
-    from dejaview.geometry.robot import link_transforms_batch, robot_model
-    from dejaview.geometry.transforms import quat_to_matrix, rigid_transform
+    velocities. ``motion``: what the paths carry as their source (``ShapePath.motion``)."""
+    from dejaview.geometry.robot import piece_transforms, robot_model
 
     model = model or robot_model(scene, obj)
     q, qdot = joint_path(obj.keyframes, np.asarray(times, dtype=np.float64))
-    at = link_transforms_batch(model, q)
-    minus = link_transforms_batch(model, q - VELOCITY_STEP * qdot)
-    plus = link_transforms_batch(model, q + VELOCITY_STEP * qdot)
-    base = rigid_transform(quat_to_matrix(obj.pose.orientation), obj.pose.position)
-    paths, seen = {}, {}
+    at = piece_transforms(obj, model, q)
+    minus = piece_transforms(obj, model, q - VELOCITY_STEP * qdot)
+    plus = piece_transforms(obj, model, q + VELOCITY_STEP * qdot)
+    paths = {}
     t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
-    for g in model.geometry:
-        k = seen.get(g.link, 0)
-        seen[g.link] = k + 1
-        name = f"{obj.id}/{g.link}" + (f"#{k}" if k else "")
-        pose = base @ at[g.link] @ g.origin  # (T, 4, 4)
-        v, w = pose_velocity(base @ minus[g.link] @ g.origin, base @ plus[g.link] @ g.origin, VELOCITY_STEP)
+    for name, pose in at.items():  # (T, 4, 4)
+        v, w = pose_velocity(minus[name], plus[name], VELOCITY_STEP)
         paths[name] = ShapePath(rotation=t(pose[:, :3, :3]), translation=t(pose[:, :3, 3]), velocity=t(v),
-                                angular_velocity=t(w))
+                                angular_velocity=t(w), motion=motion)
     return paths
 
 

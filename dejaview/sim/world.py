@@ -444,13 +444,17 @@ class World:
     def with_substeps(self, substeps: int) -> "World":
         """This world integrated in ``substeps`` substeps per step at the same contact frequency
         (stiffness), each unloading factor re-mapped so that it rebounds with the same restitution:
-        the same model at a finer (or coarser) step, to measure the step's share of a result."""
-        if self.moving and substeps != self.substeps:
-            raise SimulationError("a moving robot's paths are sampled at the world's substep; build the world "
-                                  "again (World.from_scene) with <simulation substeps> for another")
+        the same model at a finer (or coarser) step, to measure the step's share of a result. A moving
+        robot's links are sampled again at the new substep (``ShapePath.motion``: a path built
+        without one, by hand, is refused)."""
         om = self.contact.frequency
         h0, h = self.dt / self.substeps, self.dt / substeps
-        return replace(self, substeps=int(substeps),
+        statics = self.statics
+        if self.moving and substeps != self.substeps:
+            from dejaview.sim.motion import resampled
+
+            statics = resampled(statics, h)
+        return replace(self, substeps=int(substeps), statics=statics,
                        unload_static=remap_unloading(self.unload_static, om * h0, om * h),
                        unload_pair=remap_unloading(self.unload_pair, om * h0, om * h))
 

@@ -81,12 +81,3 @@ def test_keyframe_problems_are_one_line_errors_with_file_and_line(tmp_path, fram
     assert reason in str(err), str(err)
     assert err.file == str(tmp_path / "scene.xml") and err.line == line and "\n" not in str(err)
 
-
-def test_the_warp_backend_refuses_a_moving_robot_in_one_line(tmp_path):
-    pytest.importorskip("warp", reason="the warp backend needs the 'warp' extra (pip install 'dejaview[warp]')")
-    from dejaview.backends.warp.model import WarpSimulator
-
-    scene = read(tmp_path, scene_text('<joints time="0" values="0 0 0"/><joints time="1" values="1 0 0"/>'))
-    with pytest.raises(SceneError, match="the warp backend has no kinematically driven links") as info:
-        WarpSimulator.from_scene(scene)
-    assert "\n" not in str(info.value) and info.value.line == 3

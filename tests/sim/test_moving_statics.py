@@ -158,13 +158,10 @@ def test_a_rollout_continued_from_a_step_finds_the_links_there():
     assert not torch.allclose(again.final.position, whole.final.position, atol=1e-3)
 
 
-def test_a_moving_world_does_not_compile_nor_change_its_substeps():
-    """Its links' poses change every substep (no compiled graph holds them), and its paths are
-    sampled at its substep (another substep count would read them at the wrong times)."""
+def test_a_path_given_as_data_does_not_change_its_substeps():
+    """A path built by hand knows no motion to sample again (a robot's does: test_robots_motion)."""
     world, state = _world("ball", 10)
-    with pytest.raises(SimulationError, match="moving robot does not compile"):
-        rollout(world, state, steps=10, compile=True)
-    with pytest.raises(SimulationError, match="sampled at the world's substep"):
+    with pytest.raises(SimulationError, match="path given as data, sampled at the world's substep"):
         world.with_substeps(4)
     assert world.with_substeps(2) is not None  # the same substeps: the same world
 
@@ -176,3 +173,37 @@ def test_joint_paths_interpolate_and_hold():
     q, qdot = joint_path(keys, np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.5]))
     assert np.allclose(q, [[0, 1], [0, 1], [0.5, 1], [1, 1], [1, 0], [1, -1], [1, -1]])
     assert np.allclose(qdot, [[0, 0], [2.5, 0], [2.5, 0], [0, -5], [0, -5], [0, 0], [0, 0]])
+
+
+def test_a_penalty_meets_a_moving_link_where_it_is_at_each_record():
+    """``contact_penalty`` against a moving static reads its pose at each record (as the rollout
+    met it), not where it stood at time 0. A ball rests 0.6 m out on the x axis; the paddle
+    (radially 0.15..0.45 m, corners 0.4504 m out) turns past the axis around t = 0.19 s: the least
+    gap is that of the box at each record, brute force (about 0.6 - 0.4504 - 0.05), and it moves
+    with the ball's start one for one."""
+    from dejaview.losses.penalty import contact_penalty
+
+    steps, substeps, dt = 120, 2, 0.002
+    statics = [StaticShape.make("floor", "plane"), sweeping_paddle(steps * substeps + 1, dt / substeps)]
+    world = make_world([ball_body(radius=0.05, mass=0.3)], statics, dt=dt, substeps=substeps, steps=steps)
+    x = torch.tensor([0.6, 0.0, 0.05], dtype=torch.float64, requires_grad=True)
+    traj = rollout(world, world.state(x[None]), steps=steps)
+    gap = contact_penalty(world, traj, "ball", "arm/paddle")
+    paddle, half = world.statics[1], np.array([0.15, 0.02, 0.04])
+    path, centres = paddle.path, traj.states.position[:, 0, 0].detach().numpy()
+    brute = []
+    for t, step_ in enumerate(traj.steps.tolist()):
+        j = path.row(step_ * substeps)
+        local = path.rotation[j].numpy().T @ (centres[t] - path.translation[j].numpy())
+        q = np.abs(local) - half
+        brute.append(np.linalg.norm(np.maximum(q, 0)) + min(q.max(), 0) - 0.05)
+    assert 0.0995 < min(brute) < 0.1
+    assert float(gap.detach()) == pytest.approx(min(brute), abs=1e-9)
+    (dx,) = torch.autograd.grad(gap.sum(), x)
+    assert float(dx[0]) == pytest.approx(1.0, abs=1e-3)  # along the corner-to-ball direction, near x
+    # the paddle as it stood at time 0 is farther: the old reading would have said so
+    still = replace(world, statics=tuple(replace(s, path=None) for s in world.statics))
+    assert float(contact_penalty(still, traj, "ball", "arm/paddle").detach()) > 0.2
+    # the same on the native engine's trajectory (no graph: values)
+    native = rollout(world, world.state(x.detach()[None]), steps=steps, engine="native")
+    assert float(contact_penalty(world, native, "ball", "arm/paddle")) == pytest.approx(min(brute), abs=1e-9)

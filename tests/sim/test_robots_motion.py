@@ -216,3 +216,28 @@ def test_a_moving_urdf_robot_built_from_its_scene_is_the_same_in_both_engines():
     assert float(ref.final.linear_velocity[0, 0, 1]) > 0.3  # batted along +y by the turning forearm
     for x, y in zip(ref.states.tensors(), out.states.tensors()):
         assert torch.allclose(x, y, rtol=0, atol=1e-9), float((x - y).abs().max())
+
+
+def test_a_moving_robot_changes_its_substeps_with_its_paths_sampled_again(tmp_path):
+    """``World.with_substeps`` samples a moving robot's links again at the new substep (by forward
+    kinematics, as a World built at that substep has them), and the pusher still ends where the
+    closed form says; back at the old substep the paths are the old ones."""
+    import torch
+
+    from dejaview.sim import World
+    from dejaview.sim.integrate import rollout
+
+    scene = pusher_scene(tmp_path)
+    world = World.from_scene(scene)
+    assert world.moving and world.substeps == 4
+    fine = world.with_substeps(8)
+    text = scene.to_xml().replace('restitution="0.0"', 'restitution="0.0" substeps="8"', 1)
+    built = World.from_scene(Scene.from_string(text, base_dir=tmp_path))
+    paddle, again, ref = (w.statics[-1] for w in (fine, fine.with_substeps(4), built))
+    assert len(paddle.path) == len(ref.path) == 2 * len(world.statics[-1].path) - 1  # to 0.5 s at h = 0.25 ms
+    for a, b in zip(paddle.path.rows(), ref.path.rows()):
+        assert torch.allclose(a, b, rtol=0, atol=1e-12)
+    assert torch.equal(again.path.rows(), world.statics[-1].path.rows())
+    run = rollout(fine, fine.state([[BOX_X, 0.0, 0.05]]), steps=500, engine="native")
+    end = fine.object_position(run.final)[0, 0].numpy()
+    assert end[0] == pytest.approx(STOP + 0.02 + 0.05 + SPEED ** 2 / (2 * MU * G), abs=0.005)

@@ -6,6 +6,7 @@ Imported only when asked for (``make_problem(scene, "warp")``); needs the ``warp
 
 - ``settings``: the ``warp-*`` attributes of ``<simulation>`` (no Warp import);
 - ``model``: the scene as ``warp.sim`` models, rollouts, the tape's reverse pass;
+- ``links``: a moving robot's links as kinematic bodies driven along their paths;
 - ``problem``: ``WarpProblem``, whose rollouts hand Warp's states to torch, so the losses are
   ``dejaview.losses`` as on every backend.
 

@@ -6,7 +6,8 @@ Model (``WarpSimulator.from_scene``), from the same scene as the sphere simulato
   same mass, centre of mass and inertia in both backends); their shapes carry no mass of their own;
 - shapes: meshes as ``wp.sim.Mesh`` (vertices and faces as trimesh loads them), box and sphere as
   Warp primitives, cylinders as meshes (``warp.sim`` generates no cylinder contacts), planes as
-  infinite static planes; fixed objects are static shapes (body -1);
+  infinite static planes; fixed objects are static shapes (body -1), a moving robot's links
+  kinematic bodies of zero mass driven along their paths (``dejaview.backends.warp.links``);
 - friction and restitution per shape from the object or the scene (Warp averages the two shapes
   of a contact; the sphere simulator takes the geometric mean of the frictions), gravity, ``dt``
   and ``duration`` from the scene; the settings of ``dejaview.backends.warp.settings``.
@@ -197,6 +198,7 @@ class _Batch:
     model: object
     integrator: object
     envs: int
+    links: object = None  # a moving robot's links' rows (``links.LinkRows``), or None
     states: dict = field(default_factory=dict)  # (requires_grad, count, slot) -> list of wp.sim.State
     tapes: dict = field(default_factory=dict)  # slot -> the tape of a run whose reverse pass is to come
 
@@ -209,10 +211,12 @@ class WarpSimulator:
         dt, duration_steps, settings (integrator, substeps, iterations), device.
     """
 
-    def __init__(self, scene, bodies: list[_Body], statics: list[_Static], settings: dict, device: str):
+    def __init__(self, scene, bodies: list[_Body], statics: list[_Static], settings: dict, device: str,
+                 links: list | None = None):
         self.scene = scene
         self.bodies = bodies
         self.statics = statics
+        self.links = links or []  # a moving robot's link geometries (``links.MovingLink``)
         self.settings = settings
         self.device = device
         self.dt = float(scene.simulation.dt)
@@ -236,7 +240,7 @@ class WarpSimulator:
         init_warp()
         settings = warp_settings(scene, **options)
         sim = scene.simulation
-        bodies, statics = [], []
+        bodies, statics, links = [], [], []
         for obj in scene.objects:
             where = dict(file=str(scene.path) if scene.path else None, line=obj.line, element="object")
             friction = sim.friction if obj.friction is None else obj.friction
@@ -245,10 +249,12 @@ class WarpSimulator:
                 if obj.fixed and obj.robot is not None:  # a robot: one static per link geometry
                     from dejaview.scene.robot_links import link_objects
 
-                    if obj.moving:
-                        raise SceneError(f"robot {obj.id!r} moves (<joints time values>): the warp backend "
-                                         "has no kinematically driven links; use the spheres backend", **where)
+                    if obj.moving:  # kinematic bodies on their paths (``links``)
+                        from dejaview.backends.warp.links import moving_links
 
+                        links.extend(moving_links(scene, obj, sim.dt / settings["substeps"], friction,
+                                                  restitution, _shape_of))
+                        continue
                     statics.extend(_Static(p.object.id, _shape_of(scene, p.object, p.solid), friction,
                                            restitution, np.asarray(p.object.pose.position, dtype=np.float64),
                                            np.asarray(p.object.pose.orientation, dtype=np.float64))
@@ -280,7 +286,7 @@ class WarpSimulator:
         if not bodies:
             raise SceneError("the scene has no movable object to simulate",
                              file=str(scene.path) if scene.path else None, element="scene")
-        return cls(scene, bodies, statics, settings, device or default_device())
+        return cls(scene, bodies, statics, settings, device or default_device(), links)
 
     # ------------------------------------------------------------- building
     @property
@@ -334,8 +340,15 @@ class WarpSimulator:
                                         com=wp.vec3(*b.com), name=f"{b.name}/{k}")
                 self._add_shape(builder, body, b.shape, wp.vec3(0.0, 0.0, 0.0), wp.quat_identity(),
                                 dict(mu=b.friction, restitution=b.restitution, **stiffness), k + 1)
-        # statics after the bodies: warp.sim pairs a group with group -1 only when the -1 shape comes later
+        # links and statics after the bodies: warp.sim pairs a group with group -1 only when the -1
+        # shape comes later; a moving link is a kinematic body of zero mass (``links``)
         static_shapes = []
+        for link in self.links:
+            body = builder.add_body(origin=wp.transform(wp.vec3(*link.q[0, :3]), wp.quat(*link.q[0, 3:])), m=0.0,
+                                    I_m=wp.mat33(*([0.0] * 9)), com=wp.vec3(0.0, 0.0, 0.0), name=link.name)
+            static_shapes.append(self._add_shape(builder, body, link.shape, wp.vec3(0.0, 0.0, 0.0),
+                                                 wp.quat_identity(), dict(mu=link.friction,
+                                                 restitution=link.restitution, **stiffness), -1))
         for st in self.statics:
             q = st.orientation
             if st.shape[0] == "plane":
@@ -343,13 +356,18 @@ class WarpSimulator:
             static_shapes.append(self._add_shape(
                 builder, -1, st.shape, wp.vec3(*st.position), wp.quat(*_wp_quat(q)),
                 dict(mu=st.friction, restitution=st.restitution, **stiffness), -1))
-        for a in static_shapes:  # static pairs never move: no contacts between them
+        for a in static_shapes:  # no contacts between statics and links: nothing moves them
             for b in static_shapes:
                 if a < b:
                     builder.shape_collision_filter_pairs.add((a, b))
         model = builder.finalize(device=self.device, requires_grad=True)
         model.ground = False
         model.gravity = self.gravity
+        rows = None
+        if self.links:
+            from dejaview.backends.warp.links import LinkRows
+
+            rows = LinkRows(self.links, self.device)
         if self.settings["integrator"] == "xpbd":
             # (warp.sim's restitution pass fails on a model that can have no contact at all)
             integrator = wp.sim.XPBDIntegrator(
@@ -357,7 +375,7 @@ class WarpSimulator:
                 enable_restitution=self.settings["restitution"] and model.rigid_contact_max > 0)
         else:
             integrator = wp.sim.SemiImplicitIntegrator(angular_damping=0.0, friction_smoothing=0.01)
-        return _Batch(model, integrator, envs)
+        return _Batch(model, integrator, envs, rows)
 
     def batch(self, envs: int) -> _Batch:
         """The model of ``envs`` environments (built once per size)."""
@@ -407,10 +425,13 @@ class WarpSimulator:
             pending.zero()
             pending.reset()
         n = len(self.bodies)
-        states[0].body_q.assign(wp.array(body_q.reshape(envs * n, 7).astype(np.float32), dtype=wp.transform,
-                                         device=self.device))
-        states[0].body_qd.assign(wp.array(body_qd.reshape(envs * n, 6).astype(np.float32),
-                                          dtype=wp.spatial_vector, device=self.device))
+        rows, m = batch.links, envs * n  # a moving robot's links: bodies m on
+        q0, qd0 = body_q.reshape(m, 7), body_qd.reshape(m, 6)
+        if rows is not None:
+            q0 = np.concatenate([q0, np.zeros((rows.count, 7))])
+            qd0 = np.concatenate([qd0, np.zeros((rows.count, 6))])
+        states[0].body_q.assign(wp.array(q0.astype(np.float32), dtype=wp.transform, device=self.device))
+        states[0].body_qd.assign(wp.array(qd0.astype(np.float32), dtype=wp.spatial_vector, device=self.device))
         tape = _Tape() if grad else None
         kept, qs, qds, recorded = [], [], [], []
 
@@ -420,15 +441,19 @@ class WarpSimulator:
                 state = states[t * sub]
                 kept.append(t)
                 recorded.append(state)
-                qs.append(wp.to_torch(state.body_q).reshape(envs, n, 7).to(torch.float64))
-                qds.append(wp.to_torch(state.body_qd).reshape(envs, n, 6).to(torch.float64))
+                qs.append(wp.to_torch(state.body_q)[:m].reshape(envs, n, 7).to(torch.float64))
+                qds.append(wp.to_torch(state.body_qd)[:m].reshape(envs, n, 6).to(torch.float64))
 
         with tape if grad else contextlib.nullcontext():
             record(0)
             for t in range(steps):
+                if rows is not None:
+                    rows.write(states[t * sub], t * sub, m)
                 wp.sim.collide(model, states[t * sub], requires_grad=grad)
                 for s in range(sub):
                     i = t * sub + s
+                    if rows is not None and s:
+                        rows.write(states[i], i, m)
                     states[i].clear_forces()
                     with tape.step(states[i], states[i + 1]) if grad else contextlib.nullcontext():
                         integrator.simulate(model, states[i], states[i + 1], h)
@@ -470,14 +495,15 @@ class WarpRun:
 
     def backward(self, g_q: torch.Tensor, g_qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Gradients (E, N, 7), (E, N, 6) of the initial body_q, body_qd from those of the records."""
+        envs, n = g_q.shape[1], g_q.shape[2]
+        m = envs * n  # the bodies' rows (a moving robot's links come after them)
         for t, state in enumerate(self.recorded):
-            wp.to_torch(state.body_q.grad).add_(g_q[t].reshape(-1, 7).to(torch.float32))
-            wp.to_torch(state.body_qd.grad).add_(g_qd[t].reshape(-1, 6).to(torch.float32))
+            wp.to_torch(state.body_q.grad)[:m].add_(g_q[t].reshape(-1, 7).to(torch.float32))
+            wp.to_torch(state.body_qd.grad)[:m].add_(g_qd[t].reshape(-1, 6).to(torch.float32))
         self.tape.backward()
         first = self.recorded[0]
-        envs, n = g_q.shape[1], g_q.shape[2]
-        gq = wp.to_torch(first.body_q.grad).reshape(envs, n, 7).to(torch.float64).cpu()
-        gqd = wp.to_torch(first.body_qd.grad).reshape(envs, n, 6).to(torch.float64).cpu()
+        gq = wp.to_torch(first.body_q.grad)[:m].reshape(envs, n, 7).to(torch.float64).cpu()
+        gqd = wp.to_torch(first.body_qd.grad)[:m].reshape(envs, n, 6).to(torch.float64).cpu()
         self.tape.zero()
         self.tape.reset()
         if self.batch.tapes.get(self.slot) is self.tape:
