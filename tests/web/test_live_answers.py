@@ -11,7 +11,7 @@ import pytest
 
 from dejaview.server.local import LocalServer
 
-from .conftest import REPO, load_scene, needs_browser, open_viewer, state
+from .conftest import ASSETS, REPO, load_scene, needs_browser, open_viewer, state
 from .test_viewer import drag_gizmo_x
 
 pytestmark = needs_browser
@@ -89,3 +89,40 @@ def test_dragging_the_target_updates_the_live_heatmap(live_page, live_server, ar
     page.screenshot(path=artifacts / "live-heatmap.png")
     print(f"live: {after['answers']} answers while dragging; move to heatmap drawn (ms, in the page): "
           f"{[round(v) for v in after['latencies']]}")
+
+
+def test_carrying_the_target_in_vr_asks_while_it_moves(live_page, live_server, artifacts):
+    """A WebXR-emulated controller grabs the target and carries it: live answers come while it is
+    still held (not only on release), each for where the target is in the scene at that moment."""
+    from .test_xr import INSTALL, controller, controller_at
+
+    if not any((live_server.results_dir / "models").glob("*.safetensors")):
+        train_into(live_server)
+    page = live_page
+    page.add_init_script(path=str(ASSETS / "iwer.min.js"))
+    page.add_init_script(INSTALL)
+    open_viewer(page, live_server)
+    load_scene(page, "scenes/throw.xml")
+    page.check("#live")
+    page.click("#VRButton")
+    page.wait_for_function("window.dejaview.state().xr.connected === 2")
+    # the target at (0.2, 0.05, 0.25) in the z-up scene: (0.2, 0.25, -0.05) in the y-up XR frame;
+    # the right controller 30 cm in front of it, pointing at it
+    x, y, z = 0.2, 0.25, -0.05 + 0.3
+    controller(page, "right", f"c.position.set({x}, {y}, {z}); c.quaternion.set(0, 0, 0, 1);")
+    controller_at(page, 1, (x, y, z))
+    controller(page, "right", "c.updateButtonValue('trigger', 1);")
+    page.wait_for_function("window.dejaview.state().xr.grabs === 1")
+    answers = live_state(page)["answers"]
+    page.wait_for_function("!window.dejaview.state().live.inFlight")  # held still: nothing more asked
+    for k in range(1, 4):  # carried 3 cm along the scene's x at a time, the trigger held
+        controller(page, "right", f"c.position.set({x + 0.03 * k}, {y}, {z});")
+        controller_at(page, 1, (x + 0.03 * k, y, z))
+        page.wait_for_function(f"(s => s.answers > {answers} && !s.inFlight)(window.dejaview.state().live)")
+        answers = live_state(page)["answers"]
+    s = state(page)
+    assert s["xr"]["releases"] == 0 and s["xr"]["grabs"] == 1  # all of it while held
+    assert live_state(page)["error"] is None and s["heatmapShown"]
+    page.screenshot(path=artifacts / "vr-live-carried.png")
+    controller(page, "right", "c.updateButtonValue('trigger', 0);")
+    page.wait_for_function("window.dejaview.state().xr.releases === 1")

@@ -65,7 +65,7 @@ export class Live {
     this.movedAt = null;
     this.connection.send({
       type: 'live', scene_xml: this.xml, request_id: id,
-      target: { position: ghost.position.toArray(), orientation: fromQuat(ghost.quaternion) },
+      target: scenePose(ghost),
     });
   }
 
@@ -81,17 +81,23 @@ export class Live {
     } else if (this.enabled) {
       this.error = null;
       this.draw(msg);
-      const movedAt = asked?.movedAt;
-      requestAnimationFrame(() => { // drawn with the next frame
-        if (movedAt != null) this.latencies.push(performance.now() - movedAt);
-        if (this.latencies.length > KEPT_LATENCIES) this.latencies.shift();
-        this.answers += 1;
-        this.status();
-      });
+      this.drawn = { movedAt: asked?.movedAt }; // counted when the next frame is rendered (frame())
     }
     if (this.enabled && this.movedAt != null) this.send();
     this.status();
     return true;
+  }
+
+  // Called by the render loop after each frame (the renderer's, which runs in VR too, where the
+  // window's requestAnimationFrame does not): an answer drawn in it is counted, with its latency.
+  frame() {
+    if (!this.drawn) return;
+    const { movedAt } = this.drawn;
+    this.drawn = null;
+    if (movedAt != null) this.latencies.push(performance.now() - movedAt);
+    if (this.latencies.length > KEPT_LATENCIES) this.latencies.shift();
+    this.answers += 1;
+    this.status();
   }
 
   draw(msg) {
@@ -127,4 +133,14 @@ export class Live {
       inFlight: Boolean(this.inFlight), probability: app.heatmapGrid?.probability ?? null,
     };
   }
+}
+
+// The pose of a group in the scene (the world group's frame), also while a controller carries it
+// (attached to the controller, its own position is the controller's frame): { position, orientation }.
+function scenePose(group) {
+  if (group.parent === world) return { position: group.position.toArray(), orientation: fromQuat(group.quaternion) };
+  const position = world.worldToLocal(group.getWorldPosition(new THREE.Vector3()));
+  const q = world.getWorldQuaternion(new THREE.Quaternion()).invert()
+    .multiply(group.getWorldQuaternion(new THREE.Quaternion()));
+  return { position: position.toArray(), orientation: fromQuat(q) };
 }

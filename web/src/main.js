@@ -379,6 +379,8 @@ const vr = setupVR({
     menuStatus(vr.menu);
   },
   onRelease: (group) => { poseEdited(group); live.moved(group); fillTargets(); menuStatus(vr.menu); },
+  // the live answer follows the target while it is carried (one request in flight, the newest pose)
+  onCarry: (group) => { if (group === groupOf(TARGET)) live.moved(group); },
   onSolve: () => run('solve'),
   onMenu: (name, at) => pressMenu(name, at, menuActions).then(() => menuStatus(vr.menu), (err) => {
     notify(err.message, 'error');
@@ -405,6 +407,7 @@ renderer.setAnimationLoop(() => {
   vr.update();
   placeLabels();
   renderer.render(scene, camera);
+  live.frame();
 });
 
 installTestHooks({

@@ -10,14 +10,15 @@ const AHEAD = 0.5; // m: where the menu's "add" buttons put a target or an objec
 
 // onMenu(name, at): a menu button pressed, at: half a metre in front of the eyes, in the scene (z up).
 // grabbable(): the groups a ray may pick; movable(group): whether a picked one is carried (else it is
-// only selected: onGrab without a release).
-export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, onRelease, onSolve, onMenu }) {
+// only selected: onGrab without a release); onCarry(group): each frame a carried group has moved in.
+export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, onRelease, onSolve, onMenu,
+  onCarry = () => {} }) {
   renderer.xr.enabled = true;
   const button = VRButton.createButton(renderer);
   document.body.appendChild(button);
 
   const state = { sessions: 0, connected: 0, selects: 0, grabs: 0, releases: 0, solves: 0, held: [null, null],
-    menu: [] };
+    carried: [null, null], menu: [] };
   const menu = new VRMenu();
   renderer.xr.addEventListener('sessionstart', () => { state.sessions += 1; });
 
@@ -71,6 +72,7 @@ export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, on
       if (!group) return;
       world.attach(group);
       state.held[index] = null;
+      state.carried[index] = null;
       state.releases += 1;
       onRelease(group);
     });
@@ -89,7 +91,17 @@ export function setupVR({ renderer, scene, world, grabbable, movable, onGrab, on
     button,
     controllers,
     menu,
-    update() {},
+    update() { // onCarry for each carried group that moved since the last frame
+      state.held.forEach((group, index) => {
+        if (!group) return;
+        const now = group.getWorldPosition(new THREE.Vector3()).toArray()
+          .concat(group.getWorldQuaternion(new THREE.Quaternion()).toArray());
+        const last = state.carried[index];
+        state.carried[index] = now;
+        if (last && now.every((v, i) => Math.abs(v - last[i]) < 1e-6)) return;
+        onCarry(group);
+      });
+    },
     state: () => ({
       presenting: renderer.xr.isPresenting,
       sessions: state.sessions,
