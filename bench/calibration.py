@@ -117,24 +117,32 @@ def observe(scene, post, truth, generator):
     ``Posterior``)."""
     import torch
 
-    from dejaview.sim.rotation import quat_multiply, quat_rotate, rotvec_to_quat
-
-    problem, settings = post.problem, post.settings
     with torch.no_grad():
-        st = problem.simulate(truth).states
-    b = problem.source
-    com, q = st.position[-1, 0, b], st.orientation[-1, 0, b]
-    eps = settings.sigma * torch.randn(3, generator=generator, dtype=com.dtype)
-    eta = settings.angle_sigma * torch.randn(3, generator=generator, dtype=com.dtype)
-    q_obs = quat_multiply(rotvec_to_quat(eta), q)
-    if scene.inference.loss == "position":  # the origin is observed; the orientation is not compared
-        origin = com - quat_rotate(q, problem.world.com[b]) + eps
-    else:  # the centre of mass and the orientation are observed (``Posterior.observation_residuals``)
-        origin = com + eps - quat_rotate(q_obs, problem.world.com[b])
+        st = post.problem.simulate(truth).states
+    b = post.problem.source
+    origin, q_obs = sighting(scene, post, st.position[-1, 0, b], st.orientation[-1, 0, b], generator)
     inf = scene.inference
     # the end observed as it is, at rest or not (the truths are drawn without asking them to rest)
     target = replace(inf.target, position=tuple(origin.tolist()), orientation=tuple(q_obs.tolist()), moving=True)
     return replace(scene, inference=replace(inf, targets=(target,)))
+
+
+def sighting(scene, post, com, q, generator):
+    """The source seen with ``post``'s ``<observation>`` noise at its centre of mass com (3,) and
+    orientation q (4,): (origin (3,), orientation (4,)) as a target states them; the origin for a
+    position loss (the orientation not compared), else the centre of mass and a turned orientation
+    (``Posterior.observation_residuals``)."""
+    import torch
+
+    from dejaview.sim.rotation import quat_multiply, quat_rotate, rotvec_to_quat
+
+    settings, b = post.settings, post.problem.source
+    eps = settings.sigma * torch.randn(3, generator=generator, dtype=com.dtype)
+    eta = settings.angle_sigma * torch.randn(3, generator=generator, dtype=com.dtype)
+    q_obs = quat_multiply(rotvec_to_quat(eta), q)
+    if scene.inference.loss == "position":
+        return com - quat_rotate(q, post.problem.world.com[b]) + eps, q_obs
+    return com + eps - quat_rotate(q_obs, post.problem.world.com[b]), q_obs
 
 
 def prior_width90(post) -> list[float]:

@@ -72,34 +72,32 @@ def base_scene(kind: str):
 
 def tracked(scene, post, truth, times, generator):
     """``scene`` with its targets the start ``truth`` (1, P, physics included) seen at ``times``:
-    simulated with ``post``'s problem, each sighting with the ``<observation>`` noise (the origin
-    for a position loss; the centre of mass and a turned orientation for a pose loss, as
-    ``Posterior.observation_residuals`` compares them)."""
+    simulated with ``post``'s problem, each sighting with the ``<observation>`` noise
+    (``calibration.sighting``: the origin for a position loss, the centre of mass and a turned
+    orientation for a pose loss)."""
     import torch
 
     from dejaview.scene import Target
-    from dejaview.sim.rotation import quat_multiply, quat_rotate, rotvec_to_quat
 
-    problem, settings = post.problem, post.settings
-    dt = problem.world.dt
+    sighting = _calibration().sighting
+    dt, b = post.problem.world.dt, post.problem.source
     with torch.no_grad():
-        st = problem.simulate(truth, record_every=1).states
-    b = problem.source
+        st = post.problem.simulate(truth, record_every=1).states
     pose = scene.inference.loss != "position"
     targets = []
     for t in times:
         i = int(round(t / dt))
-        com, q = st.position[i, 0, b], st.orientation[i, 0, b]
-        eps = settings.sigma * torch.randn(3, generator=generator, dtype=com.dtype)
-        eta = settings.angle_sigma * torch.randn(3, generator=generator, dtype=com.dtype)
-        q_obs = quat_multiply(rotvec_to_quat(eta), q)
-        if pose:
-            origin = com + eps - quat_rotate(q_obs, problem.world.com[b])
-            targets.append(Target(tuple(origin.tolist()), orientation=tuple(q_obs.tolist()), time=t, moving=True))
-        else:
-            origin = com - quat_rotate(q, problem.world.com[b]) + eps
-            targets.append(Target(tuple(origin.tolist()), time=t, moving=True))
+        origin, q_obs = sighting(scene, post, st.position[i, 0, b], st.orientation[i, 0, b], generator)
+        targets.append(Target(tuple(origin.tolist()), orientation=tuple(q_obs.tolist()) if pose else None,
+                              time=t, moving=True))
     return replace(scene, inference=replace(scene.inference, targets=tuple(targets)))
+
+
+def _calibration():
+    """``bench/calibration.py`` (the posterior's calibration bench), beside this file."""
+    from dejaview.cli.bench_table import bench_module
+
+    return bench_module("calibration")
 
 
 def run_case(kind: str, index: int, samples: int = 0) -> dict:

@@ -146,28 +146,9 @@ class JointPosterior:
 
 def levenberg_marquardt(joint: JointPosterior, x: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg-Marquardt from each row of x (K, P) on the joint posterior; (x, cost) refined."""
-    from dejaview.inference.search import lm_step
+    from dejaview.inference.search import levenberg_marquardt as lm
 
-    cost = joint.cost(x)
-    lam = torch.full((x.shape[0],), 1e-2, dtype=x.dtype)
-    active = torch.isfinite(cost)
-    r, J = joint.jacobian(x)
-    for _ in range(iterations):
-        if not bool(active.any()):
-            break
-        trial = x + lm_step(r, J, lam)
-        c_t = joint.cost(trial)
-        better = active & (c_t < cost)
-        rel = (cost - c_t) / cost.clamp_min(1e-300)
-        lam = torch.where(better, (lam / 3).clamp_min(1e-9), lam * 4)
-        x = torch.where(better[:, None], trial, x)
-        cost = torch.where(better, c_t, cost)
-        active = active & ~((better & (rel < 1e-10)) | (lam > 1e8))
-        idx = (better & active).nonzero().flatten()
-        if idx.numel():
-            r_new, J_new = joint.jacobian(x[idx])
-            r, J = r.clone(), J.clone()
-            r[idx], J[idx] = r_new, J_new
+    x, cost, _, _ = lm(x, joint.cost, lambda xs, rows: joint.jacobian(xs), iterations, tolerance=1e-10)
     return x, cost
 
 

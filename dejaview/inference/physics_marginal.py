@@ -56,10 +56,6 @@ class PhysicsGrid:
         lw = torch.where(torch.isfinite(self.log_weight), self.log_weight, torch.full_like(self.log_weight, -math.inf))
         return torch.softmax(lw, 0)
 
-    def best(self) -> int:
-        """Index of the node with the largest marginal posterior."""
-        return int(torch.argmax(torch.nan_to_num(self.log_weight, nan=-math.inf)))
-
 
 def _refine_starts(post, f: int, starts: torch.Tensor, z: torch.Tensor, iterations: int):
     """Levenberg-Marquardt on the start columns of one scene at fixed physics.
@@ -73,7 +69,7 @@ def _refine_starts(post, f: int, starts: torch.Tensor, z: torch.Tensor, iteratio
         (starts (G, P0), cost (G,) without the physics prior, 0.5 log det J^T J (G,)); cost inf
         where no finite start was found.
     """
-    from dejaview.inference.search import lm_step
+    from dejaview.inference.search import levenberg_marquardt
 
     n = starts.shape[1]
     prior = 0.5 * (z * z).sum(-1)
@@ -82,32 +78,12 @@ def _refine_starts(post, f: int, starts: torch.Tensor, z: torch.Tensor, iteratio
         with torch.no_grad():
             return post.cost(torch.cat([s, z], -1))[0] - prior
 
-    def jac(s, rows):
+    def jacobian_of(s, rows):
         r, J = post.jacobian(torch.cat([s, z[rows]], -1))
         return r[:, :-f], J[:, :-f, :n]
 
-    x = starts.clone()
-    cost = cost_of(x)
-    rows = torch.arange(x.shape[0])
-    r, J = jac(x, rows)
-    lam = torch.full((x.shape[0],), 1e-2, dtype=x.dtype)
-    active = torch.isfinite(cost)
-    for _ in range(iterations):
-        if not bool(active.any()):
-            break
-        trial = x + lm_step(r, J, lam)
-        c_t = cost_of(trial)
-        better = active & (c_t < cost)
-        rel = (cost - c_t) / cost.clamp_min(1e-300)
-        lam = torch.where(better, (lam / 3).clamp_min(1e-9), lam * 4)
-        x = torch.where(better[:, None], trial, x)
-        cost = torch.where(better, c_t, cost)
-        active = active & ~((better & (rel < 1e-8)) | (lam > 1e8))
-        idx = better.nonzero().flatten()
-        if idx.numel():
-            r_new, J_new = jac(x[idx], idx)
-            r, J = r.clone(), J.clone()
-            r[idx], J[idx] = r_new, J_new
+    x, cost, _, J = levenberg_marquardt(starts.clone(), cost_of, jacobian_of, iterations, tolerance=1e-8,
+                                        jacobian_at_end=True)
     H = J.transpose(1, 2) @ J
     eye = torch.eye(n, dtype=H.dtype)
     sign, logdet = torch.linalg.slogdet(H + 1e-10 * eye * torch.diagonal(H, dim1=1, dim2=2).mean(-1)[:, None, None])

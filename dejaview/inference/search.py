@@ -322,6 +322,45 @@ class _Search:
             self.add_modes(self.refine(torch.stack(starts), self.p.lm_final_iterations))
 
 
+def levenberg_marquardt(x: torch.Tensor, cost_of, jacobian_of, iterations: int, *, tolerance: float,
+                        jacobian_at_end: bool = False):
+    """Levenberg-Marquardt from each row of x (K, P), as one batch, on a cost 0.5 |r|^2.
+
+    Args:
+        x: (K, P) the starts.
+        cost_of: x (B, P) -> cost (B,) (inf: not finite; such rows do not move).
+        jacobian_of: (x (B, P), rows (B,) their indices in x) -> residuals (B, M), Jacobian (B, M, P).
+        iterations: most iterations.
+        tolerance: a row stops when a step gains less than this share of its cost (or the damping
+            passes 1e8).
+        jacobian_at_end: the Jacobian is also recomputed for a row whose last step stopped it, so
+            the returned one is at the returned x for every row that moved.
+    Returns:
+        (x (K, P), cost (K,), residuals (K, M), Jacobian (K, M, P)).
+    """
+    cost = cost_of(x)
+    lam = torch.full((x.shape[0],), 1e-2, dtype=x.dtype)
+    active = torch.isfinite(cost)
+    r, J = jacobian_of(x, torch.arange(x.shape[0]))
+    for _ in range(iterations):
+        if not bool(active.any()):
+            break
+        trial = x + lm_step(r, J, lam)
+        c_t = cost_of(trial)
+        better = active & (c_t < cost)
+        rel = (cost - c_t) / cost.clamp_min(1e-300)
+        lam = torch.where(better, (lam / 3).clamp_min(1e-9), lam * 4)
+        x = torch.where(better[:, None], trial, x)
+        cost = torch.where(better, c_t, cost)
+        active = active & ~((better & (rel < tolerance)) | (lam > 1e8))
+        idx = (better if jacobian_at_end else better & active).nonzero().flatten()
+        if idx.numel():
+            r_new, J_new = jacobian_of(x[idx], idx)
+            r, J = r.clone(), J.clone()
+            r[idx], J[idx] = r_new, J_new
+    return x, cost, r, J
+
+
 def lm_step(r: torch.Tensor, J: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
     """Levenberg-Marquardt steps (K, P) from residuals r (K, M), their Jacobians J (K, M, P) and
     damping lam (K,) on J^T J's diagonal (Marquardt's scaling); a non-finite entry is 0."""
