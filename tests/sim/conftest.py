@@ -50,3 +50,24 @@ def state_gradient(world, state, engine, steps):
     tensors = [t.detach().clone().requires_grad_(True) for t in state.tensors()]
     loss = trajectory_loss(rollout(world, State(*tensors), steps=steps, engine=engine))
     return torch.cat([g.flatten() for g in torch.autograd.grad(loss, tensors)])
+
+
+def both_modes(world, state, steps: int):
+    """The native rollout's ``trajectory_loss`` differentiated by the state (B, N, 13) in forward
+    mode (``jacfwd``) and in reverse mode: (forward, reverse, the state as one tensor, the loss as a
+    function of it)."""
+    import torch
+
+    from dejaview.sim.integrate import rollout
+    from dejaview.sim.state import State
+
+    x0 = torch.cat(state.tensors(), -1)
+
+    def f(x):
+        return trajectory_loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
+                                       steps=steps, engine="native"))
+
+    jac_fwd = torch.func.jacfwd(f)(x0)
+    x = x0.clone().requires_grad_(True)
+    (jac_rev,) = torch.autograd.grad(f(x), x)
+    return jac_fwd, jac_rev, x0, f

@@ -14,7 +14,7 @@ from dejaview.sim import StaticShape
 from dejaview.sim.integrate import rollout
 from dejaview.sim.motion import ShapePath, joint_path
 from dejaview.sim.state import State
-from tests.sim.conftest import ball_body, box_body, make_world, state_gradient as _grad, trajectory_loss as _loss
+from tests.sim.conftest import ball_body, both_modes, box_body, make_world, state_gradient as _grad
 
 ATOL = 1e-9
 
@@ -79,15 +79,7 @@ def test_native_gradients_through_a_moving_static_equal_torch_autograd(body):
 def test_native_forward_mode_equals_reverse_mode_through_a_moving_static():
     steps = 100
     world, state = _world("packed box", steps)
-    x0 = torch.cat(state.tensors(), -1)
-
-    def f(x):
-        return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
-                             steps=steps, engine="native"))
-
-    jac_fwd = torch.func.jacfwd(f)(x0)
-    x = x0.clone().requires_grad_(True)
-    (jac_rev,) = torch.autograd.grad(f(x), x)
+    jac_fwd, jac_rev, _, _ = both_modes(world, state, steps)
     assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
 
 

@@ -20,7 +20,7 @@ from dejaview.sim.integrate import rollout
 from dejaview.sim.sdf import sdf_box, sdf_grid
 from dejaview.sim.simulate import SimulationStopped, simulate
 from dejaview.sim.state import State
-from tests.sim.conftest import ball_body, box_body, make_world, state_gradient as _grad, trajectory_loss as _loss
+from tests.sim.conftest import ball_body, both_modes, box_body, make_world, state_gradient as _grad
 
 ATOL = 1e-9  # states agree to round-off (the sums run in another order)
 
@@ -168,7 +168,7 @@ def _gradients_agree(world, one, steps: int):
     g_ref = _grad(world, one, "torch", steps)
     g_out = _grad(world, one, "native", steps)
     assert torch.allclose(g_out, g_ref, rtol=1e-7, atol=1e-9 * float(g_ref.abs().max()))
-    jac_fwd, jac_rev, _, _ = _both_modes(world, one, steps)
+    jac_fwd, jac_rev, _, _ = both_modes(world, one, steps)
     assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-10 * float(jac_rev.abs().max()))
 
 
@@ -268,24 +268,9 @@ def test_a_spinning_box_corner_meets_a_ball_as_the_torch_simulator_does():
     _close(out, ref)
 
 
-def _both_modes(world, state, steps: int):
-    """The native rollout's ``_loss`` differentiated by the state (B, N, 13) in forward mode
-    (``jacfwd``) and in reverse mode; the state as one tensor and the loss as a function of it."""
-    x0 = torch.cat(state.tensors(), -1)
-
-    def f(x):
-        return _loss(rollout(world, State(x[..., :3], x[..., 3:7], x[..., 7:10], x[..., 10:]),
-                             steps=steps, engine="native"))
-
-    jac_fwd = torch.func.jacfwd(f)(x0)
-    x = x0.clone().requires_grad_(True)
-    (jac_rev,) = torch.autograd.grad(f(x), x)
-    return jac_fwd, jac_rev, x0, f
-
-
 def test_native_forward_mode_equals_reverse_mode():
     world, state = _tumbling_box("grid", batch=2)
-    jac_fwd, jac_rev, x0, f = _both_modes(world, state, 120)
+    jac_fwd, jac_rev, x0, f = both_modes(world, state, 120)
     assert torch.allclose(jac_fwd, jac_rev, rtol=1e-10, atol=1e-12 * float(jac_rev.abs().max()))
     # and a plain torch.func.jvp along one direction
     v = torch.randn_like(x0, generator=torch.Generator().manual_seed(0))
