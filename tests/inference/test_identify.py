@@ -16,9 +16,8 @@ from dejaview.inference.identify import JointPosterior, identify, shared_scenes
 from dejaview.inference.params import IdentifyParams, SearchParams
 from dejaview.inference.posterior import Posterior
 from dejaview.scene import Scene
-from dejaview.sim import World
 from dejaview.sim.build import initial_state
-from dejaview.sim.integrate import rollout
+from tests.inference.tracking import position_targets
 
 TRUE = {"friction": 0.3, "restitution": 0.6}
 SCENE = """<scene version="1" name="{name}">
@@ -45,14 +44,7 @@ def _scene(k: int, prior: str = '<physics-prior friction="0.5" restitution="0.5"
     throw = THROWS[k]
     true = Scene.from_string(SCENE.format(name=f"throw-{k}", duration=0.7, targets='<target position="0 0 0"/>',
                                           prior="", **TRUE, **throw))
-    world = World.from_scene(true)
-    with torch.no_grad():
-        traj = rollout(world, initial_state(world, true))
-    targets = []
-    for t in TIMES:
-        p = traj.states.position[int(round(t / world.dt)), 0, 0].tolist()
-        targets.append(f'<target position="{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}" time="{t}"/>')
-    return Scene.from_string(SCENE.format(name=f"throw-{k}", duration=0.7, targets="\n    ".join(targets),
+    return Scene.from_string(SCENE.format(name=f"throw-{k}", duration=0.7, targets=position_targets(true, TIMES),
                                           prior=prior, friction=0.5, restitution=0.4, x=0.0, z=0.4, vx=0.0))
 
 

@@ -8,14 +8,11 @@ from dataclasses import replace
 import pytest
 import torch
 
-from dejaview.inference.identify import identify
-from dejaview.inference.identify import levenberg_marquardt
+from dejaview.inference.identify import identify, levenberg_marquardt
 from dejaview.inference.physics_marginal import physics_grid, scan
 from dejaview.inference.params import IdentifyParams, SearchParams
 from dejaview.scene import Scene
-from dejaview.sim import World
-from dejaview.sim.build import initial_state
-from dejaview.sim.integrate import rollout
+from tests.inference.tracking import position_targets
 
 SCENE = """<scene version="1" name="{name}">
   <simulation dt="0.002" duration="0.3" friction="{friction}" restitution="0.2"/>
@@ -40,14 +37,7 @@ def _slide(k: int) -> Scene:
     """Slide k of a box on the floor at friction 0.3, tracked at TIMES; the scene says 0.4."""
     true = Scene.from_string(SCENE.format(name=f"slide-{k}", friction=0.3, targets='<target position="0 0 0"/>',
                                           **SLIDES[k]))
-    world = World.from_scene(true)
-    with torch.no_grad():
-        traj = rollout(world, initial_state(world, true))
-    targets = []
-    for t in TIMES:
-        p = traj.states.position[int(round(t / world.dt)), 0, 0].tolist()
-        targets.append(f'<target position="{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}" time="{t}"/>')
-    return Scene.from_string(SCENE.format(name=f"slide-{k}", friction=0.4, targets="\n    ".join(targets),
+    return Scene.from_string(SCENE.format(name=f"slide-{k}", friction=0.4, targets=position_targets(true, TIMES),
                                           x=0.0, vx=0.0))
 
 
