@@ -112,7 +112,7 @@ def test_gradcheck_normal_force():
     stiff = torch.tensor(1e4, dtype=torch.float64)
     unload = torch.tensor(0.3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(
-        lambda d, v, u: contacts.normal_force(d, contacts.depth_weights(d), v, stiff, u, 0.01),
+        lambda d, v, u: contacts.normal_force(d, contacts.depth_weights(d), v, stiff, u, 0.01, 250.0),
         (depth, vn, unload))
 
 

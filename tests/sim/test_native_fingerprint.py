@@ -9,9 +9,12 @@ bundled scenes: 150 steps, states every 10th, the reverse-mode gradient and a fo
 derivative of a loss of them) was of that engine; the roll stick of a line contact
 (2026-11-26, ``dejaview.sim.line_contact``) changed the physics of bodies on an edge or a line
 on purpose (of the bundled scenes the two mugs and the box among boxes; the others within 6e-17),
-and the record is now of that engine: ``tests/fixtures/native/fingerprint-roll-stick.npz``. A
-change to the C++ that should not change a number must keep this test passing; one that should
-must say why and re-record.
+and the record was of that engine (``fingerprint-roll-stick.npz``, in the git history); the
+loading-to-unloading blend over a part of an impact's phase (2026-12-07, ``contacts.loading``:
+restitution no longer depends on where in its substep an impact's deepest point falls) changed
+every scene with a contact in its 150 steps on purpose, and the record is now of that engine:
+``tests/fixtures/native/fingerprint-phase-blend.npz``. A change to the C++ that should not change
+a number must keep this test passing; one that should must say why and re-record.
 """
 
 import importlib.util
@@ -23,7 +26,7 @@ import pytest
 from dejaview.sim import native
 
 ROOT = Path(__file__).resolve().parents[2]
-BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-roll-stick.npz"
+BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-phase-blend.npz"
 TOLERANCE = 1e-9  # times max(1, the largest magnitude of the array)
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension does not build here")

@@ -55,12 +55,12 @@ template <typename S> inline void rotate_tensor_vjp(const S* r, const S* a, cons
 template <typename S>
 struct ContactLaw {
   int arms;  // 1: a static contact, 2: a body pair
-  S n[3], depth, weight, vel[3], stiff, unload, mu, inv_m, h, unload_velocity;
+  S n[3], depth, weight, vel[3], stiff, unload, mu, inv_m, h, unload_velocity, omega;
   const S* arm[2];
   const S* inv_w[2];
   S inv_i_min[2];
   // forward values
-  S vn, vt[3], loading, g, fn;
+  S vn, vt[3], lead, spread, loading, g, fn;
   S dv[3], dvn, pred[3], vs[3];  // the predicted slip: its rate of change, then vs = vt + pred
   S tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
@@ -77,7 +77,9 @@ struct ContactLaw {
   void forward_normal() {
     vn = dot3(vel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
-    loading = sigmoid(-vn / unload_velocity);
+    lead = (S(schema::UNLOAD_WIDTH) * omega) * depth;  // loading_of (contact_law.h)
+    spread = unload_velocity + lead;
+    loading = sigmoid(-(vn + S(schema::UNLOAD_LEAD) * lead) / spread);
     g = unload + (S(1) - unload) * loading;
     fn = weight * stiff * depth * g;
   }
@@ -199,13 +201,18 @@ struct ContactLaw {
   // (added to)
   void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb) const {
     S vtb[3] = {vtb_in[0], vtb_in[1], vtb_in[2]};
-    // fn = weight stiff depth g, g = unload + (1 - unload) sigmoid(-vn / uv)
+    // fn = weight stiff depth g, g = unload + (1 - unload) s,
+    // s = sigmoid(a), a = -(vn + beta L) / (uv + L), L = w omega depth
     weightb += fnb * stiff * depth * g;
     stiffb = fnb * weight * depth * g;
     unloadb = fnb * weight * stiff * depth * (S(1) - loading);
-    depthb = fnb * weight * stiff * g;
     const S loadingb = fnb * weight * stiff * depth * (S(1) - unload);
-    S vnb = -loadingb * loading * (S(1) - loading) / unload_velocity;
+    const S ab = loadingb * loading * (S(1) - loading);
+    S vnb = -ab / spread;
+    // da/dL = ((vn + beta L) - beta spread) / spread^2 = (vn - beta uv) / spread^2
+    const S beta = S(schema::UNLOAD_LEAD);
+    const S leadb = ab * (vn - beta * unload_velocity) / (spread * spread);
+    depthb = fnb * weight * stiff * g + leadb * (S(schema::UNLOAD_WIDTH) * omega);
     // vt = vel - vn n, vn = vel . n
     vnb -= dot3(vtb, n);
     for (int i = 0; i < 3; ++i) {

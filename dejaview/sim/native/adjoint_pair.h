@@ -99,6 +99,7 @@ struct PairAdjoint {
       law.inv_m = S(1) / w.mass[a] + S(1) / w.mass[b];
       law.h = w.h;
       law.unload_velocity = w.unload_velocity;
+      law.omega = w.omega;
       law.arm[0] = ct.arm_a;
       law.arm[1] = ct.arm_b;
       law.inv_w[0] = iw_a;

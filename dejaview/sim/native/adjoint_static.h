@@ -115,6 +115,7 @@ struct StaticAdjoint {
       law.inv_m = S(1) / mass;
       law.h = w.h;
       law.unload_velocity = w.unload_velocity;
+      law.omega = w.omega;
       law.arm[0] = ct.arm;
       law.inv_w[0] = inv_w;
       law.inv_i_min[0] = w.inv_i_min[a];

@@ -122,9 +122,13 @@ inline void box_partner(const T* x, const R* rot, const S* half, const T* p, T* 
 }
 
 // hysteretic spring normal force of one contact (contacts.normal_force), in two parts: how much
-// the contact is loading (from its normal velocity vn), then the force
+// the contact is loading (contacts.loading: from its normal velocity vn and depth, the blend over a
+// part of an impact's phase), then the force
 template <typename T, typename S>
-inline T loading_of(const T& vn, S unload_velocity) { return sigmoid(-vn / unload_velocity); }
+inline T loading_of(const T& vn, const T& depth, S unload_velocity, S omega) {
+  const T lead = (S(schema::UNLOAD_WIDTH) * omega) * depth;
+  return sigmoid(-(vn + S(schema::UNLOAD_LEAD) * lead) / (unload_velocity + lead));
+}
 
 template <typename T, typename S>
 inline T normal_force(const T& depth, const T& weight, const T& loading, S stiff, S unload) {

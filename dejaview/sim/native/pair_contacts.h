@@ -220,7 +220,7 @@ void pair_wrench(const World<S>& w, int pi, const T* st_a, const T* st_b, const 
     }
     vn[k] = dot3(vrel, nr + 3 * k);
   }
-  for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], uv);
+  for (int k = 0; k < m; ++k) loading[k] = loading_of(vn[k], dep[k], uv, w.omega);
   const T denom = total + tiny;
   // the normal forces first (fts's rows hold fn n and its torques for now), their sums, and the
   // relative acceleration they give (static_wrench: the predicted slip)

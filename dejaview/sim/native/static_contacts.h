@@ -253,7 +253,7 @@ void static_wrench(const World<S>& w, int a, const T* st, const std::vector<Pick
     for (int i = 0; i < 3; ++i) velocity[i * m + j] = vel[i];
     vn[j] = dot3(vel, n);
   }
-  for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], uv);
+  for (int j = 0; j < m; ++j) loading[j] = loading_of(vn[j], dep[j], uv, w.omega);
   const T denom = total + tiny;
   // loop invariants as locals (no reloads through pointers the stores below might alias)
   T iw[9];
