@@ -86,7 +86,7 @@ def with_truth(scene: Scene, truth: SceneObject, guess: SceneObject, engine: str
 
 
 def ball_off_table():
-    """A ball rolled across a table, off its edge, onto the floor."""
+    """A ball rolled across a table, off its edge, onto the floor (seen rolling there: moving)."""
     truth = movable("ball", "ball", (0.25, 0.05, 0.80), linear=(1.2, 0.15, 0.0),
                     angular=(-3.0, 24.0, 0.0), mass=0.4)
     guess = movable("ball", "ball", (0.0, 0.0, 0.80), linear=(0.5, 0.0, 0.0), mass=0.4)
@@ -106,7 +106,10 @@ def ball_off_table():
 
 def mug_off_counter():
     """A mug knocked off a kitchen counter: it slides, tips over the edge, tumbles on the floor and comes to rest there (seen lying still)."""
-    truth = movable("mug", "mug", (0.30, 0.02, 0.95), linear=(2.0, 0.2, 0.0), angular=(0.0, 0.0, 2.0),
+    # 2.05 m/s (2.0 until 2026-12-07): with restitution's blend over the impact's phase the mug slid
+    # off at 2.0 m/s lands on its side and rolls back upright in its last second; at 1.95 and 2.05 m/s
+    # it stays lying, as the story says
+    truth = movable("mug", "mug", (0.30, 0.02, 0.95), linear=(2.05, 0.2, 0.0), angular=(0.0, 0.0, 2.0),
                     mass=0.35)
     guess = movable("mug", "mug", (0.0, 0.0, 0.95), linear=(0.5, 0.0, 0.0), mass=0.35)
     scene = Scene(
