@@ -223,7 +223,8 @@ def _train(scene, overrides, out_dir, progress, stop, models_dir: Path):
 
     start = time.perf_counter()
     params = TrainParams(**{k: tuple(overrides[k]) if k == "hidden" else overrides[k]
-                            for k in TRAIN_OVERRIDES if k in overrides})
+                            for k in TRAIN_OVERRIDES if k in overrides},
+                         memory_limit=overrides["memory_limit"])  # sized before any simulation
     best = [math.inf]
 
     def report(d):
