@@ -37,7 +37,8 @@ def test_ks_is_scipys_for_equal_weights_and_weights_count_as_repeats():
 
     distances = bench_module("amortised").sample_distances
     gen = torch.Generator().manual_seed(1)
-    a, b = torch.randn(50, 1, generator=gen, dtype=torch.float64), torch.randn(70, 1, generator=gen, dtype=torch.float64) + 0.3
+    a = torch.randn(50, 1, generator=gen, dtype=torch.float64)
+    b = torch.randn(70, 1, generator=gen, dtype=torch.float64) + 0.3
     got = distances(a, uniform(50), b, uniform(70))["ks"][0]
     assert got == pytest.approx(ks_2samp(a[:, 0].numpy(), b[:, 0].numpy()).statistic, abs=1e-12)
     # a sample weighted 1/2 is the same set as that sample drawn twice
