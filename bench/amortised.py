@@ -161,8 +161,6 @@ def sample_distances(a, wa, b, wb) -> dict:
 def _runs(samples):
     """The sampler's two independent runs of ``samples`` (``PosteriorSamples``) as two weighted sets,
     or None where it ran one."""
-    import torch
-
     if samples.run is None or int(samples.run.max()) < 1:
         return None
     sets = []
@@ -175,13 +173,11 @@ def _runs(samples):
 
 def _answer(scene, params):
     """One ``solve`` of ``scene``: (result, seconds, rollouts: the search's and the sampler's)."""
-    import time as _time
-
     from dejaview.inference import solve
 
-    t0 = _time.perf_counter()
+    t0 = time.perf_counter()
     result = solve(scene, params)
-    seconds = _time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
     stats = result.posterior.stats
     rollouts = result.settings["search"]["rollouts"]
     if stats.get("method") != "amortised":  # the sampler's own (an amortised answer's are the search's)
