@@ -482,11 +482,12 @@ def soak(minutes, clients, kills, workers, seed, disk_mib, csv_path, check):
 
 
 def _register_inference_benchmarks() -> None:
-    """The inference's benchmarks (physics, amortised, calibration, identify), defined in ``bench_inference``."""
+    """The inference's benchmarks (physics, amortised, amortised-vs-sampler, calibration, identify), defined in
+    ``bench_inference``."""
     from dejaview.cli import bench_inference
 
-    for cmd in (bench_inference.physics, bench_inference.amortised, bench_inference.calibration,
-                bench_inference.identify_calibration):
+    for cmd in (bench_inference.physics, bench_inference.amortised, bench_inference.amortised_vs_sampler,
+                bench_inference.calibration, bench_inference.identify_calibration):
         command.add_command(cmd)
 
 

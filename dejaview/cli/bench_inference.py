@@ -1,5 +1,6 @@
 """``dejaview bench`` commands of the inference's targets: what a physics prior costs, what an
-amortised posterior costs and gives, and the posterior's calibration. ``dejaview.cli.bench``
+amortised posterior costs and gives and how its answers compare with the sampler's, and the
+posterior's calibration. ``dejaview.cli.bench``
 adds them to its group."""
 
 from __future__ import annotations
@@ -51,6 +52,28 @@ def amortised(scenes, simulations, samples, repeats, model_dir, csv_path, check)
                                          simulations=simulations, samples=samples, repeats=repeats,
                                          model_dir=model_dir)
     _finish(rows, csv_path, check, [r["met"] for r in rows])
+
+
+@click.command("amortised-vs-sampler")
+@click.option("--scenes", default="ball_down_ramp,box_down_ramp", show_default=True,
+              help="Comma-separated bundled scenes, each answered at its own observation.")
+@click.option("--simulations", default=None, type=click.IntRange(min=2), help="Training simulations (default 20000).")
+@click.option("--samples", default=500, show_default=True, type=click.IntRange(min=2),
+              help="Posterior samples of each answer.")
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0), help="Both answers' seed.")
+@click.option("--model-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Keep the trained models here and reuse them when they fit the scene.")
+@csv_option
+def amortised_vs_sampler(scenes, simulations, samples, seed, model_dir, csv_path):
+    """The amortised answer (solve --amortised) beside the sampler's (solve --samples N) on each
+    scene's own observation: per parameter both medians and 90 % intervals and the KS statistic
+    between them, the energy distance, k-hat, rollouts and seconds (bench/amortised.py, compare)."""
+    from dejaview.cli.options import configure_torch
+
+    configure_torch()
+    rows = bench_module("amortised").compare(print_fn=click.echo, scenes=tuple(s for s in scenes.split(",") if s),
+                                             simulations=simulations, samples=samples, model_dir=model_dir, seed=seed)
+    _finish(rows, csv_path, False, [])
 
 
 @click.command("calibration")

@@ -430,6 +430,19 @@ class SizingParams:
             ``torch.unique``'s copies).
         min_kde_rows: fewest particles a chunk of the kernel density estimate holds: below it, the
             request is refused.
+        pair_copies: copies of the training set (its starts and observation vectors, float64) an
+            amortised training holds at its peak (the chunks and their concatenation; the flow
+            coordinates, standardised, beside them).
+        flow_copies: copies of the flow's parameters its fit holds (the parameters, their gradients,
+            Adam's two moments, the best epoch's).
+        activation_copies: copies of a transform's activations (its hidden layers and the spline
+            parameters it outputs, float64) the flow's fit holds per pair of a batch and transform
+            (the forward pass and its gradients).
+        validation_copies: copies of one transform's activations per validation pair (evaluated
+            without gradients, a transform at a time).
+        fit_bytes: the rest of a fit's peak (zuko, autograd and the optimiser's first use).
+        min_rollout_batch: fewest starts a batch of a training's rollouts holds: below it, the
+            request is refused.
     """
 
     search_bytes: int = 128 * 2 ** 20
@@ -437,10 +450,18 @@ class SizingParams:
     kde_copies: int = 5
     particle_bytes: int = 16384
     min_kde_rows: int = 64
+    pair_copies: int = 4
+    flow_copies: int = 5
+    activation_copies: int = 4
+    validation_copies: int = 2
+    fit_bytes: int = 144 * 2 ** 20
+    min_rollout_batch: int = 16
 
     def __post_init__(self):
         check_params(self, counts=("search_bytes", "rollout_copies", "kde_copies", "particle_bytes",
-                                   "min_kde_rows"))
+                                   "min_kde_rows", "pair_copies", "flow_copies", "activation_copies", "validation_copies",
+                                   "fit_bytes",
+                                   "min_rollout_batch"))
 
 
 @dataclass(frozen=True)
@@ -460,6 +481,9 @@ class TrainParams:
             loss before the fit stops (the best epoch's weights are kept).
         validation: share of the pairs held out of the fit to choose the epoch.
         max_fit_seconds: the fit stops after this long (its best epoch kept).
+        memory_limit: bytes the training may take (``dejaview.memory``; None: the machine's):
+            sized before any simulation (``sizing.check_train_memory``), its rollouts simulated a
+            smaller batch at a time where a whole chunk's do not fit (the same training set).
     """
 
     simulations: int = 20000
@@ -476,6 +500,7 @@ class TrainParams:
     patience: int = 15
     validation: float = 0.1
     max_fit_seconds: float = 150.0
+    memory_limit: int | None = None
 
     def __post_init__(self):
         check_params(self, counts=("simulations", "chunk", "workers", "transforms", "bins", "batch", "epochs",

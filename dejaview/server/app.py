@@ -129,6 +129,12 @@ def create_app(config: ServerConfig | None = None, **settings) -> FastAPI:
     async def get_job(job_id: str, request: Request):
         return _absolute(request, runner.status(job_id))
 
+    @app.get("/jobs/{job_id}/model", response_class=FileResponse, responses=ERRORS,
+             summary="The model file a finished train job wrote (safetensors, for solve --amortised)")
+    async def get_model(job_id: str):
+        path = runner.model(job_id)  # before the artefact route: "model" is not an artefact's name
+        return FileResponse(path, media_type="application/octet-stream", filename=path.name)
+
     @app.get("/jobs/{job_id}/{artefact}", response_class=FileResponse, responses=ERRORS,
              summary="An artefact of a finished job: trajectory.csv, heatmap.ppm, heatmap.png, result.json...")
     async def get_artefact(job_id: str, artefact: Artefact):

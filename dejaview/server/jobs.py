@@ -219,11 +219,12 @@ def _train(scene, overrides, out_dir, progress, stop, models_dir: Path):
     from dejaview.inference.amortised import train
     from dejaview.inference.params import TrainParams
     from dejaview.result_set import write_result_set
-    from dejaview.server.live import MODELS, model_path
+    from dejaview.server.live import MODELS, model_digest, model_path
 
     start = time.perf_counter()
     params = TrainParams(**{k: tuple(overrides[k]) if k == "hidden" else overrides[k]
-                            for k in TRAIN_OVERRIDES if k in overrides})
+                            for k in TRAIN_OVERRIDES if k in overrides},
+                         memory_limit=overrides["memory_limit"])  # sized before any simulation
     best = [math.inf]
 
     def report(d):
@@ -244,7 +245,8 @@ def _train(scene, overrides, out_dir, progress, stop, models_dir: Path):
     except OSError as exc:
         raise write_error(exc) from None
     info = model.info
-    summary = {"fingerprint": model.fingerprint, "model": f"{MODELS}/{path.name}", "scene": info.get("scene"),
+    summary = {"fingerprint": model.fingerprint, "model": f"{MODELS}/{path.name}", "model_sha256": model_digest(path),
+               "scene": info.get("scene"),
                "simulations": info["simulations"], "feasible_share": info["feasible_share"],
                "fit": info["fit"], "seconds": info["seconds"]}
     progress({"iteration": info["fit"]["epochs"], "total": info["fit"]["epochs"], "elapsed_s": time.perf_counter() - start,

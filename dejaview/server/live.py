@@ -56,6 +56,20 @@ def model_path(models_dir: Path, fingerprint: str) -> Path:
     return Path(models_dir) / f"{fingerprint}.safetensors"
 
 
+def model_digest(path: Path) -> str:
+    """The SHA-256 of a model file's bytes, as hex (a train job records it: ``GET /jobs/{id}/model``
+    serves the file only while it is still the one the job wrote).
+
+    Raises:
+        OSError: the file cannot be read.
+    """
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 @dataclass
 class _Scene:
     post: object  # the scene's Posterior

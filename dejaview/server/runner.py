@@ -67,6 +67,7 @@ from dejaview.server.workers import make_pool
 log = logging.getLogger("dejaview.server")
 
 JOB_ID_RE = re.compile(r"^[0-9a-f]{32}$")
+FINGERPRINT_RE = re.compile(r"^[0-9a-f]{64}$")  # a train job's model: models/<fingerprint>.safetensors
 MAX_CRASHES = 2  # a job whose worker process dies this many times fails (worker_crashed)
 UNREADABLE = "unreadable"  # where finished jobs whose artefacts cannot be read are moved, in the results dir
 MAX_STARTS = 5  # a job started this many times, the server stopping under it each time, fails
@@ -276,6 +277,40 @@ class JobRunner:
             why = {"failed": "the job failed", "cancelled": "the job was cancelled"}.get(
                 job.status.state, f"a {job.status.kind} job writes none")
             raise ServiceError("no_artefact", f"job {job_id} has no {name}: {why}", 404)
+        return path
+
+    def model(self, job_id: str) -> Path:
+        """The model file a finished train job wrote (``<results_dir>/models/<fingerprint>.safetensors``,
+        kept when the job is pruned), checked to be the one it wrote: a later train job of the same
+        scene replaces the file.
+
+        Raises:
+            ServiceError: ``not_found``, ``not_ready`` (409) or ``no_artefact`` (404: not a train job,
+                failed or cancelled, the file gone or replaced).
+        """
+        from dejaview.server.live import model_digest, model_path
+
+        job = self.get(job_id)
+        if job.status.kind != "train":
+            raise ServiceError("no_artefact", f"job {job_id} is a {job.status.kind} job: only train jobs "
+                                              f"have a model", 404)
+        if not job.finished:
+            raise ServiceError("not_ready", f"job {job_id} is {job.status.state}: no model yet", 409)
+        summary = job.status.summary or {}
+        fingerprint = summary.get("fingerprint")
+        if job.status.state != "done" or not isinstance(fingerprint, str) or not FINGERPRINT_RE.match(fingerprint):
+            why = {"failed": "the job failed", "cancelled": "the job was cancelled"}.get(
+                job.status.state, "its record names none")
+            raise ServiceError("no_artefact", f"job {job_id} has no model: {why}", 404)
+        path = model_path(self.config.results_dir / MODELS, fingerprint)
+        try:
+            digest = model_digest(path)
+        except OSError:
+            raise ServiceError("no_artefact", f"job {job_id} has no model: its file "
+                                              f"{MODELS}/{path.name} is gone", 404) from None
+        if summary.get("model_sha256") not in (None, digest):  # records from before the digest: unchecked
+            raise ServiceError("no_artefact", f"job {job_id} has no model: a later train job of the same scene "
+                                              f"replaced {MODELS}/{path.name}", 404)
         return path
 
     # ------------------------------------------------------------ submitting

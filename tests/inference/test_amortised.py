@@ -112,6 +112,47 @@ def test_training_set_is_the_same_in_processes_as_here():
     assert torch.equal(x1, x2) and torch.equal(y1, y2)
 
 
+def test_training_set_is_the_same_simulated_a_few_rollouts_at_a_time():
+    """The rollout batch a memory limit shrinks (``sizing.check_train_memory``) leaves the pairs as
+    they are: each rollout is independent of the others in its batch."""
+    scene = throw()
+    p = replace(SMALL, simulations=200, chunk=64)
+    x1, y1, _ = simulate_pairs(scene, p)
+    x2, y2, _ = simulate_pairs(scene, p, rollout_batch=7)
+    assert torch.equal(x1, x2) and torch.equal(y1, y2)
+
+
+def test_training_over_its_memory_limit_is_refused_before_any_simulation(monkeypatch):
+    from dejaview import memory
+    from dejaview.errors import ResourceError
+    from dejaview.inference.amortised import training
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated although the training does not fit")
+
+    monkeypatch.setattr(training, "simulate_pairs", no_simulation)
+    with pytest.raises(ResourceError) as err:
+        train(throw(), replace(SMALL, memory_limit=memory.resident() + 2 ** 20))
+    message = str(err.value)
+    assert message.startswith("1500 training simulations would need about ") and "\n" not in message
+    assert message.endswith("over the limit of " + memory.format_size(err.value.limit)
+                            + " (this server's limit for one job)")
+
+
+def test_a_training_that_fits_only_in_smaller_rollout_batches_gets_them():
+    from dejaview import memory
+    from dejaview.inference.sizing import candidate_bytes, check_train_memory, train_bytes
+
+    post = Posterior.from_scene(throw()).without_model()
+    p = replace(SMALL, chunk=512)
+    candidate = candidate_bytes(post.problem)
+    fixed = train_bytes(post, p, candidate, 0)
+    assert train_bytes(post, p, candidate, 10) == fixed + 10 * candidate
+    assert check_train_memory(post, replace(p, memory_limit=memory.resident() + fixed + 1000 * candidate)) == 512
+    batch = check_train_memory(post, replace(p, memory_limit=memory.resident() + fixed + 200 * candidate))
+    assert 16 <= batch < 512
+
+
 @pytest.mark.slow
 def test_training_set_is_the_same_on_ray_as_here():
     pytest.importorskip("ray")

@@ -109,7 +109,8 @@ def test_rest_needs_the_token(make_client):
                     {"Authorization": f"Basic {TOKEN}"}, {"Authorization": f"Bearer {TOKEN}x"}):
         for method, path in (("GET", "/scenes"), ("GET", "/jobs/" + "0" * 32), ("POST", "/jobs"),
                              ("DELETE", "/jobs/" + "0" * 32), ("GET", "/docs"), ("GET", "/"),
-                             ("GET", "/static/app.js"), ("GET", "/files/ball.xml")):
+                             ("GET", "/static/app.js"), ("GET", "/files/ball.xml"),
+                             ("GET", "/jobs/" + "0" * 32 + "/result.json"), ("GET", "/jobs/" + "0" * 32 + "/model")):
             response = client.request(method, path, headers=headers, json=job if method == "POST" else None)
             assert response.status_code == 401, (method, path, headers)
             assert response.json()["code"] == "unauthorized"

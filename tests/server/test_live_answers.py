@@ -20,6 +20,7 @@ from dejaview.server.live import LiveQueue  # noqa: E402
 from dejaview.server.messages import SERVER_MESSAGE  # noqa: E402
 
 from .conftest import FIXTURES, make_scene_root, receive, until_done  # noqa: E402
+from .test_rest import wait_state  # noqa: E402
 
 THROW_XML = (FIXTURES / "throw.xml").read_text()
 TARGET = [0.2, 0.05, 0.25]  # throw.xml's
@@ -70,6 +71,41 @@ def test_train_job_reports_progress_and_writes_its_model_beside_the_results(serv
     assert result["model"] == f"models/{fingerprint}.safetensors" and path.is_file()
     status = client.get(f"/jobs/{messages[0]['job_id']}").json()
     assert status["kind"] == "train" and status["summary"]["fingerprint"] == fingerprint
+
+
+def test_a_train_jobs_model_downloads_and_loads(server, tmp_path):
+    """``GET /jobs/{id}/model``: the file in the models folder, byte for byte, which the project's
+    loader reads; not for other kinds of job, an unknown job, or once a later train job replaced it."""
+    from dejaview.inference.amortised import AmortisedModel
+
+    client, messages = server
+    job_id = messages[0]["job_id"]
+    fingerprint = messages[-2]["result"]["fingerprint"]
+    stored = client.app.state.config.results_dir / "models" / f"{fingerprint}.safetensors"
+    response = client.get(f"/jobs/{job_id}/model")
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    assert response.headers["content-disposition"] == f'attachment; filename="{fingerprint}.safetensors"'
+    assert response.content == stored.read_bytes()
+    (tmp_path / "got.safetensors").write_bytes(response.content)
+    assert AmortisedModel.load(tmp_path / "got.safetensors").fingerprint == fingerprint
+
+    solve = client.post("/jobs", json={"kind": "solve", "scene_path": "ball.xml", "overrides": {"iterations": 2}})
+    solve_id = solve.json()["job_id"]
+    assert wait_state(client, solve_id)["state"] == "done"
+    response = client.get(f"/jobs/{solve_id}/model")
+    assert response.status_code == 404 and response.json() == {
+        "code": "no_artefact", "message": f"job {solve_id} is a solve job: only train jobs have a model"}
+    assert client.get(f"/jobs/{'0' * 32}/model").json()["code"] == "not_found"
+
+    original = stored.read_bytes()
+    try:  # a later train job of the same scene wrote another model there
+        stored.write_bytes(original[:-1] + bytes([original[-1] ^ 1]))
+        response = client.get(f"/jobs/{job_id}/model")
+        assert response.status_code == 404 and "replaced" in response.json()["message"]
+    finally:
+        stored.write_bytes(original)
+    assert client.get(f"/jobs/{job_id}/model").status_code == 200
 
 
 def test_live_answer_is_the_flow_at_the_moved_target(server):

@@ -45,12 +45,13 @@ def _setup(scene):
 
 
 def _chunk(post, item, report, stopped):
-    """One chunk: (index, draws, seed) -> (x (M, P), y (M, D), draws, feasible) of its feasible,
-    finite simulations."""
+    """One chunk: (index, draws, seed, rollout batch) -> (x (M, P), y (M, D), draws, feasible) of its
+    feasible, finite simulations, simulated ``rollout batch`` at a time (0: all at once; each
+    rollout is independent of its batch, so the pairs are the same)."""
     from dejaview.inference.amortised.observables import noisy, simulated, width
     from dejaview.inference.reference import prior_draws
 
-    index, n, seed = item
+    index, n, seed, batch = item
     gen = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(index))
     x = prior_draws(post, n, gen)
     ok = post.feasible(x)
@@ -58,17 +59,17 @@ def _chunk(post, item, report, stopped):
     if x.shape[0] == 0 or stopped():
         return x, torch.zeros(0, width(post), dtype=torch.float64), n, 0
     with torch.no_grad():
-        y = simulated(post, post.trajectories(x)[0]).to(torch.float64)
+        y = torch.cat([simulated(post, post.trajectories(part)[0]).to(torch.float64)
+                       for part in x.split(batch or x.shape[0])])
     y = noisy(post, y, gen)
     finite = torch.isfinite(y).all(-1) & torch.isfinite(x).all(-1)
     report(int(x.shape[0]))
     return x[finite], y[finite], n, int(ok.sum())
 
 
-
-
-def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=None):
-    """The training set (module docstring, step 1).
+def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=None, rollout_batch: int = 0):
+    """The training set (module docstring, step 1); ``rollout_batch``: starts simulated at once
+    (0: a whole chunk; ``sizing.check_train_memory``), which does not change the set.
 
     Returns:
         x (N, P) starts, y (N, D) noisy observation vectors, and a dict (draws, feasible share,
@@ -92,7 +93,7 @@ def simulate_pairs(scene, params: TrainParams, *, callback=None, should_stop=Non
             raise InferenceError(f"none of {draws} starts drawn from the prior is free of the other objects: "
                                  f"the start area cannot hold the source")
         need = math.ceil((p.simulations - have) / max(share, 1e-3) * (1.05 if draws else 1.0))
-        chunks = [(index + i, p.chunk, p.seed) for i in range(max(1, math.ceil(need / p.chunk)))]
+        chunks = [(index + i, p.chunk, p.seed, rollout_batch) for i in range(max(1, math.ceil(need / p.chunk)))]
         index += len(chunks)
         out = map_chunks(_chunk, chunks, setup=_setup, setup_args=(scene,), workers=p.workers, ray=p.ray,
                          on_report=report, should_stop=should_stop)
@@ -202,19 +203,28 @@ def train(scene, params: TrainParams | None = None, *, callback=None, should_sto
     Returns:
         the ``AmortisedModel``; its ``info``: scene name, simulations, draws, feasible share,
         the fit's record, seconds.
+    Raises:
+        ResourceError: a training over ``params.memory_limit`` (``sizing.check_train_memory``),
+            before any simulation.
     """
+    from dejaview.geometry.collision import SceneCollision
     from dejaview.inference.amortised.coordinates import check_proper
+    from dejaview.inference.posterior import Posterior
+    from dejaview.inference.sizing import check_train_memory
     from dejaview.scene import Scene
 
     p = TrainParams() if params is None else params
     if not hasattr(scene, "objects"):
         scene = Scene.from_xml(scene)
     t0 = time.perf_counter()
-    post = _setup(scene)
+    collision = SceneCollision(scene)
+    post = Posterior.from_scene(scene, collision=collision).without_model()  # as ``_setup``, the collision kept
     check_proper(post)
     if post.layout.size == 0:
         raise InferenceError("the scene leaves nothing free to infer: free something in <optimize>")
-    x, y, sims = simulate_pairs(scene, p, callback=callback, should_stop=should_stop)
+    batch = check_train_memory(post, p, collision.query_bytes(scene.inference.source))
+    x, y, sims = simulate_pairs(scene, p, callback=callback, should_stop=should_stop,
+                                rollout_batch=0 if batch >= p.chunk else batch)
     model, record = fit(post, x, y, p, callback=callback, should_stop=should_stop)
     model.info = {"scene": scene.name or "the scene", "simulations": int(x.shape[0]), "seed": p.seed,
                   "draws": sims["draws"], "feasible_share": sims["feasible_share"],
