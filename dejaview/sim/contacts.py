@@ -14,7 +14,7 @@ bodies) is fixed at the body level, ``k = m omega_0^2`` with m the body mass
 (reduced mass for a pair), and shared among the touching spheres in
 proportion to their depth, with weights ``w_i = delta_i / sum_j delta_j``:
 
-    f_n,i = w_i k delta_i (phi + (1 - phi) s_i),   s_i = sigmoid(-v_n,i / v_s)
+    f_n,i = w_i k delta_i (phi + (1 - phi) s_i)
 
 where v_n,i is the normal velocity of the contact point (negative when
 approaching). The contact is stiffer while loading (k) than while unloading
@@ -22,23 +22,10 @@ approaching). The contact is stiffer while loading (k) than while unloading
 is e = sqrt(phi) in continuous time; phi is calibrated against the discrete
 integrator (``World.restitution_to_unloading``) so that a simulated head-on
 impact rebounds with e. Unlike a linear damper this force never pulls and
-never has to be clipped. Restitution: s_i blends the two stiffnesses,
-
-    s_i = sigmoid(-(v_n,i + beta L_i) / (v_s + L_i)),   L_i = w omega_0 delta_i
-
-(w = ``UNLOAD_WIDTH``, beta = ``UNLOAD_LEAD``, ``loading``): at rest over a few
-mm/s (v_s), in an impact over a fixed part of its phase (in a harmonic impact
-v_n / (omega_0 delta) is the cotangent of the phase, zero at the deepest
-point), led by beta w of it. With v_s alone (until 2026-12-07) an impact's
-normal velocity crossed the blend within one substep, and the energy the
-contact kept depended on where in its substep the deepest point fell: the
-restitution of one ball thrown twice, its start 1 mm apart, differed by up to
-+-7 % (0.364-0.421 for e = 0.4 at 2.6 m/s; +-0.03 to +-0.1 at e 0.4 to 0.13
-in the 1-d contact), a sawtooth in the start that left tracked bounces' fits
-and their restitution rough. Over a part of the phase it is +-0.002 to +-0.005
-(docs/physics.md, "Restitution"); the elastic end keeps the integrator's own
-+-0.008. A body therefore behaves like one spring of natural frequency
-omega_0 however many of its spheres touch, which keeps the explicit
+never has to be clipped. s_i blends the two stiffnesses at rest over a few
+mm/s (v_s) and in an impact over a fixed part of its phase
+(s_i = ``dejaview.sim.restitution.loading``). A body therefore behaves like
+one spring of natural frequency omega_0 however many of its spheres touch, which keeps the explicit
 integrator stable (omega_0 h = 0.25 by default) and makes restitution
 independent of the packing. The weights are continuous in the state: a
 sphere that starts touching enters with weight zero.
@@ -160,6 +147,7 @@ from dejaview.sim.epsilons import NORMAL_EPS2, TINY
 from dejaview.sim.line_contact import line_roll_stick, roll_stop_time
 from dejaview.sim.motion import static_point_velocity
 from dejaview.sim.physics import candidate_material
+from dejaview.sim.restitution import loading
 from dejaview.sim.rotation import quat_to_matrix, small_matmul
 
 SMOOTH_MIN_POWER = 8.0  # smin(a, a) = 0.917 a; higher is closer to min but less smooth
@@ -192,28 +180,8 @@ def depth_weights(depth: torch.Tensor) -> torch.Tensor:
     return depth / (total + torch.finfo(depth.dtype).tiny)
 
 
-def loading(depth: torch.Tensor, normal_velocity: torch.Tensor, unload_velocity: float,
-            omega: float) -> torch.Tensor:
-    """How much each contact is loading, s in (0, 1) (module docstring, "Restitution").
-
-    ``s = sigmoid(-(v_n + UNLOAD_LEAD L) / (v_s + L))``, ``L = UNLOAD_WIDTH omega delta``: the blend
-    from the loading to the unloading stiffness spans a fixed part of the impact's phase (v_n / (omega
-    delta) is the phase's cotangent in a harmonic impact), led a little before the deepest point,
-    instead of the few mm/s of v_s alone, which an impact's velocity crosses within one substep.
-
-    Args:
-        depth: (B, C) penetration depths (>= 0); normal_velocity: (B, C) (negative approaching).
-        unload_velocity: v_s (m/s); omega: the contact frequency omega_0 (rad/s).
-    Returns:
-        (B, C) loading fractions.
-    """
-    lead = (UNLOAD_WIDTH * omega) * depth
-    return torch.sigmoid(-(normal_velocity + UNLOAD_LEAD * lead) / (unload_velocity + lead))
-
-
 def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: torch.Tensor,
-                 stiffness: torch.Tensor, unload: torch.Tensor, unload_velocity: float,
-                 omega: float) -> torch.Tensor:
+                 stiffness: torch.Tensor, unload: torch.Tensor, unload_velocity: float, omega: float) -> torch.Tensor:
     """Depth-weighted hysteretic spring normal forces of one contact set.
 
     Args:
@@ -222,8 +190,7 @@ def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: tor
         normal_velocity: (B, C) normal velocity of each contact point (negative approaching).
         stiffness: broadcastable to (B, C), body-level stiffness k.
         unload: broadcastable to (B, C), unloading stiffness factor phi in [0, 1].
-        unload_velocity: blending speed v_s (m/s) between loading and unloading at rest.
-        omega: the contact frequency omega_0 (rad/s), the blend's scale in an impact (``loading``).
+        unload_velocity, omega: v_s (m/s) and omega_0 (rad/s) of ``restitution.loading``'s blend.
     Returns:
         (B, C) normal force magnitudes (>= 0).
     """
@@ -255,14 +222,6 @@ def friction_force(tangential_velocity: torch.Tensor, coulomb: torch.Tensor,
 def _point_velocity(v: torch.Tensor, w: torch.Tensor, arm: torch.Tensor) -> torch.Tensor:
     return v + torch.linalg.cross(w.expand_as(arm), arm, dim=-1)
 
-
-UNLOAD_WIDTH = 0.05
-"""w: the loading-to-unloading blend of an impact spans about 4 w radians of its phase (``loading``)."""
-
-UNLOAD_LEAD = 2.0
-"""beta: the blend is centred beta w radians before an impact's deepest point, so a contact without
-restitution (phi = 0) keeps none of an impact's energy (centred on it, the blend's later half kept
-e = 0.1 at 3 m/s)."""
 
 SLIP_EPS = 1e-3
 """Slip speed (m/s) below which a contact's effective mass fades to its all-direction bound."""

@@ -20,6 +20,7 @@ from dejaview.geometry.transforms import quat_to_matrix
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
 from dejaview.sim.box_edges import static_edge_points
+from dejaview.sim.restitution import UNLOAD_LEAD, UNLOAD_WIDTH
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
@@ -207,12 +208,10 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
 
     Unit mass, omega = 1, step ``omega_h``, approach speed 1, no gravity, no v_s (its m/s are
     nothing beside an impact's): semi-implicit Euler of ``a = delta (phi + (1 - phi) s)`` with
-    ``dejaview.sim.contacts.loading``'s blend s, until separation; the separation speed averaged
+    ``dejaview.sim.restitution.loading``'s blend s, until separation; the separation speed averaged
     over ``RESTITUTION_PHASES`` onsets of the contact within its first substep (the blend leaves a
     few thousandths between them, where the deepest point falls).
     """
-    from dejaview.sim.contacts import UNLOAD_LEAD, UNLOAD_WIDTH
-
     total = 0.0
     for k in range(RESTITUTION_PHASES):
         x, v = omega_h * k / RESTITUTION_PHASES, -1.0

@@ -24,7 +24,7 @@ SCENE = """<scene version="1" name="{name}">
     {targets}
     <optimize position="true" orientation="false" linear-velocity="true" angular-velocity="false"/>
     <start-area min="-0.2 -0.1 0.05" max="0.2 0.1 0.05"/>
-    <observation sigma="0.002"/>
+    <observation sigma="0.001"/>
     <prior speed="2.0"/>
     <physics-prior friction="0.5"/>
   </inference>
@@ -68,8 +68,7 @@ def test_grid_agrees_with_laplace_where_the_posterior_is_gaussian(identified):
 def test_grid_widens_until_its_edges_hold_no_mass(identified):
     """Started far too narrow (0.3 Laplace standard deviations), the grid widens its axis until
     its edges hold (almost) nothing, and its mass sits where the first grid's did."""
-    params = replace(FAST, grid=7, grid_sds=0.3, grid_min_width=0.01, grid_widen=4.0, grid_passes=3,
-                     grid_iterations=4)
+    params = replace(FAST, grid=7, grid_sds=0.3, grid_min_width=0.01, grid_widen=4.0, grid_passes=3)
     grid = physics_grid(identified.joint, identified.x, identified.covariance, params)
     assert grid.passes >= 2
     assert float(grid.widths[0]) > 0.3 * float(identified.covariance[-1, -1].sqrt()) * 2

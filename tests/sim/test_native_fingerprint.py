@@ -10,7 +10,7 @@ derivative of a loss of them) was of that engine; the roll stick of a line conta
 (2026-11-26, ``dejaview.sim.line_contact``) changed the physics of bodies on an edge or a line
 on purpose (of the bundled scenes the two mugs and the box among boxes; the others within 6e-17),
 and the record was of that engine (``fingerprint-roll-stick.npz``, in the git history); the
-loading-to-unloading blend over a part of an impact's phase (2026-12-07, ``contacts.loading``:
+loading-to-unloading blend over a part of an impact's phase (2026-12-07, ``restitution.loading``:
 restitution no longer depends on where in its substep an impact's deepest point falls) changed
 every scene with a contact in its 150 steps on purpose, and the record is now of that engine:
 ``tests/fixtures/native/fingerprint-phase-blend.npz``. A change to the C++ that should not change

@@ -94,7 +94,7 @@ def test_a_balls_restitution_does_not_depend_on_where_in_its_substep_it_lands(en
     """Balls thrown head-on at the floor at 3 m/s without gravity from 32 heights spread over one
     substep's travel (3 mm): each rebounds with the restitution the scene gives, within 0.01, and
     all within 0.004 of each other (measured 0.0014 and 0.0024 for e = 0.2 and 0.4). The
-    loading-to-unloading blend spans a part of the impact's phase (``contacts.loading``); over
+    loading-to-unloading blend spans a part of the impact's phase (``restitution.loading``); over
     v_s = 1 cm/s alone, crossed within one substep, the rebound was a sawtooth in the landing's
     phase: 0.192-0.296 for e = 0.2 and 0.395-0.447 for e = 0.4 (measured when written)."""
     _needs(engine)

@@ -122,7 +122,7 @@ inline void box_partner(const T* x, const R* rot, const S* half, const T* p, T* 
 }
 
 // hysteretic spring normal force of one contact (contacts.normal_force), in two parts: how much
-// the contact is loading (contacts.loading: from its normal velocity vn and depth, the blend over a
+// the contact is loading (restitution.loading: from its normal velocity vn and depth, the blend over a
 // part of an impact's phase), then the force
 template <typename T, typename S>
 inline T loading_of(const T& vn, const T& depth, S unload_velocity, S omega) {

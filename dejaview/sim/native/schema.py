@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dejaview.sim import box_edges, contacts, epsilons, line_contact
+from dejaview.sim import box_edges, contacts, epsilons, line_contact, restitution
 from dejaview.sim.state import STATE_LAYOUT, STATE_WIDTH, state_offsets
 from dejaview.sim.world import STATIC_KINDS
 
@@ -108,10 +108,10 @@ stand; 0 in ``pack``, a rollout continued from step i passes ``i * substeps``)."
 CONSTANTS = {
     "SLIP_EPS": (contacts.SLIP_EPS, "m/s: friction direction regulariser (dejaview.sim.contacts)"),
     "SMOOTH_MIN_POWER": (contacts.SMOOTH_MIN_POWER, "power of the friction's smooth minimum"),
-    "UNLOAD_WIDTH": (contacts.UNLOAD_WIDTH, "w: an impact's loading-to-unloading blend spans about 4 w rad "
-                                            "of its phase (contacts.loading)"),
-    "UNLOAD_LEAD": (contacts.UNLOAD_LEAD, "beta: the blend is centred beta w rad before an impact's deepest "
-                                          "point (contacts.loading)"),
+    "UNLOAD_WIDTH": (restitution.UNLOAD_WIDTH, "w: an impact's loading-to-unloading blend spans about 4 w rad "
+                                            "of its phase (restitution.loading)"),
+    "UNLOAD_LEAD": (restitution.UNLOAD_LEAD, "beta: the blend is centred beta w rad before an impact's deepest "
+                                          "point (restitution.loading)"),
     "LINE_ASPECT": (line_contact.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
     "ROLL_STOP_OMEGA_T": (line_contact.ROLL_STOP_OMEGA_T, "omega_0 times the time in which the roll stick "

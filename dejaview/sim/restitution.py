@@ -1,0 +1,47 @@
+"""How a contact turns from loading to unloading: the restitution of the hysteretic contact.
+
+The contact is stiffer while loading (k) than while unloading (phi k), so it returns the
+fraction phi of the energy it stored (``dejaview.sim.contacts``). Between the two it blends by how
+much it is loading,
+
+    s = sigmoid(-(v_n + beta L) / (v_s + L)),   L = w omega_0 delta                  (``loading``)
+
+(v_n the normal velocity, negative approaching; delta the depth; w = ``UNLOAD_WIDTH``, beta =
+``UNLOAD_LEAD``): at rest over a few mm/s (v_s), in an impact over a fixed part of its phase (in a
+harmonic impact v_n / (omega_0 delta) is the cotangent of the phase, zero at the deepest point),
+centred beta w radians before the deepest point.
+
+Why the phase: with v_s alone (until 2026-12-07) an impact's normal velocity, changing by hundreds
+of mm/s per substep near the deepest point, crossed the blend within one substep, and the energy
+the contact kept depended on where in its substep the deepest point fell. Restitution was a
+sawtooth in the start: one ball thrown at the floor at 2.6 m/s with e = 0.4, its start moved over
+2 mm, rebounded with 0.364-0.421, and tracked bounces' fits and their inferred restitution were
+rough (issue 58's identify calibration). Over a part of the phase the same ball rebounds with
+0.368-0.372 (docs/physics.md, "Restitution", has the table). The lead keeps a contact without
+restitution (phi = 0) from bouncing: centred on the deepest point, the blend's later half kept
+e = 0.07-0.11 at 3-5 m/s. ``World.restitution_to_unloading`` calibrates phi against this blend.
+"""
+
+from __future__ import annotations
+
+import torch
+
+UNLOAD_WIDTH = 0.05
+"""w: an impact's loading-to-unloading blend spans about 4 w radians of its phase (``loading``)."""
+
+UNLOAD_LEAD = 2.0
+"""beta: the blend is centred beta w radians before an impact's deepest point (``loading``)."""
+
+
+def loading(depth: torch.Tensor, normal_velocity: torch.Tensor, unload_velocity: float,
+            omega: float) -> torch.Tensor:
+    """How much each contact is loading, s in (0, 1) (module docstring).
+
+    Args:
+        depth: (B, C) penetration depths (>= 0); normal_velocity: (B, C) (negative approaching).
+        unload_velocity: v_s (m/s); omega: the contact frequency omega_0 (rad/s).
+    Returns:
+        (B, C) loading fractions.
+    """
+    lead = (UNLOAD_WIDTH * omega) * depth
+    return torch.sigmoid(-(normal_velocity + UNLOAD_LEAD * lead) / (unload_velocity + lead))
