@@ -482,7 +482,7 @@ class TrainParams:
         validation: share of the pairs held out of the fit to choose the epoch.
         max_fit_seconds: the fit stops after this long (its best epoch kept).
         memory_limit: bytes the training may take (``dejaview.memory``; None: the machine's):
-            sized before any simulation (``sizing.check_train_memory``), its rollouts simulated a
+            sized before any simulation (``amortised.sizing.check_train_memory``), its rollouts simulated a
             smaller batch at a time where a whole chunk's do not fit (the same training set).
     """
 

@@ -141,7 +141,8 @@ def test_training_over_its_memory_limit_is_refused_before_any_simulation(monkeyp
 
 def test_a_training_that_fits_only_in_smaller_rollout_batches_gets_them():
     from dejaview import memory
-    from dejaview.inference.sizing import candidate_bytes, check_train_memory, train_bytes
+    from dejaview.inference.amortised.sizing import check_train_memory, train_bytes
+    from dejaview.inference.sizing import candidate_bytes
 
     post = Posterior.from_scene(throw()).without_model()
     p = replace(SMALL, chunk=512)

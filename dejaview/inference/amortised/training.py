@@ -210,7 +210,7 @@ def train(scene, params: TrainParams | None = None, *, callback=None, should_sto
     from dejaview.geometry.collision import SceneCollision
     from dejaview.inference.amortised.coordinates import check_proper
     from dejaview.inference.posterior import Posterior
-    from dejaview.inference.sizing import check_train_memory
+    from dejaview.inference.amortised.sizing import check_train_memory
     from dejaview.scene import Scene
 
     p = TrainParams() if params is None else params
