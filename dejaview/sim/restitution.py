@@ -24,6 +24,8 @@ e = 0.07-0.11 at 3-5 m/s. ``World.restitution_to_unloading`` calibrates phi agai
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 UNLOAD_WIDTH = 0.05
@@ -45,3 +47,15 @@ def loading(depth: torch.Tensor, normal_velocity: torch.Tensor, unload_velocity:
     """
     lead = (UNLOAD_WIDTH * omega) * depth
     return torch.sigmoid(-(normal_velocity + UNLOAD_LEAD * lead) / (unload_velocity + lead))
+
+
+def loading_of(depth: float, normal_velocity: float, unload_velocity: float, omega: float) -> float:
+    """``loading`` for one contact in Python floats (the restitution's calibration integrates one
+    contact step by step, ``dejaview.sim.world.restitution_to_unloading``): the same formula, 0 where
+    the sigmoid's argument is beyond 700 (exp would overflow) and at zero depth with v_s = 0."""
+    lead = (UNLOAD_WIDTH * omega) * depth
+    spread = unload_velocity + lead
+    if spread <= 0.0:
+        return 0.0
+    arg = (normal_velocity + UNLOAD_LEAD * lead) / spread
+    return 1.0 / (1.0 + math.exp(arg)) if arg < 700.0 else 0.0

@@ -20,7 +20,7 @@ from dejaview.geometry.transforms import quat_to_matrix
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
 from dejaview.sim.box_edges import static_edge_points
-from dejaview.sim.restitution import UNLOAD_LEAD, UNLOAD_WIDTH
+from dejaview.sim.restitution import loading_of
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
@@ -208,7 +208,7 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
 
     Unit mass, omega = 1, step ``omega_h``, approach speed 1, no gravity, no v_s (its m/s are
     nothing beside an impact's): semi-implicit Euler of ``a = delta (phi + (1 - phi) s)`` with
-    ``dejaview.sim.restitution.loading``'s blend s, until separation; the separation speed averaged
+    ``dejaview.sim.restitution.loading_of``'s blend s, until separation; the separation speed averaged
     over ``RESTITUTION_PHASES`` onsets of the contact within its first substep (the blend leaves a
     few thousandths between them, where the deepest point falls).
     """
@@ -219,9 +219,7 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
         for _ in range(100000):
             depth = max(0.0, -x)
             if depth > 0.0:
-                lead = UNLOAD_WIDTH * depth
-                arg = (v + UNLOAD_LEAD * lead) / lead
-                s = 1.0 / (1.0 + math.exp(arg)) if arg < 700.0 else 0.0
+                s = loading_of(depth, v, 0.0, 1.0)
                 a = depth * (unload + (1.0 - unload) * s)
             else:
                 a = 0.0

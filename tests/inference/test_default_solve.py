@@ -3,8 +3,8 @@
 Issue 19's criterion: on every bundled story scene and for seeds 0, 1 and 2, the answer
 re-simulated meets the target within 1 cm and 5 degrees (position alone for the balls, whose
 loss is ``position``), at the record the scene compares (``result.json``'s ``matched_pose``).
-The real command line runs, as a user would run it. Two scenes run in the default suite, every
-scene in the ``slow`` one.
+The real command line runs, as a user would run it. Two scenes with seed 0 run in the default
+suite, their other seeds and every other scene in the ``slow`` one.
 """
 
 import json
@@ -38,7 +38,7 @@ def check_explains_the_end(data: dict) -> None:
     assert data["search"]["rollouts"] > 0 and data["search"]["modes"]
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("scene", FAST)
 def test_default_solve_explains_the_end(scene, seed, tmp_path):
     check_explains_the_end(solve_with_defaults(scene, seed, tmp_path))

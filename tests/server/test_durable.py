@@ -166,8 +166,10 @@ def test_a_killed_server_runs_its_accepted_jobs_after_a_restart(live_root, tmp_p
     run_chaos(live_root, tmp_path, n_jobs=4, kills=1)
 
 
+@pytest.mark.slow
 def test_chaos_20_jobs_two_kills(live_root, tmp_path):
-    """Issue 22: 20 jobs, the server and its workers killed (SIGKILL) twice while they run."""
+    """Issue 22: 20 jobs, the server and its workers killed (SIGKILL) twice while they run (130 s:
+    slow; the default run has the 4-job, one-kill share above)."""
     run_chaos(live_root, tmp_path, n_jobs=20, kills=2)
 
 

@@ -60,7 +60,7 @@ struct ContactLaw {
   const S* inv_w[2];
   S inv_i_min[2];
   // forward values
-  S vn, vt[3], lead, spread, loading, g, fn;
+  S vn, vt[3], spread, loading, g, fn;
   S dv[3], dvn, pred[3], vs[3];  // the predicted slip: its rate of change, then vs = vt + pred
   S tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
@@ -77,7 +77,7 @@ struct ContactLaw {
   void forward_normal() {
     vn = dot3(vel, n);
     for (int i = 0; i < 3; ++i) vt[i] = vel[i] - vn * n[i];
-    lead = (S(schema::UNLOAD_WIDTH) * omega) * depth;  // loading_of (contact_law.h)
+    const S lead = (S(schema::UNLOAD_WIDTH) * omega) * depth;  // loading_of (contact_law.h)
     spread = unload_velocity + lead;
     loading = sigmoid(-(vn + S(schema::UNLOAD_LEAD) * lead) / spread);
     g = unload + (S(1) - unload) * loading;
