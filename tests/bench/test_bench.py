@@ -170,6 +170,7 @@ def test_peers_quick_compares_both_engines_and_writes_csv(tmp_path):
     assert [r for r in rows if r["section"] == "memory"][0]["finite"] == "True"
 
 
+@pytest.mark.slow  # 14-15 s of micro benchmarks; the bench CLI's other sections run in the default run
 def test_cli_micro_writes_every_section(tmp_path):
     path = tmp_path / "micro.csv"
     result = CliRunner().invoke(command, ["micro", "--poses", "3", "--csv", str(path)])

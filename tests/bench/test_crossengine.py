@@ -418,6 +418,7 @@ def test_bad_seeds_are_a_one_line_error():
             assert result.exit_code != 0 and says in result.output and "--seeds" in result.output, result.output
 
 
+@pytest.mark.slow  # two solves, 31 s; the bench solves in the default run: test_cli_flat_prior_solves_without_the_cases_prior
 def test_each_seed_solves_each_case_once_and_the_summary_pools_them(crossengine):
     """``--seeds 0,1``: one solve per seed (the scene's ``<inference seed>``), the same observation,
     and the summary counts all of them and says which cases every seed solved."""

@@ -205,6 +205,7 @@ def test_killing_the_first_cli_run_while_it_compiles_does_not_hang_the_next(tmp_
         _end(first)
 
 
+@pytest.mark.slow  # four builds, 27 s; the build folder keyed by source and flags: test_different_sources_and_flags_never_share_a_build_folder
 def test_two_installs_sharing_a_folder_keep_their_own_builds(tmp_path):
     """Two checkouts with different sources and one extension folder (TORCH_EXTENSIONS_DIR shared):
     each build gets its own folder, so neither rebuilds the other's."""
