@@ -17,9 +17,11 @@ the contact kept depended on where in its substep the deepest point fell. Restit
 sawtooth in the start: one ball thrown at the floor at 2.6 m/s with e = 0.4, its start moved over
 2 mm, rebounded with 0.364-0.421, and tracked bounces' fits and their inferred restitution were
 rough (issue 58's identify calibration). Over a part of the phase the same ball rebounds with
-0.368-0.372 (docs/physics.md, "Restitution", has the table). The lead keeps a contact without
-restitution (phi = 0) from bouncing: centred on the deepest point, the blend's later half kept
-e = 0.07-0.11 at 3-5 m/s. ``World.restitution_to_unloading`` calibrates phi against this blend.
+0.368-0.372 (docs/physics.md, "Restitution", has the table). The lead lowers what a contact without
+restitution (phi = 0) returns, but does not stop it: at v_n = 0 the blend is still sigmoid(-beta),
+so phi = 0 rebounds with 0.121 without gravity and 0.09 with it at 1-5 m/s, and every e up to
+0.111 maps to phi = 0 (docs/physics.md, "Known limit"). ``World.restitution_to_unloading``
+calibrates phi against this blend.
 """
 
 from __future__ import annotations
