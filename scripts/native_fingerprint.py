@@ -16,10 +16,11 @@ the two records. ``compare`` prints, per array, ``identical`` or the
 largest difference, and exits 1 when any array present in both differs by more than ``--atol``
 (default 0: bit for bit).
 
-``tests/fixtures/native/fingerprint-phase-blend.npz`` is the record of the engine since the
-loading-to-unloading blend over a part of an impact's phase (2026-12-07);
+``tests/fixtures/native/fingerprint-unload-min.npz`` is the record of the engine since the
+unloading factor below zero for restitutions under 0.111 (2026-12-07, ``restitution.UNLOAD_MIN``);
 ``tests/sim/test_native_fingerprint.py`` holds today's engine to it within 1e-9. (Before, the
-records were of the engine since the roll stick of a line contact, 2026-11-26,
+records were of the engine since the loading-to-unloading blend over a part of an impact's phase,
+2026-12-07, ``fingerprint-phase-blend.npz``, since the roll stick of a line contact, 2026-11-26,
 ``fingerprint-roll-stick.npz``, since the friction on the predicted slip, 2026-11-25,
 ``fingerprint-predicted-slip.npz``, and of the engine issue 25 was filed against, commit 30cf17f,
 ``fingerprint-30cf17f.npz``, all in the git history.)

@@ -21,8 +21,9 @@ approaching). The contact is stiffer while loading (k) than while unloading
 (phi k): it returns the fraction phi of the stored energy, so the restitution
 is e = sqrt(phi) in continuous time; phi is calibrated against the discrete
 integrator (``World.restitution_to_unloading``) so that a simulated head-on
-impact rebounds with e. Unlike a linear damper this force never pulls and
-never has to be clipped. s_i blends the two stiffnesses at rest over a few
+impact rebounds with e. Unlike a linear damper this force never pulls; below
+a restitution of 0.11 phi is negative (``dejaview.sim.restitution``) and the
+factor phi + (1 - phi) s_i is cut off at zero late in the unloading. s_i blends the two stiffnesses at rest over a few
 mm/s (v_s) and in an impact over a fixed part of its phase
 (s_i = ``dejaview.sim.restitution.loading``). A body therefore behaves like
 one spring of natural frequency omega_0 however many of its spheres touch, which keeps the explicit
@@ -189,13 +190,14 @@ def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: tor
         weight: (B, C) ``depth_weights(depth)``.
         normal_velocity: (B, C) normal velocity of each contact point (negative approaching).
         stiffness: broadcastable to (B, C), body-level stiffness k.
-        unload: broadcastable to (B, C), unloading stiffness factor phi in [0, 1].
+        unload: broadcastable to (B, C), unloading stiffness factor phi in [``UNLOAD_MIN``, 1].
         unload_velocity, omega: v_s (m/s) and omega_0 (rad/s) of ``restitution.loading``'s blend.
     Returns:
-        (B, C) normal force magnitudes (>= 0).
+        (B, C) normal force magnitudes (>= 0: a factor phi + (1 - phi) s below zero, which only a
+        negative phi gives, late in an impact's unloading, is cut off at zero).
     """
     s = loading(depth, normal_velocity, unload_velocity, omega)
-    return weight * stiffness * depth * (unload + (1.0 - unload) * s)
+    return weight * stiffness * depth * (unload + (1.0 - unload) * s).clamp_min(0.0)
 
 
 def friction_force(tangential_velocity: torch.Tensor, coulomb: torch.Tensor,

@@ -13,8 +13,9 @@ scene's value: the factors apply to every pair alike.
 
 The engines take one physics per candidate as the logs of three factors (``World.physics``,
 ``rollout(physics=...)``): on friction, on the unloading factor phi of the hysteretic contact
-(``dejaview.sim.contacts``; capped at 1) and on the stiffness. A restitution e becomes the
-unloading factor phi(e) / phi(e0), phi the engine's own map from restitution to unloading factor
+above its least m = ``UNLOAD_MIN`` (``dejaview.sim.contacts``; phi' = m + f (phi - m), capped at
+1) and on the stiffness. A restitution e becomes the unloading factor
+(phi(e) - m) / (phi(e0) - m), phi the engine's own map from restitution to unloading factor
 at the world's substep (``World.restitution_to_unloading``), tabulated once and interpolated
 linearly (differentiable), so a pair at the scene's restitution rebounds with e exactly as a scene
 written with e would. The stiffness factor leaves the restitution map where it is (in continuous
@@ -33,6 +34,7 @@ from dataclasses import dataclass
 import torch
 
 from dejaview.errors import SceneError
+from dejaview.sim.restitution import UNLOAD_MIN
 
 NAMES = ("friction", "restitution", "stiffness")
 """The physics parameters, in the order of every (B, 3) physics tensor."""
@@ -44,12 +46,13 @@ TABLE_POINTS = 257
 @functools.lru_cache(maxsize=16)
 def _unloading_table(omega_h: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """(restitutions, unloading factors) of the engine's map at substep ``omega_h``, where it
-    is strictly increasing (below the restitution the integrator gives at phi = 0, phi is 0)."""
+    is strictly increasing (below the restitution the integrator gives at phi = ``UNLOAD_MIN``,
+    phi is that)."""
     from dejaview.sim.world import _discrete_restitution, restitution_to_unloading
 
-    floor = _discrete_restitution(0.0, omega_h)
+    floor = _discrete_restitution(UNLOAD_MIN, omega_h)
     es = [floor + (1.0 - floor) * i / (TABLE_POINTS - 1) for i in range(TABLE_POINTS)]
-    phis = [0.0] + [restitution_to_unloading(e, omega_h) for e in es[1:]]
+    phis = [UNLOAD_MIN] + [restitution_to_unloading(e, omega_h) for e in es[1:]]
     return tuple(es), tuple(phis)
 
 
@@ -86,7 +89,7 @@ class PhysicsModel:
         h = world.dt / world.substeps
         model = PhysicsModel(sd, float(scene.simulation.friction), float(scene.simulation.restitution),
                              world.contact.frequency * h, world.contact.frequency)
-        if sd[1] > 0 and model._phi0 <= 0.0:
+        if sd[1] > 0 and model._phi0 <= UNLOAD_MIN:
             es, _ = _unloading_table(model.omega_h)
             raise SceneError(f"<physics-prior restitution>: the scene's restitution {model.restitution:g} is at or "
                              f"below the least this step resolves ({es[0]:.3f}); a relative prior cannot move it "
@@ -151,7 +154,8 @@ class PhysicsModel:
         log_mu = s[0] * zz[:, 0]
         log_k = s[2] * zz[:, 2]
         if self.sd[1] > 0:
-            log_phi = torch.log(self._unloading(self._restitution(zz, s)).clamp_min(1e-300) / self._phi0)
+            log_phi = torch.log((self._unloading(self._restitution(zz, s)) - UNLOAD_MIN).clamp_min(1e-300)
+                                / (self._phi0 - UNLOAD_MIN))
         else:
             log_phi = torch.zeros_like(log_mu)
         return torch.stack([log_mu, log_phi, log_k], -1)
@@ -166,12 +170,15 @@ class PhysicsModel:
 
 def candidate_material(physics: torch.Tensor, mu: torch.Tensor, unload: torch.Tensor, stiff: torch.Tensor):
     """Each candidate's physics (``World.physics``, (B, 3) logs of factors) applied to a contact
-    law's friction, unloading factor (capped at 1) and stiffness, each with the batch first
-    (size 1 or B); the factors broadcast over the other dims."""
+    law's friction, unloading factor and stiffness, each with the batch first (size 1 or B); the
+    factors broadcast over the other dims. The unloading factor's acts on its height above the
+    least, phi' = m + f (phi - m) with m = ``UNLOAD_MIN`` (written phi f + m (1 - f): phi itself at
+    f = 1), capped at 1."""
     f = torch.exp(physics)
 
     def per_candidate(column: int, like: torch.Tensor) -> torch.Tensor:
         return f[:, column].reshape((-1,) + (1,) * (like.dim() - 1))
 
-    return (mu * per_candidate(0, mu), torch.clamp(unload * per_candidate(1, unload), max=1.0),
+    fu = per_candidate(1, unload)
+    return (mu * per_candidate(0, mu), torch.clamp(unload * fu + UNLOAD_MIN * (1.0 - fu), max=1.0),
             stiff * per_candidate(2, stiff))

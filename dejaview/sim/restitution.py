@@ -19,9 +19,11 @@ sawtooth in the start: one ball thrown at the floor at 2.6 m/s with e = 0.4, its
 rough (issue 58's identify calibration). Over a part of the phase the same ball rebounds with
 0.368-0.372 (docs/physics.md, "Restitution", has the table). The lead lowers what a contact without
 restitution (phi = 0) returns, but does not stop it: at v_n = 0 the blend is still sigmoid(-beta),
-so phi = 0 rebounds with 0.121 without gravity and 0.09 with it at 1-5 m/s, and every e up to
-0.111 maps to phi = 0 (docs/physics.md, "Known limit"). ``World.restitution_to_unloading``
-calibrates phi against this blend.
+so phi = 0 rebounds with 0.111 (without gravity; 0.09 with it at 1-5 m/s). Below that, phi goes
+negative, down to ``UNLOAD_MIN``: the factor phi + (1 - phi) s then crosses zero while the contact
+unloads, and the force is cut off there (``dejaview.sim.contacts.normal_force``: it never pulls),
+before the blend gives the energy back. ``World.restitution_to_unloading`` calibrates phi against
+this blend and cut-off: every restitution from 0.045 up is reached (docs/physics.md, "Restitution").
 """
 
 from __future__ import annotations
@@ -35,6 +37,14 @@ UNLOAD_WIDTH = 0.05
 
 UNLOAD_LEAD = 2.0
 """beta: the blend is centred beta w radians before an impact's deepest point (``loading``)."""
+
+UNLOAD_MIN = -0.05
+"""The least unloading factor phi (the restitution's floor: 0.045 without gravity at omega_0 h =
+0.25). Below it the contact's rest suffers: at rest (v_n = 0, depth delta) the blend is
+sigmoid(-beta L / (v_s + L)), below 0.5, and the factor phi + (1 - phi) s tends to
+phi + (1 - phi) sigmoid(-beta) as the depth grows: zero at phi = -0.135, where a resting body
+sinks through the floor (measured: at phi = -0.14 a box sinks, at -0.2 a ball falls through).
+At -0.05 a ball rests 0.60 mm deep at omega_0 = 250 rad/s (0.49 mm at phi = 0)."""
 
 
 def loading(depth: torch.Tensor, normal_velocity: torch.Tensor, unload_velocity: float,

@@ -20,7 +20,7 @@ from dejaview.geometry.transforms import quat_to_matrix
 from dejaview.scene import bounds
 from dejaview.sim import sdf as _sdf
 from dejaview.sim.box_edges import static_edge_points
-from dejaview.sim.restitution import loading_of
+from dejaview.sim.restitution import UNLOAD_MIN, loading_of
 from dejaview.sim.rotation import quat_rotate, small_matmul
 from dejaview.sim.state import State
 
@@ -210,7 +210,8 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
     nothing beside an impact's): semi-implicit Euler of ``a = delta (phi + (1 - phi) s)`` with
     ``dejaview.sim.restitution.loading_of``'s blend s, until separation; the separation speed averaged
     over ``RESTITUTION_PHASES`` onsets of the contact within its first substep (the blend leaves a
-    few thousandths between them, where the deepest point falls).
+    few thousandths between them, where the deepest point falls). A factor below zero is cut off
+    where it crosses zero (``contacts.normal_force``).
     """
     total = 0.0
     for k in range(RESTITUTION_PHASES):
@@ -220,7 +221,7 @@ def _discrete_restitution(unload: float, omega_h: float) -> float:
             depth = max(0.0, -x)
             if depth > 0.0:
                 s = loading_of(depth, v, 0.0, 1.0)
-                a = depth * (unload + (1.0 - unload) * s)
+                a = depth * max(0.0, unload + (1.0 - unload) * s)
             else:
                 a = 0.0
             v += omega_h * a
@@ -240,13 +241,17 @@ def restitution_to_unloading(e: float, omega_h: float = DEFAULT_OMEGA_H) -> floa
     gives back phi of the stored energy: in continuous time phi = e^2. The
     value is corrected by bisection on the discrete contact integrated with
     substep ``omega_h = omega_0 h`` so the simulated restitution of a head-on
-    impact is ``e``. Monotone in ``e``; ``e = 0`` gives 0.
+    impact is ``e``. Monotone in ``e``. Below the restitution phi = 0 gives (0.111
+    at omega_h 0.25: the blend's own, ``dejaview.sim.restitution``) phi is negative, down to
+    ``UNLOAD_MIN``, which every ``e`` at or below its restitution (0.045) gets.
     """
     if e <= 0.0:
-        return 0.0
-    lo, hi = 0.0, 1.0
+        return UNLOAD_MIN
+    lo, hi = (0.0, 1.0) if _discrete_restitution(0.0, omega_h) < e else (UNLOAD_MIN, 0.0)
     if _discrete_restitution(hi, omega_h) <= e:
         return hi
+    if _discrete_restitution(lo, omega_h) >= e:
+        return lo
     for _ in range(50):
         mid = 0.5 * (lo + hi)
         if _discrete_restitution(mid, omega_h) < e:
@@ -260,10 +265,10 @@ def remap_unloading(phi: torch.Tensor, omega_h0: float, omega_h: float,
                     restitution_factor: float = 1.0) -> torch.Tensor:
     """Unloading factors ``phi`` (any shape) mapped from substep ``omega_h0`` to ``omega_h``: each
     pair's simulated restitution recovered at ``omega_h0``, times ``restitution_factor``, clipped
-    to [0, 1], and the factor that gives it at ``omega_h`` (a pair without restitution stays 0)."""
+    to [0, 1], and the factor that gives it at ``omega_h`` (a pair at the least factor stays there)."""
     flat = [restitution_to_unloading(min(1.0, max(0.0, _discrete_restitution(float(p), omega_h0)
                                                   * restitution_factor)), omega_h)
-            if float(p) > 0 else 0.0 for p in phi.reshape(-1).tolist()]
+            if float(p) > UNLOAD_MIN else UNLOAD_MIN for p in phi.reshape(-1).tolist()]
     return torch.tensor(flat, dtype=phi.dtype, device=phi.device).reshape(phi.shape)
 
 

@@ -12,8 +12,12 @@ on purpose (of the bundled scenes the two mugs and the box among boxes; the othe
 and the record was of that engine (``fingerprint-roll-stick.npz``, in the git history); the
 loading-to-unloading blend over a part of an impact's phase (2026-12-07, ``restitution.loading``:
 restitution no longer depends on where in its substep an impact's deepest point falls) changed
-every scene with a contact in its 150 steps on purpose, and the record is now of that engine:
-``tests/fixtures/native/fingerprint-phase-blend.npz``. A change to the C++ that should not change
+every scene with a contact in its 150 steps on purpose, and the record was of that engine
+(``fingerprint-phase-blend.npz``, in the git history); the unloading factor below zero for
+restitutions under 0.111, cut off where the force would pull (2026-12-07,
+``restitution.UNLOAD_MIN``), changed the two bundled scenes at restitution 0.1 (box_along_shelf,
+box_among_boxes; the others bit for bit) on purpose, and the record is now of that engine:
+``tests/fixtures/native/fingerprint-unload-min.npz``. A change to the C++ that should not change
 a number must keep this test passing; one that should must say why and re-record.
 """
 
@@ -26,7 +30,7 @@ import pytest
 from dejaview.sim import native
 
 ROOT = Path(__file__).resolve().parents[2]
-BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-phase-blend.npz"
+BEFORE = ROOT / "tests" / "fixtures" / "native" / "fingerprint-unload-min.npz"
 TOLERANCE = 1e-9  # times max(1, the largest magnitude of the array)
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the native extension does not build here")

@@ -30,14 +30,14 @@ CHAOTIC_RTOL = 1e-5
 """...but never by more than this fraction of the gradient's largest component."""
 
 
-def _pile(substeps=2, boxes=4):
+def _pile(substeps=2, boxes=4, restitution=0.2):
     """A box thrown into a row of resting boxes on a floor, one box far off, resting alone."""
     bodies = [box_body(f"box{i}", size=(0.1, 0.1, 0.05), per_axis=(3, 3, 2), mass=0.5)
               for i in range(boxes)]
-    world = make_world(bodies, [StaticShape.make("floor", "plane"),
+    world = make_world(bodies, [StaticShape.make("floor", "plane", restitution=restitution),
                                 StaticShape.make("step", "box", position=(0.6, 0.0, 0.02),
-                                                 half=(0.1, 0.3, 0.02))],
-                       substeps=substeps)
+                                                 half=(0.1, 0.3, 0.02), restitution=restitution)],
+                       substeps=substeps, restitution=restitution)
     pos = [[0.0, 0.0, 0.09]] + [[0.13 + 0.105 * i, 0.02 * i, 0.025] for i in range(boxes - 2)]
     pos.append([-1.0, 0.0, 0.025])  # far away: the loss's adjoint never reaches it
     tilt = [math.cos(0.15), math.sin(0.15) * 0.6, math.sin(0.15) * 0.8, 0.0]

@@ -61,6 +61,7 @@ struct ContactLaw {
   S inv_i_min[2];
   // forward values
   S vn, vt[3], spread, loading, g, fn;
+  bool cut;  // the factor g was below zero and is cut off there (normal_force)
   S dv[3], dvn, pred[3], vs[3];  // the predicted slip: its rate of change, then vs = vt + pred
   S tden, t[3], u[2][3], iu[2][3], arm2[2], im, stick;
   S coulomb, speed, b, scale, uu, vv, pp, rt, den, k;
@@ -81,6 +82,8 @@ struct ContactLaw {
     spread = unload_velocity + lead;
     loading = sigmoid(-(vn + S(schema::UNLOAD_LEAD) * lead) / spread);
     g = unload + (S(1) - unload) * loading;
+    cut = g < S(0);
+    if (cut) g = S(0);
     fn = weight * stiff * depth * g;
   }
 
@@ -183,10 +186,10 @@ struct ContactLaw {
 
   // gp (3) += the gradient of the way back's loss with respect to the logs of the World's physics
   // factors (mu_scale, unload_scale, stiff_scale: World), from the cotangents the two passes left
-  // (an unloading factor held at 1 by scaled_unload has none)
+  // (an unloading factor held at 1 by scaled_unload has none; below it, d phi' / d log f = phi' - m)
   void add_material_gradient(S* gp) const {
     gp[0] += mub * mu;
-    if (unload < S(1)) gp[1] += unloadb * unload;
+    if (unload < S(1)) gp[1] += unloadb * (unload - S(schema::UNLOAD_MIN));
     gp[2] += stiffb * stiff;
   }
 
@@ -201,12 +204,13 @@ struct ContactLaw {
   // (added to)
   void backward_normal(S fnb, const S* vtb_in, S* nb, S* velb, S& depthb, S& weightb) const {
     S vtb[3] = {vtb_in[0], vtb_in[1], vtb_in[2]};
-    // fn = weight stiff depth g, g = unload + (1 - unload) s,
+    // fn = weight stiff depth g, g = max(0, unload + (1 - unload) s),
     // s = sigmoid(a), a = -(vn + beta L) / (uv + L), L = w omega depth
     weightb += fnb * stiff * depth * g;
     stiffb = fnb * weight * depth * g;
-    unloadb = fnb * weight * stiff * depth * (S(1) - loading);
-    const S loadingb = fnb * weight * stiff * depth * (S(1) - unload);
+    const S gb = cut ? S(0) : fnb * weight * stiff * depth;
+    unloadb = gb * (S(1) - loading);
+    const S loadingb = gb * (S(1) - unload);
     const S ab = loadingb * loading * (S(1) - loading);
     S vnb = -ab / spread;
     // da/dL = ((vn + beta L) - beta spread) / spread^2 = (vn - beta uv) / spread^2

@@ -130,9 +130,11 @@ inline T loading_of(const T& vn, const T& depth, S unload_velocity, S omega) {
   return sigmoid(-(vn + S(schema::UNLOAD_LEAD) * lead) / (unload_velocity + lead));
 }
 
+// (the factor phi + (1 - phi) s cut off at zero: only a negative phi, restitution.UNLOAD_MIN, reaches it)
 template <typename T, typename S>
 inline T normal_force(const T& depth, const T& weight, const T& loading, S stiff, S unload) {
-  return weight * stiff * depth * (unload + (1.0 - unload) * loading);
+  const T g = unload + (1.0 - unload) * loading;
+  return weight * stiff * depth * vmax(g, T(0.0));
 }
 
 struct Pick {

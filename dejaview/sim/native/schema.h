@@ -112,6 +112,7 @@ constexpr double SLIP_EPS = 0.001;  // m/s: friction direction regulariser (deja
 constexpr double SMOOTH_MIN_POWER = 8.0;  // power of the friction's smooth minimum
 constexpr double UNLOAD_WIDTH = 0.05;  // w: an impact's loading-to-unloading blend spans about 4 w rad of its phase (restitution.loading)
 constexpr double UNLOAD_LEAD = 2.0;  // beta: the blend is centred beta w rad before an impact's deepest point (restitution.loading)
+constexpr double UNLOAD_MIN = -0.05;  // the least unloading factor phi; the physics' factor acts on phi - UNLOAD_MIN (restitution.UNLOAD_MIN)
 constexpr double LINE_ASPECT = 4.0;  // a static contact set whose in-plane second moments' ratio exceeds this is a line: its roll is held (line_roll_stick)
 constexpr double ROLL_STOP_OMEGA_T = 0.25;  // omega_0 times the time in which the roll stick stops a line's roll, at least one substep
 constexpr double LINE_MIN_SPREAD = 1e-12;  // m^2: a static contact set whose in-plane second moment is at most this is a point, not a line

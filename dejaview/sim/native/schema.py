@@ -112,6 +112,8 @@ CONSTANTS = {
                                             "of its phase (restitution.loading)"),
     "UNLOAD_LEAD": (restitution.UNLOAD_LEAD, "beta: the blend is centred beta w rad before an impact's deepest "
                                           "point (restitution.loading)"),
+    "UNLOAD_MIN": (restitution.UNLOAD_MIN, "the least unloading factor phi; the physics' factor acts on "
+                                        "phi - UNLOAD_MIN (restitution.UNLOAD_MIN)"),
     "LINE_ASPECT": (line_contact.LINE_ASPECT, "a static contact set whose in-plane second moments' ratio "
                                           "exceeds this is a line: its roll is held (line_roll_stick)"),
     "ROLL_STOP_OMEGA_T": (line_contact.ROLL_STOP_OMEGA_T, "omega_0 times the time in which the roll stick "

@@ -83,10 +83,12 @@ inline void shape_point_velocity(const Shape<S>& sh, const T* pt, T* out) {
 }
 
 // the contact law's material of a pair, the candidate's physics applied: friction, unloading
-// factor (kept within [0, 1]: a restitution above 1 is impossible), stiffness of a contact with
-// this (reduced) mass
+// factor (its height above UNLOAD_MIN scaled, phi f + m (1 - f), phi itself at f = 1; kept at most
+// 1: a restitution above 1 is impossible), stiffness of a contact with this (reduced) mass
 template <typename S> inline S scaled_mu(const World<S>& w, S mu) { return mu * w.mu_scale; }
-template <typename S> inline S scaled_unload(const World<S>& w, S phi) { return std::min(S(1), phi * w.unload_scale); }
+template <typename S> inline S scaled_unload(const World<S>& w, S phi) {
+  return std::min(S(1), phi * w.unload_scale + S(schema::UNLOAD_MIN) * (S(1) - w.unload_scale));
+}
 template <typename S> inline S contact_stiffness(const World<S>& w, S mass) {
   return mass * w.omega * w.omega * w.stiff_scale;
 }
