@@ -88,6 +88,17 @@ def test_ball_rebounds_to_e_squared_h(e):
     assert abs(rebound - e * e * h0) / (e * e * h0) < 0.10
 
 
+def _thrown_at_the_floor(world, r: float, speed: float, n: int, engine: str):
+    """n balls of radius r thrown straight down at ``speed`` from heights spread over one substep's
+    travel above the floor (so each impact's deepest point falls elsewhere in its substep), 40 steps."""
+    heights = r + 0.01 + torch.linspace(0.0, speed * world.dt / world.substeps, n, dtype=torch.float64)
+    position = torch.zeros(n, 1, 3, dtype=torch.float64)
+    position[:, 0, 2] = heights
+    velocity = torch.zeros(n, 1, 3, dtype=torch.float64)
+    velocity[:, 0, 2] = -speed
+    return rollout(world, world.state(position, linear_velocity=velocity), steps=40, engine=engine)
+
+
 @pytest.mark.parametrize("engine", ["native", "torch"])
 @pytest.mark.parametrize("e", [0.2, 0.4])
 def test_a_balls_restitution_does_not_depend_on_where_in_its_substep_it_lands(engine, e):
@@ -98,15 +109,10 @@ def test_a_balls_restitution_does_not_depend_on_where_in_its_substep_it_lands(en
     v_s = 1 cm/s alone, crossed within one substep, the rebound was a sawtooth in the landing's
     phase: 0.192-0.296 for e = 0.2 and 0.395-0.447 for e = 0.4 (measured when written)."""
     _needs(engine)
-    r, speed, n = 0.05, 3.0, 32
+    r, speed = 0.05, 3.0
     world = _weightless([ball_body(radius=r, restitution=e)], [StaticShape.make("floor", "plane", restitution=e)],
                         mu=0.5, e=e)
-    heights = r + 0.01 + torch.linspace(0.0, speed * world.dt / world.substeps, n, dtype=torch.float64)
-    position = torch.zeros(n, 1, 3, dtype=torch.float64)
-    position[:, 0, 2] = heights
-    velocity = torch.zeros(n, 1, 3, dtype=torch.float64)
-    velocity[:, 0, 2] = -speed
-    traj = rollout(world, world.state(position, linear_velocity=velocity), steps=40, engine=engine)
+    traj = _thrown_at_the_floor(world, r, speed, 32, engine)
     rebound = traj.final.linear_velocity[:, 0, 2].numpy() / speed
     assert np.all(traj.final.position[:, 0, 2].numpy() > r), "a ball still touches the floor"
     assert rebound.max() - rebound.min() < 0.004, rebound
@@ -130,12 +136,7 @@ def test_a_restitution_below_the_blends_own_is_reached(engine):
 
         world = World.build([ball_body(radius=r, restitution=e)], [StaticShape.make("floor", "plane", restitution=e)],
                             gravity=(0.0, 0.0, -g), dt=0.002, substeps=2, friction=0.5, restitution=e)
-        heights = r + 0.01 + torch.linspace(0.0, speed * world.dt / world.substeps, n, dtype=torch.float64)
-        position = torch.zeros(n, 1, 3, dtype=torch.float64)
-        position[:, 0, 2] = heights
-        velocity = torch.zeros(n, 1, 3, dtype=torch.float64)
-        velocity[:, 0, 2] = -speed
-        traj = rollout(world, world.state(position, linear_velocity=velocity), steps=40, engine=engine)
+        traj = _thrown_at_the_floor(world, r, speed, n, engine)
         rebound = traj.states.linear_velocity[:, :, 0, 2].max(0).values.numpy() / speed
         assert rebound.max() - rebound.min() < 0.003, (e, g, rebound)
         out[e, g] = float(rebound.mean())
