@@ -413,11 +413,16 @@ def laplace_draws(post, modes: list, count: int, *, seed: int, scales=(1.0, 2.0)
     shares = [count // 2] + [(count - count // 2) // max(1, len(top) - 1)] * (len(top) - 1) if len(top) > 1 else [count]
     x = torch.stack([m.x.to(torch.float64) for m in top])
     _, J = post.jacobian(x)
-    out = []
+    out = [x[:0]]
     for i, n in enumerate(shares):
         H = J[i].T @ J[i]
         H = H + 1e-9 * float(torch.diagonal(H).mean().clamp_min(1e-12)) * torch.eye(H.shape[0], dtype=H.dtype)
-        L = torch.linalg.cholesky(torch.cholesky_inverse(torch.linalg.cholesky(H)))
+        R, info = torch.linalg.cholesky_ex(H)
+        if int(info) != 0 or not bool(torch.isfinite(R).all()):
+            continue  # no curvature to draw from (a non-finite Jacobian): the mode itself seeds
+        L, info = torch.linalg.cholesky_ex(torch.cholesky_inverse(R))
+        if int(info) != 0:
+            continue
         scale = torch.tensor([scales[j % len(scales)] for j in range(n)], dtype=torch.float64)[:, None]
         out.append(x[i] + scale * (torch.randn(n, x.shape[1], generator=gen, dtype=torch.float64) @ L.T))
     return torch.cat(out)

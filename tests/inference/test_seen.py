@@ -157,6 +157,26 @@ def test_laplace_draws_spread_as_the_earlier_stages_posterior():
     assert torch.allclose(draws[2000:].mean(0), other, atol=float(4 * sd.max() / 20))
 
 
+def test_laplace_draws_skip_a_mode_without_a_finite_curvature(monkeypatch):
+    from dejaview.inference.search import Mode, laplace_draws
+
+    scene, truth = tracked_truth()
+    post = Posterior(SpheresProblem.from_scene(scene), PosteriorSettings.from_scene(scene))
+    part = post.restricted(stages(post)[1])
+    real = part.jacobian
+
+    def broken(x):
+        r, J = real(x)
+        J = J.clone()
+        J[0] = float("nan")
+        return r, J
+
+    monkeypatch.setattr(part, "jacobian", broken)
+    modes = [Mode(truth[0], 1.0, 1.0, 0.0), Mode(truth[0] + 0.3, 2.0, 2.0, 0.0)]
+    draws = laplace_draws(part, modes, 100, seed=0)
+    assert draws.shape == (50, truth.shape[1]) and bool(torch.isfinite(draws).all())
+
+
 def test_the_last_stage_of_a_tracked_search_keeps_half_of_it(monkeypatch):
     """Earlier stages spend ``stage_share`` each, counted by their rollouts' length; the search over
     every sighting keeps at least ``last_share`` of the iterations and budget however many there
