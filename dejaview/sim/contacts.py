@@ -21,10 +21,9 @@ approaching). The contact is stiffer while loading (k) than while unloading
 (phi k): it returns the fraction phi of the stored energy, so the restitution
 is e = sqrt(phi) in continuous time; phi is calibrated against the discrete
 integrator (``World.restitution_to_unloading``) so that a simulated head-on
-impact rebounds with e. Unlike a linear damper this force never pulls; below
-a restitution of 0.11 phi is negative (``dejaview.sim.restitution``) and the
-factor phi + (1 - phi) s_i is cut off at zero late in the unloading. s_i blends the two stiffnesses at rest over a few
-mm/s (v_s) and in an impact over a fixed part of its phase
+impact rebounds with e. Unlike a linear damper this force never pulls (below e = 0.11, phi < 0
+and the factor is cut off at zero: ``normal_force``). s_i blends the two stiffnesses at rest over a
+few mm/s (v_s) and in an impact over a fixed part of its phase
 (s_i = ``dejaview.sim.restitution.loading``). A body therefore behaves like
 one spring of natural frequency omega_0 however many of its spheres touch, which keeps the explicit
 integrator stable (omega_0 h = 0.25 by default) and makes restitution
@@ -193,9 +192,8 @@ def normal_force(depth: torch.Tensor, weight: torch.Tensor, normal_velocity: tor
         unload: broadcastable to (B, C), unloading stiffness factor phi in [``UNLOAD_MIN``, 1].
         unload_velocity, omega: v_s (m/s) and omega_0 (rad/s) of ``restitution.loading``'s blend.
     Returns:
-        (B, C) normal force magnitudes (>= 0: a factor phi + (1 - phi) s below zero, which only a
-        negative phi gives, late in an impact's unloading, is cut off at zero).
-    """
+        (B, C) normal force magnitudes (>= 0: a factor phi + (1 - phi) s below zero, a negative
+        phi's late in an impact's unloading, is cut off at zero)."""
     s = loading(depth, normal_velocity, unload_velocity, omega)
     return weight * stiffness * depth * (unload + (1.0 - unload) * s).clamp_min(0.0)
 
