@@ -500,8 +500,9 @@ class MapSearch:
                 break
             seeds = torch.stack([m.x for m in found.modes])
             near = laplace_draws(part, found.modes, screen_size(part.layout.size), seed=p.seed + len(history))
-            jacobians += min(4, len(found.modes))  # laplace_draws' Jacobians
-            spent += length * p.jacobian_cost * min(4, len(found.modes))
+            drawn = part.jacobians - found.jacobians  # laplace_draws' Jacobians
+            jacobians += drawn
+            spent += length * p.jacobian_cost * drawn
         final = self._stage(plain, replace(p, iterations=max(int(p.last_share * p.iterations), int(p.iterations - used)),
                                            budget=max(int(p.last_share * p.budget), int(p.budget - spent))),
                             report, should_stop, seeds, near)

@@ -19,7 +19,8 @@ sawtooth in the start: one ball thrown at the floor at 2.6 m/s with e = 0.4, its
 rough (issue 58's identify calibration). Over a part of the phase the same ball rebounds with
 0.368-0.372 (docs/physics.md, "Restitution", has the table). The lead lowers what a contact without
 restitution (phi = 0) returns, but does not stop it: at v_n = 0 the blend is still sigmoid(-beta),
-so phi = 0 rebounds with 0.111 (without gravity; 0.09 with it at 1-5 m/s). Below that, phi goes
+so phi = 0 rebounds with 0.111 in the calibration below (v_s = 0; 0.121 in the engines at 3 m/s
+without gravity, 0.09 with it at 1-5 m/s). Below that, phi goes
 negative, down to ``UNLOAD_MIN``: the factor phi + (1 - phi) s then crosses zero while the contact
 unloads, and the force is cut off there (``dejaview.sim.contacts.normal_force``: it never pulls),
 before the blend gives the energy back. ``World.restitution_to_unloading`` calibrates phi against

@@ -247,11 +247,17 @@ def restitution_to_unloading(e: float, omega_h: float = DEFAULT_OMEGA_H) -> floa
     """
     if e <= 0.0:
         return UNLOAD_MIN
-    lo, hi = (0.0, 1.0) if _discrete_restitution(0.0, omega_h) < e else (UNLOAD_MIN, 0.0)
-    if _discrete_restitution(hi, omega_h) <= e:
-        return hi
-    if _discrete_restitution(lo, omega_h) >= e:
-        return lo
+    at_zero = _discrete_restitution(0.0, omega_h)
+    if at_zero < e:  # above the blend's own restitution: phi in [0, 1], as before UNLOAD_MIN
+        lo, hi = 0.0, 1.0
+        if _discrete_restitution(hi, omega_h) <= e:
+            return hi
+    else:
+        lo, hi = UNLOAD_MIN, 0.0
+        if at_zero <= e:
+            return hi
+        if _discrete_restitution(lo, omega_h) >= e:
+            return lo
     for _ in range(50):
         mid = 0.5 * (lo + hi)
         if _discrete_restitution(mid, omega_h) < e:
