@@ -79,9 +79,14 @@ def run(print_fn=print, samples: int = 300, seed: int = 0, scene_path: Path = SC
     for name in ("tracked", "last"):
         s = results[name].settings
         agree = s["posterior"].get("agreement") or {}
-        print_fn(f"{name:8s}: {s['posterior']['samples']} samples, R-hat {agree.get('max_rhat', float('nan')):.3f}, "
-                 f"truth at the {100 * s['truth']['credible_level']:.0f} % credible level, "
-                 f"{s['posterior']['sampler']['rollouts']} rollouts, {s['wall_s']:.1f} s")
+        evidence = ", ".join(f"{v:.1f}" for v in agree.get("log_evidence", []))
+        print_fn(f"{name:8s}: {s['posterior']['samples']} samples, R-hat {agree.get('max_rhat', float('nan')):.3f} "
+                 f"(the runs' log evidence {evidence}), truth at the {100 * s['truth']['credible_level']:.0f} % "
+                 f"credible level, {s['posterior']['sampler']['rollouts']} rollouts "
+                 f"({s['posterior']['sampler'].get('rollouts_by_length', 0):.0f} counted by length), "
+                 f"answer -log posterior {s['search']['neg_log_posterior']:.2f}"
+                 + (f" (a sample refined; the search's {s['search']['from_samples']['search_neg_log_posterior']:.2f})"
+                    if "from_samples" in s["search"] else "") + f", {s['wall_s']:.1f} s")
     velocity = [r for r in table if r["parameter"].startswith("linear_velocity")]
     narrower = sum(r["width_ratio"] < 1 for r in velocity)
     held = sum(r["truth_in_tracked"] for r in velocity)

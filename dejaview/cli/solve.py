@@ -87,6 +87,9 @@ def command(scene, out_dir, budget, multistart, screen, lr, samples, plot, truth
             click.echo(f"  -log posterior {search['neg_log_posterior']:.4g} (end misfit chi2 "
                        f"{search['observation_chi2']:.3g}), {len(search['modes'])} mode(s) found, "
                        f"{search['rollouts']} rollouts")
+            if "from_samples" in search:
+                click.echo(f"  (a posterior sample, refined: more probable than the search's answer, -log posterior "
+                           f"{search['from_samples']['search_neg_log_posterior']:.4g})")
             mu = result.settings.get("model_uncertainty")
             if mu is not None:
                 click.echo(f"  model uncertainty: friction {mu['friction']:g}, restitution "

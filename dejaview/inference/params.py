@@ -156,6 +156,8 @@ class SamplerParams:
         orbit_draws: motions drawn per orbit in the symmetry moves' importance sampling
             (``symmetry.orbit_walk``; each costs no rollout; docs/benchmarks.md, "Symmetry moves").
         orbit_width: the symmetry moves' proposal spread over the tempered observation noise.
+        sightings: a tracked source (several observed moments) is sampled sighting after sighting:
+            the bridge tempers in the observations up to each moment in turn (``search.stages``).
         kde_rows: the population move's kernel density estimate is computed for this many
             particles at a time (a (rows, guides) matrix instead of (particles, guides): the same
             numbers in less memory; ``dejaview.inference.sizing.kde_rows``); 0: all at once.
@@ -182,6 +184,7 @@ class SamplerParams:
     orbit_draws: int = 128
     orbit_width: float = 1.5
     kde_rows: int = 0
+    sightings: bool = True
 
     def __post_init__(self):
         check_params(self, counts=("max_stages", "max_moves", "runs", "min_run_size", "particles", "orbit_draws"),

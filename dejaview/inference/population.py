@@ -1,6 +1,7 @@
 """A weighted particle population's arithmetic, for ``dejaview.inference.sampling``'s moves:
 its effective sample size, systematic resampling, the Cholesky factor of its covariance,
-differential-evolution steps between its members, and a walk's step-scale adaptation."""
+differential-evolution steps between its members, a walk's step-scale adaptation, and the walk's
+coordinates (a start-area position as its fraction of the area)."""
 
 from __future__ import annotations
 
@@ -50,3 +51,35 @@ def systematic(logw: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     w = torch.softmax(logw, 0)
     u = (torch.rand(1, generator=gen, dtype=w.dtype) + torch.arange(n, dtype=w.dtype)) / n
     return torch.searchsorted(torch.cumsum(w, 0), u).clamp_max(n - 1)
+
+
+def to_walk(layout, x: torch.Tensor) -> torch.Tensor:
+    """The walk's coordinates (B, P) of parameters x (B, P) under ``layout`` (a ``ParameterLayout``):
+    a position inside a start area as its fraction of the area, ``sigmoid(u)`` in (0, 1), the rest
+    as they are.
+
+    Why: an end that leaves the position free spreads its posterior evenly over the start
+    area, which the layout's logit coordinates turn into the logistic density, whose tails
+    hold a quarter of the mass beyond |u| = 2 and thin out where the population's steps
+    are short; in fractions the same posterior is flat between walls."""
+    cols = layout.block_slice("position")
+    if cols.stop == cols.start or layout.lo is None:
+        return x
+    w = x.clone()
+    w[:, cols] = torch.sigmoid(x[:, cols])
+    return w
+
+
+def from_walk(layout, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Parameters x (B, P) at walk coordinates w (B, P) (``to_walk``), and ``log |dx/dw|`` (B,) there
+    (``-inf`` outside the start area: a fraction beyond (0, 1))."""
+    cols = layout.block_slice("position")
+    if cols.stop == cols.start or layout.lo is None:
+        return w, torch.zeros(w.shape[0], dtype=w.dtype)
+    f = w[:, cols]
+    inside = ((f > 0) & (f < 1)).all(-1)
+    f = torch.where(inside[:, None], f, torch.full_like(f, 0.5))
+    x = w.clone()
+    x[:, cols] = torch.logit(f)
+    log_jac = -(torch.log(f) + torch.log1p(-f)).sum(-1)
+    return x, torch.where(inside, log_jac, torch.full_like(log_jac, -math.inf))

@@ -47,7 +47,16 @@ bridge starts from the mixture q below instead of the prior).
     random-walk and differential-evolution steps act on the coordinates the motions leave alone,
     accepted by the orbits' integrals (pseudo-marginal), so a walk is not undone by an end that
     lands a few centimetres or degrees off.
+- A tracked source (targets at several moments, ``sighting_chain``) is bridged sighting after
+  sighting: from the prior to the posterior of its first moment's observations, from that to the
+  first two moments', and so on to all of them (each bridge ``(1 - beta) log p_(k-1) + beta log
+  p_k``, its rollouts stopping at the k-th moment). A toss's first positions read rollouts in
+  flight, before any contact, which cost a fraction of a whole one; the bridge reaches the
+  tumble's sightings with particles already where the throw was.
 - At beta = 1 the moves go on until ``final_moves`` have run there.
+- Each run estimates the log evidence (``stats["log_evidence"]``: the sum over its steps of the
+  log mean incremental weight; log of the integral of ``exp(log_density)``): runs that disagree
+  but estimate alike hold branches of like mass; one far above the other found more of it.
 - The n samples are those of ``runs`` independent runs (n / runs particles
   each, seeds apart; below ``particles`` samples a random n / runs of each
   run's twice as many): where they disagree (``posterior_report.rhat``) the
@@ -71,7 +80,7 @@ import torch
 
 from dejaview.errors import InferenceError
 from dejaview.inference.params import SamplerParams
-from dejaview.inference.population import adapted, chol_of, difference_steps, ess, systematic
+from dejaview.inference.population import adapted, chol_of, difference_steps, ess, from_walk, systematic, to_walk
 from dejaview.inference.reference import Mixture, laplace_mixture, log_density, log_prior_density, prior_draws
 from dejaview.inference.symmetry import FloorSymmetry, assign, orbit_walk
 
@@ -109,31 +118,57 @@ def _shares(total: int, parts: int) -> list[int]:
     return [total // parts + (1 if i < total % parts else 0) for i in range(parts)]
 
 
+def sighting_chain(post) -> list:
+    """The posteriors a tracked source's bridge passes through before ``post``: those of its
+    sightings up to each observed moment but the last (``search.stages``), on the scene's own
+    physics; none for a source seen once (or a posterior that is not a scene's)."""
+    if not hasattr(post, "restricted"):
+        return []
+    from dejaview.inference.search import stages
+
+    plain = post.without_model() if post.model is not None else post
+    return [plain.restricted(prefix) for prefix in stages(plain)]
+
+
 class _SMC:
     """State of one run of ``Sampler.sample``; its methods are the named steps."""
 
     def __init__(self, post, q: Mixture, n: int, seed: int, callback, should_stop, from_prior: bool,
-                 params: SamplerParams):
+                 params: SamplerParams, chain: list | None = None):
         self.p = params
         self.post, self.q, self.n = post, q, n
+        self.chain = list(chain or []) + [post]
+        self.level = 0
+        """The bridge runs from ``chain[level - 1]`` (the reference at level 0) to ``chain[level]``."""
         self.from_prior = from_prior
         self.gen = torch.Generator().manual_seed(int(seed) * 104729 + 17)
         self.callback, self.should_stop = callback, should_stop
         self.beta = 0.0
         self.scale = 2.38 / math.sqrt(max(post.layout.size, 1))
         self.stages = 0
+        self.log_z = 0.0
+        """The run's estimate of the log evidence (up to the reference's constant)."""
         self.moves = 0
         self.acceptance: list[float] = []
         self.ess_steps: list[float] = []
         self.t0 = time.perf_counter()
-        self.symmetry = FloorSymmetry.of(post, params.orbit_width) if params.symmetry_moves else None
+        self.symmetry = (FloorSymmetry.of(post, params.orbit_width)
+                         if params.symmetry_moves and len(self.chain) == 1 else None)
         self.orbit_scale = self.scale
         self.ends, self.ends_known = None, None
         """The compared records of the particles' rollouts, and which of them hold (``orbit_walk``)."""
 
     def reference(self, x: torch.Tensor) -> torch.Tensor:
-        """Log density (B,) of the bridge's start: the prior, or the mixture q."""
+        """Log density (B,) of the bridge's start: the prior, or the mixture q; at a later level the
+        posterior of the sightings before it."""
+        if self.level > 0:
+            return log_density(self.chain[self.level - 1], x, feasibility=False)
         return log_prior_density(self.post, x) if self.from_prior else self.q.log_prob(x)
+
+    @property
+    def here(self):
+        """The posterior the bridge runs to now."""
+        return self.chain[self.level]
 
     def start(self) -> None:
         if self.from_prior:
@@ -142,7 +177,7 @@ class _SMC:
             self.x, _ = self.q.sample(self.n, self.gen)
         self.lr = self.reference(self.x)
         self.lq = self.q.log_prob(self.x)
-        self.lp = log_density(self.post, self.x)
+        self.lp = log_density(self.here, self.x)
         if not bool(torch.isfinite(self.lp).any()):
             raise InferenceError("no draw from the prior or around the modes has a finite posterior density")
 
@@ -152,7 +187,8 @@ class _SMC:
     def report(self) -> None:
         if self.callback is not None:
             self.callback({"beta": self.beta, "stage": self.stages, "moves": self.moves,
-                           "fraction": 1.0 if self.beta >= 1.0 else 0.9 * self.beta,
+                           "fraction": 1.0 if self.beta >= 1.0 and self.level == len(self.chain) - 1
+                           else 0.9 * (self.level + self.beta) / len(self.chain),
                            "elapsed_s": time.perf_counter() - self.t0})
 
     def temper(self) -> None:
@@ -172,12 +208,17 @@ class _SMC:
             new = max(lo, self.beta + 1e-6)
         logw = (new - self.beta) * d
         self.ess_steps.append(ess(logw))
+        self.log_z += float(torch.logsumexp(logw, 0)) - math.log(self.n)
         self.beta = new
         idx = systematic(logw, self.gen)
         self.x, self.lr, self.lq, self.lp = self.x[idx], self.lr[idx], self.lq[idx], self.lp[idx]
         if self.ends is not None:
             self.ends, self.ends_known = [t.select(idx) for t in self.ends], self.ends_known[idx]
         self.stages += 1
+        if self.beta >= 1.0 and self.level < len(self.chain) - 1:  # on to the next sighting
+            self.level += 1
+            self.lr, self.beta = self.lp, 0.0
+            self.lp = log_density(self.here, self.x, feasibility=False)
 
     def target(self, lr: torch.Tensor, lp: torch.Tensor) -> torch.Tensor:
         """log pi_beta = (1 - beta) log r + beta log p (``-inf`` where p is 0)."""
@@ -198,11 +239,17 @@ class _SMC:
         Returns the acceptance rate."""
         u = torch.rand(rows.shape[0], generator=self.gen, dtype=torch.float64)
         lr_x, lq_x, lp_x = self.lr[rows], self.lq[rows], self.lp[rows]
-        lr_y, lq_y = self.reference(y), self.q.log_prob(y)
+        lq_y = self.q.log_prob(y)
         lp_y = torch.full_like(u, -math.inf)
         live = torch.ones_like(u, dtype=torch.bool) if log_q_ratio is None else torch.isfinite(log_q_ratio)
+        if self.level == 0:
+            lr_y = self.reference(y)
+        else:
+            lr_y = torch.full_like(u, -math.inf)
+            if bool(live.any()):
+                lr_y[live] = self.reference(y[live])
         if bool(live.any()):  # a proposal the Hastings term rules out (outside the area) is not simulated
-            lp_y[live] = log_density(self.post, y[live], feasibility=False)
+            lp_y[live] = log_density(self.here, y[live], feasibility=False)
         log_ratio = self.target(lr_y, lp_y) - self.target(lr_x, lp_x)
         if independence:
             log_ratio = log_ratio + (lq_x - lq_y)
@@ -320,33 +367,12 @@ class _SMC:
         return out
 
     def to_walk(self, x: torch.Tensor) -> torch.Tensor:
-        """The walk's coordinates (B, P) of parameters x (B, P): a position inside a start area as
-        its fraction of the area, ``sigmoid(u)`` in (0, 1), the rest as they are.
-
-        Why: an end that leaves the position free spreads its posterior evenly over the start
-        area, which the layout's logit coordinates turn into the logistic density, whose tails
-        hold a quarter of the mass beyond |u| = 2 and thin out where the population's steps
-        are short; in fractions the same posterior is flat between walls."""
-        cols = self.post.layout.block_slice("position")
-        if cols.stop == cols.start or self.post.layout.lo is None:
-            return x
-        w = x.clone()
-        w[:, cols] = torch.sigmoid(x[:, cols])
-        return w
+        """``population.to_walk`` on this posterior's layout."""
+        return to_walk(self.post.layout, x)
 
     def from_walk(self, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Parameters x (B, P) at walk coordinates w (B, P), and ``log |dx/dw|`` (B,) there (``-inf``
-        outside the start area: a fraction beyond (0, 1))."""
-        cols = self.post.layout.block_slice("position")
-        if cols.stop == cols.start or self.post.layout.lo is None:
-            return w, torch.zeros(w.shape[0], dtype=w.dtype)
-        f = w[:, cols]
-        inside = ((f > 0) & (f < 1)).all(-1)
-        f = torch.where(inside[:, None], f, torch.full_like(f, 0.5))
-        x = w.clone()
-        x[:, cols] = torch.logit(f)
-        log_jac = -(torch.log(f) + torch.log1p(-f)).sum(-1)
-        return x, torch.where(inside, log_jac, torch.full_like(log_jac, -math.inf))
+        """``population.from_walk`` on this posterior's layout."""
+        return from_walk(self.post.layout, w)
 
     def walk_log_jacobian(self, x: torch.Tensor) -> torch.Tensor:
         """``log |dx/dw|`` (B,) at parameters x (B, P) (``to_walk``)."""
@@ -478,16 +504,19 @@ class _SMC:
                                        else self.random_walk_move())
             done += 1
 
+    def finished(self) -> bool:
+        return self.beta >= 1.0 and self.level == len(self.chain) - 1
+
     def run(self) -> None:
         self.start()
         self.report()
-        while self.beta < 1.0 and self.stages < self.p.max_stages:
+        while not self.finished() and self.stages < self.p.max_stages:
             if self.stopped():
                 raise InferenceError("stopped while sampling the posterior")
             self.temper()
-            self.move(1 + self.p.rw_moves if self.beta < 1.0 else self.p.final_moves)
+            self.move(self.p.final_moves if self.finished() else 1 + self.p.rw_moves)
             self.report()
-        if self.beta < 1.0:
+        if not self.finished():
             raise InferenceError(f"the posterior sampler did not reach the posterior in {self.p.max_stages} steps")
 
 
@@ -532,6 +561,7 @@ class Sampler:
             q.prior, q.prior_share = post, p.prior_share
         if proposal is not None:
             q.flow, q.flow_share = proposal, float(proposal_share)
+        chain = sighting_chain(post) if p.sightings else []
         sizes = particles(n, p)
         m, keep = sum(sizes), _shares(n, len(sizes))
         t0 = time.perf_counter()
@@ -541,7 +571,8 @@ class Sampler:
                 if callback is not None:
                     callback({**info, "fraction": (i + info["fraction"]) / len(sizes), "run": i,
                               "elapsed_s": time.perf_counter() - t0})
-            smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper, params=p)
+            smc = _SMC(post, q, size, seed + 7919 * i, report, should_stop, from_prior=proper, params=p,
+                       chain=chain)
             smc.run()
             runs.append(smc)
         pick = torch.Generator().manual_seed(int(seed) * 7 + 3)
@@ -556,8 +587,12 @@ class Sampler:
                  "mean_acceptance": sum(acceptance) / max(len(acceptance), 1),
                  "final_acceptance": runs[-1].acceptance[-1] if runs[-1].acceptance else None,
                  "first_step_ess": runs[0].ess_steps[0] if runs[0].ess_steps else None,
+                 "log_evidence": [r.log_z for r in runs],
                  "unique_samples": int(torch.unique(x, dim=0).shape[0]),
-                 "rollouts": post.rollouts - rollouts0, "seconds": time.perf_counter() - t0}
+                 "rollouts": post.rollouts - rollouts0 + sum(c.rollouts for c in chain),
+                 "rollouts_by_length": post.rollouts - rollouts0
+                 + sum(c.rollouts * c.problem.steps / post.problem.steps for c in chain),
+                 "seconds": time.perf_counter() - t0}
         nearest_mode = torch.cdist(x, q.means).argmin(-1)  # in scaled parameters
         return PosteriorSamples(x=x, weights=weights, log_density=lp, component=nearest_mode, run=run,
                                 mode_index=mode_index, stats=stats)

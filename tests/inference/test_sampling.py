@@ -227,6 +227,7 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     # two independent runs of 100 that agree: the end pins the ramp's start
     assert post["sampler"]["runs"] == 2 and torch.bincount(result.posterior.run).tolist() == [100, 100]
     assert post["agreement"]["runs_agree"] and post["agreement"]["max_rhat"] <= ReportParams.rhat_limit
+    assert len(post["agreement"]["log_evidence"]) == 2 and all(map(math.isfinite, post["agreement"]["log_evidence"]))
     assert all(iv["rhat"] <= ReportParams.rhat_limit for iv in post["intervals"].values())
     # the same samples with one run moved off: flagged
     moved = result.posterior.x.clone()
@@ -531,3 +532,23 @@ def test_a_heatmap_with_a_physics_prior_is_the_marginal_over_the_physics(tmp_pat
     assert "physics" in result.best.settings
     with pytest.raises(InferenceError, match="physics-prior.*posterior heatmap"):
         compute_heatmap(scene, cells=(4, 5), samples=2, method="basins")
+
+
+def test_each_run_estimates_the_evidence():
+    """``stats["log_evidence"]``: each run's product of its tempering steps' mean weights estimates
+    log of the integral of the unnormalised posterior density; on R(x) = A x - b it is
+    -0.5 |r_min|^2 + (P/2) log 2 pi - 0.5 log det A^T A. ``result.json`` carries it beside R-hat."""
+    A = torch.tensor([[2.0, 0.5, 0.0], [0.0, 1.0, 0.3], [0.4, 0.0, 3.0], [0.1, 0.2, 0.1]], dtype=torch.float64)
+    b = torch.tensor([1.0, -0.5, 0.7, 0.2], dtype=torch.float64)
+
+    def res(x):
+        return x @ A.T - b
+
+    post = FakePosterior(3, lambda x: 0.5 * (res(x) ** 2).sum(-1), res)
+    mean = torch.linalg.solve(A.T @ A, A.T @ b)
+    exact = (-0.5 * float((res(mean[None]) ** 2).sum()) + 1.5 * math.log(2 * math.pi)
+             - 0.5 * float(torch.logdet(A.T @ A)))
+    smp = Sampler(SamplerParams(seed=1)).sample(post, [Mode(mean, 0.0, 0.0, 0.0)], 600)
+    assert len(smp.stats["log_evidence"]) == 2
+    for log_z in smp.stats["log_evidence"]:
+        assert log_z == pytest.approx(exact, abs=0.25)

@@ -250,3 +250,60 @@ def test_a_box_tracked_over_its_tumble_is_found_through_the_stages():
     result = MapSearch(SearchParams(seed=1)).run(known)
     assert truth_cost == pytest.approx(24.8, abs=0.1)
     assert result.cost < truth_cost
+
+
+def test_a_tracked_source_is_sampled_sighting_after_sighting_and_exactly():
+    """The bridge tempers in the first moment's observation, then the first two, then all three
+    (``sampling.sighting_chain``); the samples still follow the posterior, here a Gaussian known in
+    closed form: a toss in flight is linear in the start's position and velocity, each axis seen
+    at 0.1, 0.2 and 0.3 s with 5 mm of noise."""
+    from dejaview.inference.params import SamplerParams
+    from dejaview.inference.posterior_report import physical
+    from dejaview.inference.sampling import Sampler, sighting_chain
+    from dejaview.inference.search import MapSearch
+
+    scene, truth = tracked_truth()
+    post = Posterior.from_scene(scene)
+    chain = sighting_chain(post)
+    assert [c.problem.steps for c in chain] == [50, 100] and [len(c.sightings) for c in chain] == [1, 2]
+    single = Scene.from_string(TRACKED.format(targets='<target position="0.4 0.1 0.6" time="0.3"/>'))
+    assert sighting_chain(Posterior.from_scene(single)) == []
+    modes = MapSearch().run(post).modes
+    samples = Sampler(SamplerParams(seed=1)).sample(post, modes, 300)
+    assert samples.stats["rollouts"] > samples.stats["rollouts_by_length"]  # short rollouts counted by length
+    values = physical(post.layout, samples.x)  # (N, 6): position x y z, velocity x y z
+    t = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    design = torch.stack([torch.ones_like(t), t], -1)
+    cov = 0.005 ** 2 * torch.linalg.inv(design.T @ design)  # per axis: (position, velocity)
+    sd = torch.sqrt(torch.diagonal(cov))
+    best = physical(post.layout, modes[0].x[None])[0]
+    for axis in range(3):
+        for k, col in enumerate((axis, 3 + axis)):
+            assert float(values[:, col].std()) == pytest.approx(float(sd[k]), rel=0.25)
+            assert abs(float(values[:, col].mean() - best[col])) < 0.5 * float(sd[k])
+
+
+def test_a_sample_more_probable_than_the_search_s_answer_becomes_the_answer():
+    """``solve.refine_from_samples``: the runs' best samples are refined, and one that ends more
+    probable than the search's answer replaces it, first among the modes."""
+    from dejaview.inference.params import SearchParams
+    from dejaview.inference.sampling import PosteriorSamples
+    from dejaview.inference.search import Mode, SearchResult
+    from dejaview.inference.solve import refine_from_samples
+
+    scene, truth = tracked_truth()
+    post = Posterior.from_scene(scene)
+    poor = truth[0] + 0.3  # a start far off, as a search stuck in another basin would answer
+    cost, chi2, loss = (float(v[0]) for v in post.cost(poor[None]))
+    opt = SearchResult(x=poor, loss=loss, cost=cost, chi2=chi2, modes=[Mode(poor, cost, chi2, loss)])
+    gen = torch.Generator().manual_seed(0)
+    x = truth + 0.01 * torch.randn(8, truth.shape[1], generator=gen, dtype=torch.float64)
+    samples = PosteriorSamples(x=x, weights=torch.full((8,), 1 / 8, dtype=torch.float64),
+                               log_density=-post.cost(x)[0], component=torch.zeros(8, dtype=torch.long),
+                               mode_index=[0], run=torch.arange(8) % 2)
+    better = refine_from_samples(post, opt, samples, SearchParams())
+    assert better.cost < 1.0 < cost and better.modes[0].cost == better.cost and better.modes[1] is opt.modes[0]
+    assert samples.mode_index == [1] and better.rollouts > 0 and better.jacobians > 0
+    assert torch.allclose(better.x, truth[0], atol=0.05)
+    again = refine_from_samples(post, better, samples, SearchParams())  # nothing better: the same answer
+    assert torch.equal(again.x, better.x) and len(again.modes) == len(better.modes)
