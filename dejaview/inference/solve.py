@@ -254,7 +254,7 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
                 samples_drawn = _sample(post, opt, settings, callback, should_stop, kde_rows)
                 refined = refine_from_samples(post, opt, samples_drawn, search)
                 extra = {**extra, **_search_report(post, refined, search, problem.layout)}
-                if refined.cost < opt.cost:  # a sample, refined, is the most probable start
+                if refined.cost < opt.cost:  # a sample, refined, is the answer
                     extra["search"]["from_samples"] = {"search_neg_log_posterior": opt.cost}
                 opt = refined
         if samples_drawn is not None:
@@ -331,8 +331,9 @@ def _search_report(post, opt, params: SearchParams, layout) -> dict:
 def refine_from_samples(post, opt, samples, params: SearchParams, per_run: int = 2):
     """The most probable start, checked against the posterior's samples: the ``per_run`` most
     probable distinct samples of each of the sampler's runs, refined by Levenberg-Marquardt
-    (``params.lm_final_iterations``); where one ends more probable than the search's answer, it is
-    the answer, first among the modes (the samples' ``mode_index`` follows).
+    (``params.lm_final_iterations``); where one ends more probable than the search's answer (by
+    ``params.sample_gain`` nats at least), it is the answer, first among the modes (the samples'
+    ``mode_index`` follows).
 
     Why: the sampler's runs settle in branches of a rugged posterior that the search's stages did
     not reach (measured on box_tossed_tracked, seed 0: the search's answer cost 7.87, a run's best
@@ -366,7 +367,7 @@ def refine_from_samples(post, opt, samples, params: SearchParams, per_run: int =
     cost, chi2, loss = post.cost(x)
     best = int(torch.argmin(cost))
     spent = {"rollouts": opt.rollouts + post.rollouts - rollouts0, "jacobians": opt.jacobians + post.jacobians - jacobians0}
-    if not float(cost[best]) < opt.cost:
+    if not float(cost[best]) <= opt.cost - params.sample_gain:
         return replace(opt, **spent)
     mode = Mode(x[best].clone(), float(cost[best]), float(chi2[best]), float(loss[best]))
     samples.mode_index = [i + 1 for i in samples.mode_index]

@@ -307,3 +307,5 @@ def test_a_sample_more_probable_than_the_search_s_answer_becomes_the_answer():
     assert torch.allclose(better.x, truth[0], atol=0.05)
     again = refine_from_samples(post, better, samples, SearchParams())  # nothing better: the same answer
     assert torch.equal(again.x, better.x) and len(again.modes) == len(better.modes)
+    near = replace(opt, cost=better.cost + 0.5)  # better by less than sample_gain (1 nat): kept
+    assert torch.equal(refine_from_samples(post, near, samples, SearchParams()).x, poor)
