@@ -79,7 +79,7 @@ def run(print_fn=print, samples: int = 300, seed: int = 0, scene_path: Path = SC
     for name in ("tracked", "last"):
         s = results[name].settings
         agree = s["posterior"].get("agreement") or {}
-        evidence = ", ".join(f"{v:.1f}" for v in agree.get("log_evidence", []))
+        evidence = ", ".join(f"{v:.1f}" for v in s["posterior"]["sampler"].get("log_evidence", []))
         print_fn(f"{name:8s}: {s['posterior']['samples']} samples, R-hat {agree.get('max_rhat', float('nan')):.3f} "
                  f"(the runs' log evidence {evidence}), truth at the {100 * s['truth']['credible_level']:.0f} % "
                  f"credible level, {s['posterior']['sampler']['rollouts']} rollouts "

@@ -197,8 +197,7 @@ def summary(samples, layout, modes) -> dict:
     found.sort(key=lambda m: -m["probability"])
     finite = r[torch.isfinite(r)]
     agreement = None if finite.numel() == 0 else {
-        "max_rhat": float(finite.max()), "limit": ReportParams.rhat_limit, "runs_agree": bool(finite.max() <= ReportParams.rhat_limit),
-        **({"log_evidence": samples.stats["log_evidence"]} if "log_evidence" in samples.stats else {})}
+        "max_rhat": float(finite.max()), "limit": ReportParams.rhat_limit, "runs_agree": bool(finite.max() <= ReportParams.rhat_limit)}
     return {"samples": int(samples.x.shape[0]), "sampler": samples.stats, "modes": found,
             "intervals": intervals, "agreement": agreement}
 

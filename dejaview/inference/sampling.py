@@ -242,7 +242,7 @@ class _SMC:
         lq_y = self.q.log_prob(y)
         lp_y = torch.full_like(u, -math.inf)
         live = torch.ones_like(u, dtype=torch.bool) if log_q_ratio is None else torch.isfinite(log_q_ratio)
-        if self.level == 0:
+        if self.level == 0:  # the prior's or q's density: no rollout, taken for every row as before
             lr_y = self.reference(y)
         else:
             lr_y = torch.full_like(u, -math.inf)

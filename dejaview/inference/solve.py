@@ -248,15 +248,13 @@ def solve(scene, params: SolveParams | None = None, *, callback=None, should_sto
                                         if settings.samples else "the most probable start is refined from "
                                         "its best draws; ask for samples to have the sampler check it")]
         else:
-            opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
-            extra = _search_report(post, opt, search, problem.layout)
+            found = opt = MapSearch(search).run(post, callback=callback, should_stop=should_stop)
             if settings.samples and not opt.stopped and math.isfinite(opt.loss):
                 samples_drawn = _sample(post, opt, settings, callback, should_stop, kde_rows)
-                refined = refine_from_samples(post, opt, samples_drawn, search)
-                extra = {**extra, **_search_report(post, refined, search, problem.layout)}
-                if refined.cost < opt.cost:  # a sample, refined, is the answer
-                    extra["search"]["from_samples"] = {"search_neg_log_posterior": opt.cost}
-                opt = refined
+                opt = refine_from_samples(post, opt, samples_drawn, search)
+            extra = _search_report(post, opt, search, problem.layout)
+            if opt.cost < found.cost:  # a sample, refined, is the answer
+                extra["search"]["from_samples"] = {"search_neg_log_posterior": found.cost}
         if samples_drawn is not None:
             from dejaview.inference.posterior_report import summary
 
@@ -362,14 +360,16 @@ def refine_from_samples(post, opt, samples, params: SearchParams, per_run: int =
     if not starts:
         return opt
     rollouts0, jacobians0 = post.rollouts, post.jacobians
-    x, _, _, _ = levenberg_marquardt(torch.stack(starts).to(torch.float64), lambda y: post.cost(y)[0],
-                                     lambda y, rows: post.jacobian(y), params.lm_final_iterations, tolerance=1e-8)
-    cost, chi2, loss = post.cost(x)
+    x, cost, _, _ = levenberg_marquardt(torch.stack(starts).to(torch.float64), lambda y: post.cost(y)[0],
+                                        lambda y, rows: post.jacobian(y), params.lm_final_iterations, tolerance=1e-8)
     best = int(torch.argmin(cost))
+    better = float(cost[best]) <= opt.cost - params.sample_gain
+    if better:
+        _, chi2, loss = post.cost(x[best:best + 1])  # the chosen one's misfit and loss
     spent = {"rollouts": opt.rollouts + post.rollouts - rollouts0, "jacobians": opt.jacobians + post.jacobians - jacobians0}
-    if not float(cost[best]) <= opt.cost - params.sample_gain:
+    if not better:
         return replace(opt, **spent)
-    mode = Mode(x[best].clone(), float(cost[best]), float(chi2[best]), float(loss[best]))
+    mode = Mode(x[best].clone(), float(cost[best]), float(chi2[0]), float(loss[0]))
     samples.mode_index = [i + 1 for i in samples.mode_index]
     return replace(opt, x=mode.x, loss=mode.loss, cost=mode.cost, chi2=mode.chi2, modes=[mode] + list(opt.modes),
                    **spent)

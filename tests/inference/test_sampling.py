@@ -227,7 +227,7 @@ def test_solve_with_samples_writes_posterior_csv_and_summary(tmp_path):
     # two independent runs of 100 that agree: the end pins the ramp's start
     assert post["sampler"]["runs"] == 2 and torch.bincount(result.posterior.run).tolist() == [100, 100]
     assert post["agreement"]["runs_agree"] and post["agreement"]["max_rhat"] <= ReportParams.rhat_limit
-    assert len(post["agreement"]["log_evidence"]) == 2 and all(map(math.isfinite, post["agreement"]["log_evidence"]))
+    assert len(post["sampler"]["log_evidence"]) == 2 and all(map(math.isfinite, post["sampler"]["log_evidence"]))
     assert all(iv["rhat"] <= ReportParams.rhat_limit for iv in post["intervals"].values())
     # the same samples with one run moved off: flagged
     moved = result.posterior.x.clone()
@@ -537,7 +537,8 @@ def test_a_heatmap_with_a_physics_prior_is_the_marginal_over_the_physics(tmp_pat
 def test_each_run_estimates_the_evidence():
     """``stats["log_evidence"]``: each run's product of its tempering steps' mean weights estimates
     log of the integral of the unnormalised posterior density; on R(x) = A x - b it is
-    -0.5 |r_min|^2 + (P/2) log 2 pi - 0.5 log det A^T A. ``result.json`` carries it beside R-hat."""
+    -0.5 |r_min|^2 + (P/2) log 2 pi - 0.5 log det A^T A. ``result.json`` carries it in
+    ``posterior.sampler``."""
     A = torch.tensor([[2.0, 0.5, 0.0], [0.0, 1.0, 0.3], [0.4, 0.0, 3.0], [0.1, 0.2, 0.1]], dtype=torch.float64)
     b = torch.tensor([1.0, -0.5, 0.7, 0.2], dtype=torch.float64)
 
