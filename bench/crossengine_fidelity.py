@@ -62,10 +62,11 @@ def fidelity(print_fn=print, names=None, times=FIDELITY_TIMES, engines=("mujoco"
         ``bullet_angle_<t>s_deg`` against Bullet, ``mujoco_bullet_gap_<t>s_m`` between the two.
     """
     engines = _engines.check_engines(engines)
-    prefix, short = {"mujoco": "", "bullet": "bullet_"}, {"mujoco": "mj", "bullet": "bt"}
+    prefix = {"mujoco": "", "bullet": "bullet_", "mujoco-default": "mujoco_default_"}
+    short = {"mujoco": "mj", "bullet": "bt", "mujoco-default": "md"}
     last = max(times)
     cols = [f"{short[n]} {t:g}s" for n in engines for t in times]
-    if len(engines) > 1:
+    if {"mujoco", "bullet"} <= set(engines):
         cols += [f"mj-bt {t:g}" for t in times]
     print_fn(f"{'motion':<44} " + " ".join(f"{c:>9}" for c in cols) + " "
              + " ".join(f"{short[n] + ' deg':>7}" for n in engines)
@@ -89,7 +90,7 @@ def fidelity(print_fn=print, names=None, times=FIDELITY_TIMES, engines=("mujoco"
                     angle_deg(qa, qb) for qa, qb in zip(np.asarray(ours[t][1]).reshape(-1, 4), b[t][1]))
                 cells.append(gap)
             turns.append(row[f"{prefix[n]}angle_{last:g}s_deg"])
-        if len(engines) > 1:
+        if {"mujoco", "bullet"} <= set(engines):
             for t in times:
                 row[f"mujoco_bullet_gap_{t:g}s_m"] = gap = float(
                     np.linalg.norm(theirs["mujoco"][t][0] - theirs["bullet"][t][0], axis=-1).max())

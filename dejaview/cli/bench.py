@@ -292,7 +292,8 @@ def posterior(scenes, seeds, csv_path, check):
 @click.option("--perturbed-seed", default=None, type=click.IntRange(min=0), metavar="S",
               help="Solve the cases with their truths perturbed by seed S (perturbed_cases: the start moved up to "
                    "5 cm, velocities scaled by 0.8-1.2, turned up to 15 deg); S >= 100 held out, below: tuning.")
-@click.option("--engines", default="mujoco", show_default=True, help="Observing engines: mujoco, bullet.")
+@click.option("--engines", default="mujoco", show_default=True, help="Observing engines: mujoco (DejaView's contact mapped), bullet, "
+                   "mujoco-default (MuJoCo's own default contact at the scene's step).")
 @click.option("--mismatched", default=None, type=click.IntRange(min=0), metavar="S",
               help="Observe in worlds drawn by seed S: friction x0.7-1.4, restitution 0-0.3 (S >= 100 held out).")
 @click.option("--inference-xml", default="", help="Also solve with this XML added to <inference>.")

@@ -1,5 +1,5 @@
-"""``dejaview export-mjcf SCENE -o MODEL.xml [--state result.json] [--timestep S]``: the scene as a
-MuJoCo model."""
+"""``dejaview export-mjcf SCENE -o MODEL.xml [--state result.json] [--timestep S] [--contact mapped|mujoco]``:
+the scene as a MuJoCo model."""
 
 from __future__ import annotations
 
@@ -21,8 +21,11 @@ from dejaview.cli.options import package_path_option
               help="MuJoCo's time step (default 0.0005; the contacts' damping is mapped for it). "
                    "5e-05 is converged where 0.0005 is not: a box tipping over an edge "
                    "(docs/physics-fidelity.md, \"MuJoCo's time step\").")
+@click.option("--contact", type=click.Choice(["mapped", "mujoco"]), default="mapped", show_default=True,
+              help="mapped: DejaView's contact (stiffness, restitution, friction) carried over; mujoco: "
+                   "MuJoCo's own default contact (soft, critically damped), only the friction carried.")
 @package_path_option
-def command(scene: Path, output: Path, state: Path | None, timestep: float | None) -> None:
+def command(scene: Path, output: Path, state: Path | None, timestep: float | None, contact: str) -> None:
     """Write SCENE as an MJCF model that MuJoCo loads as it is.
 
     Fixed objects become world geoms, movable ones bodies with a free joint;
@@ -35,7 +38,8 @@ def command(scene: Path, output: Path, state: Path | None, timestep: float | Non
     from dejaview.scene import Scene
 
     sc = Scene.from_xml(scene)
-    text = export_mjcf(sc, read_state(state) if state is not None else None, timestep=timestep or MJ_TIMESTEP)
+    text = export_mjcf(sc, read_state(state) if state is not None else None, timestep=timestep or MJ_TIMESTEP,
+                       contact=contact)
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
         output.write_text(text, encoding="utf-8")

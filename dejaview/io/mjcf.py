@@ -206,14 +206,15 @@ def _initial_states(scene, state: dict | None) -> dict[str, dict]:
 
 
 def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP, owner: str = "",
-          record: list | None = None, part=None) -> list[str]:
+          record: list | None = None, part=None, mode: str = "mapped") -> list[str]:
     """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``, and
     ``(geom name, owner, friction, restitution)`` of each geom to ``record`` (``_contact_pairs``;
     ``owner`` the body's name, "" for the world); ``part``: the robot ``LinkPart`` of a link's ``obj``."""
     sim = scene.simulation
     mu = sim.friction if obj.friction is None else obj.friction
     e = sim.restitution if obj.restitution is None else obj.restitution
-    contact = contact_parameters(mu, e, scene_frequency(scene), timestep)
+    contact = (contact_parameters(mu, e, scene_frequency(scene), timestep) if mode == "mapped"
+               else {"friction": f"{_num(mu)} 0.005 0.0001"})  # "mujoco": MuJoCo's default contact
     geoms = _geom_elements(scene, obj, assets, contact, part)
     if record is not None:
         record.extend((name, owner, float(mu), float(e)) for name, _ in geoms)
@@ -273,7 +274,7 @@ def _mass_properties(scene, obj):
                                      mass=obj.mass, density=density)
 
 
-def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP) -> str:
+def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP, contact: str = "mapped") -> str:
     """The scene as MJCF text that ``mujoco.MjModel.from_xml_string`` loads as it is.
 
     Args:
@@ -281,6 +282,11 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         state: optional parsed ``result.json`` of a solve: its ``initial_state``
             replaces the source's pose and velocity in the keyframe.
         timestep: MuJoCo's time step (s); the contacts' damping is mapped for it.
+        contact: ``"mapped"`` (DejaView's contact carried over: the module docstring) or
+            ``"mujoco"``: MuJoCo's own defaults (soft, critically damped ``solref`` 0.02 1, default
+            ``solimp``, pyramidal cone, Euler), only the friction carried (each pair's DejaView
+            combined coefficient), the restitution not (MuJoCo's default contact hardly rebounds):
+            the world a MuJoCo user who writes no contact parameters simulates.
     Returns:
         MJCF XML. Fixed objects are world geoms, movable ones bodies with a free
         joint (named after the object); the keyframe ``initial`` holds their
@@ -291,6 +297,8 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
     """
     from dejaview.geometry.transforms import quat_to_matrix
 
+    if contact not in ("mapped", "mujoco"):
+        raise MJCFError(f"contact: expected 'mapped' or 'mujoco', got {contact!r}")
     states = _initial_states(scene, state)
     assets: list[str] = []
     geoms: list[tuple] = []
@@ -302,7 +310,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
             from dejaview.scene.robot_links import link_objects
 
             parts = link_objects(scene, obj)
-            world.extend(mocap_bodies([(p.object, _geom(scene, p.object, assets, timestep, "", geoms, p))
+            world.extend(mocap_bodies([(p.object, _geom(scene, p.object, assets, timestep, "", geoms, p, contact))
                                        for p in parts]))
             mocap.extend(p.object.id for p in parts)
             continue
@@ -312,7 +320,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
             # a robot: its links' collision geometry, posed by forward kinematics, as world geoms
             for part in link_objects(scene, obj) if obj.robot is not None else [None]:
                 one = obj if part is None else part.object
-                for geom in _geom(scene, one, assets, timestep, "", geoms, part):
+                for geom in _geom(scene, one, assets, timestep, "", geoms, part, contact):
                     world.append(geom.replace("<geom ", f'<geom pos="{_vec(one.pose.position)}" '
                                                         f'quat="{_vec(one.pose.orientation)}" ', 1))
             continue
@@ -323,7 +331,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         world.append(f'<body name="{_xml(obj.id)}" pos="{_vec(s["position"])}" '
                      f'quat="{_vec(s["orientation"])}"><freejoint name="{_xml(obj.id)}"/>'
                      f'<inertial pos="{_vec(props.center_of_mass)}" mass="{_num(props.mass)}" '
-                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep, obj.id, geoms))}'
+                     f'fullinertia="{_vec(full)}"/>{"".join(_geom(scene, obj, assets, timestep, obj.id, geoms, mode=contact))}'
                      '</body>')
         rot = quat_to_matrix(s["orientation"])
         omega = np.asarray(s["angular_velocity"], dtype=np.float64)
@@ -332,7 +340,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         quat = np.asarray(s["orientation"], dtype=np.float64)
         qpos.extend([*s["position"], *(quat / np.linalg.norm(quat))])
         qvel.extend([*v_origin, *(rot.T @ omega)])
-    option = " ".join(f'{k}="{v}"' for k, v in OPTION.items())
+    option = " ".join(f'{k}="{v}"' for k, v in OPTION.items()) if contact == "mapped" else ""
     comment = ""
     if scene.inference is not None:
         comment = (f"\n  <!-- DejaView inference source: {_xml(scene.inference.source)}; "
@@ -347,7 +355,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
         + "\n  </keyframe>" if qpos else "")
     asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
     body = "\n    ".join(world)
-    pairs = _contact_pairs(scene, geoms, timestep)
+    pairs = _contact_pairs(scene, geoms, timestep, contact)
     contact = ("\n  <contact>\n    " + "\n    ".join(pairs) + "\n  </contact>") if pairs else ""
     return f"""<mujoco model="{_xml(scene.name or 'dejaview-scene')}">{comment}
   <compiler angle="radian"/>
@@ -359,7 +367,7 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP)
 """
 
 
-def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
+def _contact_pairs(scene, geoms: list[tuple], timestep: float, contact: str = "mapped") -> list[str]:
     """``<pair>`` elements for every two geoms of different bodies, one of them movable, from
     ``geoms`` ((name, owner, friction, restitution), owner "" for the world).
 
@@ -386,6 +394,9 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float) -> list[str]:
             if owner_a == owner_b:  # one body's own geoms, or two world geoms
                 continue
             mu = math.sqrt(mu_a * mu_b)
+            if contact == "mujoco":  # MuJoCo's default contact, DejaView's combined friction
+                out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" friction="{_num(mu)} {_num(mu)} 0 0 0"/>')
+                continue
             c = contact_parameters(mu, 0.5 * (e_a + e_b), frequency, timestep)
             out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" condim="{c["condim"]}" '
                        f'friction="{_num(mu)} {_num(mu)} 0 0 0" solref="{c["solref"]}" '

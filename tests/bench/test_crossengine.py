@@ -457,3 +457,28 @@ def test_answers_with_model_uncertainty_end_within_3_cm_in_mujoco(crossengine, c
     (c,) = [c for c in crossengine.CASES if c.name == case]
     row = crossengine.solve_case(c, crossengine.UNCERTAINTY, warp=False, print_fn=lambda *_: None)
     assert row["success"], row
+
+
+def test_mujoco_at_its_default_contact_observes_a_case_at_the_scenes_step(crossengine):
+    """``--engines mujoco-default``: MuJoCo at its own default contact (the world issue 58's hidden
+    cases are observed in) at the scene's 2 ms step; a ball rolling on the table ends where it does
+    in DejaView (rolling: contact-free but for friction), a ball dropped does not rebound there as
+    it does in DejaView (the default contact is critically damped), and the bench's path solves a
+    case in it."""
+    import numpy as np
+
+    engines = bench_module("crossengine_engines")
+    cases = bench_module("crossengine_cases")
+    scene = cases.make_scene(cases.scene_text(cases.ball("source", (1.0, 0.0, 0.5)), 0.6, restitution=0.6))
+    times = (0.28, 0.6)  # just before the drop's impact (0.30 s), and after the rebound's apex (0.48 s)
+    ours = engines.dejaview_run(scene, times)
+    theirs = engines.mujoco_default_run(scene, times)
+    assert ours[0.6][0][0][2] > 0.05 + 0.25 * 0.36 * 0.45  # DejaView: e = 0.6 rebounds 0.36 h
+    assert theirs[0.6][0][0][2] < 0.06  # MuJoCo's default contact: hardly at all
+    lines = []
+    rows = crossengine.run(print_fn=lines.append, cases=("ball-on-table",), warp=False, with_fidelity=False,
+                           baseline=False, engines=("mujoco-default",))
+    assert [(r["engine"], r["model_uncertainty"]) for r in rows] == [("mujoco-default", "0.2 0.2")]
+    assert 0 <= rows[0]["mujoco-default_end_error_m"] < 0.03, rows
+    assert any("MJdflt" in line and "within 3 cm" in line for line in lines), lines
+    assert np.isfinite(theirs[0.28][0]).all()

@@ -299,3 +299,41 @@ def test_errors_are_one_line(tmp_path):
     result = CliRunner().invoke(cli, ["export-mjcf", str(SCENES[0]), "-o", str(tmp_path / "m.xml"),
                                       "--state", str(bad_state)])
     assert "state: expected a result.json" in str(result.exception)
+
+
+def test_export_with_mujoco_s_default_contact_carries_the_friction_and_not_the_rebound(tmp_path):
+    """``contact="mujoco"``: MuJoCo's own soft, critically damped contact (no solref, solimp or
+    cone written), the scene's friction kept: a ball dropped with e = 0.6 rebounds in the mapped
+    export and hardly at all in this one, and a box slides as far in both (the friction carried)."""
+    ball = Scene.from_string("""<scene version="1"><simulation dt="0.002" duration="1.0" restitution="0.6"/>
+      <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+      <object id="ball" shape="sphere" radius="0.05" mass="0.4"><pose position="0 0 0.5"/></object></scene>""")
+    apexes = {}
+    for contact, dt in (("mapped", 5e-4), ("mujoco", 0.002)):
+        xml = export_mjcf(ball, timestep=dt, contact=contact)
+        assert ("solref" in xml) == (contact == "mapped") and ("impratio" in xml) == (contact == "mapped")
+        model = mujoco.MjModel.from_xml_string(xml)
+        data = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, data, 0)
+        bounced, apex = False, 0.0
+        while data.time < 0.8:
+            mujoco.mj_step(model, data)
+            bounced = bounced or data.qvel[2] > 0.05
+            if bounced:
+                apex = max(apex, float(data.qpos[2]) - 0.05)
+        apexes[contact] = apex
+    assert apexes["mapped"] == pytest.approx(0.45 * 0.36, rel=0.1)
+    assert apexes["mujoco"] < 0.1 * apexes["mapped"]
+    scene = Scene.from_string(SLIDING)
+    model, data = _run_mujoco(export_mjcf(scene, timestep=0.002, contact="mujoco"), 1.0)
+    assert model.pair_friction[0][0] == pytest.approx(0.5) and model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL
+    end = data.xipos[model.body("box").id]
+    assert abs(end[0] - (-0.5 + 2.0 ** 2 / (2 * 0.5 * 9.81))) < 0.03
+    with pytest.raises(Exception, match="contact"):
+        export_mjcf(scene, contact="soft")
+    out = tmp_path / "box.xml"
+    path = tmp_path / "box_scene.xml"
+    scene.write(path)
+    result = CliRunner().invoke(cli, ["export-mjcf", str(path), "-o", str(out), "--contact", "mujoco"])
+    assert result.exit_code == 0, result.output
+    assert "solref" not in out.read_text()
