@@ -46,6 +46,26 @@ MODEL = """<mujoco model="table-world">
 </mujoco>"""
 
 
+BALL_DROP = """<scene version="1"><simulation dt="0.002" duration="1.0" restitution="0.6"/>
+  <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
+  <object id="ball" shape="sphere" radius="0.05" mass="0.4"><pose position="0 0 0.5"/></object></scene>"""
+"""A ball (radius 5 cm) dropped from 0.45 m above the floor onto it, restitution 0.6."""
+
+
+def _rebound_apex(model, rising: float = 0.0) -> float:
+    """Highest the ball's bottom gets above the floor in 0.8 s from keyframe 0, once it rises faster
+    than ``rising`` (m/s) after its impact."""
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    bounced, apex = False, 0.0
+    while data.time < 0.8:
+        mujoco.mj_step(model, data)
+        bounced = bounced or data.qvel[2] > rising
+        if bounced:
+            apex = max(apex, float(data.qpos[2]) - 0.05)
+    return apex
+
+
 def _run_mujoco(xml: str, seconds: float) -> tuple:
     """Load MJCF text, reset to keyframe 0 and step; returns (model, data)."""
     model = mujoco.MjModel.from_xml_string(xml)
@@ -90,24 +110,14 @@ def test_export_at_another_timestep_keeps_the_restitution(tmp_path):
     rebounds as high at 50 us as at the default 0.5 ms (the damping differs)."""
     from dejaview.io.mjcf import MJ_TIMESTEP
 
-    scene = Scene.from_string("""<scene version="1"><simulation dt="0.002" duration="1.0" restitution="0.6"/>
-      <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
-      <object id="ball" shape="sphere" radius="0.05" mass="0.4"><pose position="0 0 0.5"/></object></scene>""")
+    scene = Scene.from_string(BALL_DROP)
     apexes, dampings = [], []
     for dt in (MJ_TIMESTEP, 5e-5):
         xml = export_mjcf(scene, timestep=dt)
         model = mujoco.MjModel.from_xml_string(xml)
         assert model.opt.timestep == pytest.approx(dt)
         dampings.append(float(model.geom_solref[0][1]))
-        data = mujoco.MjData(model)
-        mujoco.mj_resetDataKeyframe(model, data, 0)
-        bounced, apex = False, 0.0
-        while data.time < 0.8:
-            mujoco.mj_step(model, data)
-            bounced = bounced or data.qvel[2] > 0
-            if bounced:
-                apex = max(apex, float(data.qpos[2]) - 0.05)
-        apexes.append(apex)
+        apexes.append(_rebound_apex(model))
     assert dampings[0] != pytest.approx(dampings[1])
     assert apexes[1] == pytest.approx(apexes[0], rel=0.03) and apexes[0] == pytest.approx(0.45 * 0.36, rel=0.1)
     out = tmp_path / "ball.xml"
@@ -305,23 +315,12 @@ def test_export_with_mujoco_s_default_contact_carries_the_friction_and_not_the_r
     """``contact="mujoco"``: MuJoCo's own soft, critically damped contact (no solref, solimp or
     cone written), the scene's friction kept: a ball dropped with e = 0.6 rebounds in the mapped
     export and hardly at all in this one, and a box slides as far in both (the friction carried)."""
-    ball = Scene.from_string("""<scene version="1"><simulation dt="0.002" duration="1.0" restitution="0.6"/>
-      <object id="floor" shape="plane" fixed="true"><pose position="0 0 0"/></object>
-      <object id="ball" shape="sphere" radius="0.05" mass="0.4"><pose position="0 0 0.5"/></object></scene>""")
+    ball = Scene.from_string(BALL_DROP)
     apexes = {}
     for contact, dt in (("mapped", 5e-4), ("mujoco", 0.002)):
         xml = export_mjcf(ball, timestep=dt, contact=contact)
         assert ("solref" in xml) == (contact == "mapped") and ("impratio" in xml) == (contact == "mapped")
-        model = mujoco.MjModel.from_xml_string(xml)
-        data = mujoco.MjData(model)
-        mujoco.mj_resetDataKeyframe(model, data, 0)
-        bounced, apex = False, 0.0
-        while data.time < 0.8:
-            mujoco.mj_step(model, data)
-            bounced = bounced or data.qvel[2] > 0.05
-            if bounced:
-                apex = max(apex, float(data.qpos[2]) - 0.05)
-        apexes[contact] = apex
+        apexes[contact] = _rebound_apex(mujoco.MjModel.from_xml_string(xml), rising=0.05)
     assert apexes["mapped"] == pytest.approx(0.45 * 0.36, rel=0.1)
     assert apexes["mujoco"] < 0.1 * apexes["mapped"]
     scene = Scene.from_string(SLIDING)
