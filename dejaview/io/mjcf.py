@@ -40,6 +40,10 @@ What carries over, and how (docs/robotics.md has the user-facing version):
   contact's b, too slowly to stop it within an impact as Coulomb friction does;
   a larger damping makes MuJoCo's convex soft contact take normal impulse away
   from a sticking impact (``_contact_pairs``).
+* ``contact="mujoco"`` (``export-mjcf --contact mujoco``) writes none of that contact: MuJoCo's
+  own defaults (``solref`` 0.02 1, default ``solimp``, pyramidal cone, Euler), only each pair's
+  DejaView friction: the world of a MuJoCo user who writes no contact parameters (the cross-engine
+  bench's ``mujoco-default`` observer).
 * State: DejaView's linear velocity is the centre of mass's, world frame;
   a MuJoCo free joint's is the body origin's (world frame) and its angular
   velocity is in the body frame: both are converted.
@@ -209,7 +213,8 @@ def _geom(scene, obj, assets: list[str], timestep: float = MJ_TIMESTEP, owner: s
           record: list | None = None, part=None, mode: str = "mapped") -> list[str]:
     """The ``<geom>`` elements of one object (its own frame); mesh assets go to ``assets``, and
     ``(geom name, owner, friction, restitution)`` of each geom to ``record`` (``_contact_pairs``;
-    ``owner`` the body's name, "" for the world); ``part``: the robot ``LinkPart`` of a link's ``obj``."""
+    ``owner`` the body's name, "" for the world); ``part``: the robot ``LinkPart`` of a link's ``obj``;
+    ``mode``: ``export_mjcf``'s ``contact``."""
     sim = scene.simulation
     mu = sim.friction if obj.friction is None else obj.friction
     e = sim.restitution if obj.restitution is None else obj.restitution
