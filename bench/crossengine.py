@@ -176,7 +176,7 @@ def run(print_fn=print, cases=None, uncertainty=UNCERTAINTY, warp: bool = True,
     print_fn(f"# cross-engine benchmark ({load_average()})")
     if with_fidelity:
         print_fn("## fidelity: DejaView vs MuJoCo and Bullet from the same start")
-        rows += _fidelity.fidelity(print_fn)
+        rows += _fidelity.fidelity(print_fn, engines=_fidelity.fidelity_engines(engines))
     names = " and ".join(_engines.ENGINE_NAMES[e] for e in engines)
     print_fn(f"## inference: {names} observe{'s' if len(engines) == 1 else ''}, DejaView solves, the observer"
              f"{' and Warp re-simulate' if warp else ' re-simulates'} (success: within {100 * _cases.SUCCESS_TOL:g} cm)"
@@ -266,7 +266,7 @@ def command(print_fn=print, cases: str = "", uncertainty=UNCERTAINTY, no_baselin
     if throws:
         return _fidelity.throws(print_fn, count=throws, seed=seeds[0] if seeds else 0)
     if fidelity_only:
-        return _fidelity.fidelity(print_fn)
+        return _fidelity.fidelity(print_fn, engines=_fidelity.fidelity_engines(names))
     return run(print_fn=print_fn, cases=tuple(c for c in cases.replace(" ", "").split(",") if c),
                uncertainty=uncertainty, warp=not no_warp, with_fidelity=not no_fidelity, baseline=not no_baseline,
                seeds=seeds, prior=not flat_prior, area_offset=tuple(area_offset),

@@ -482,3 +482,19 @@ def test_mujoco_at_its_default_contact_observes_a_case_at_the_scenes_step(crosse
     assert 0 <= rows[0]["mujoco-default_end_error_m"] < 0.03, rows
     assert any("MJdflt" in line and "within 3 cm" in line for line in lines), lines
     assert np.isfinite(theirs[0.28][0]).all()
+
+
+def test_the_fidelity_table_shows_mujoco_at_its_default_contact_without_holding_it_to_the_bar(crossengine):
+    """``--engines mujoco-default`` adds its column to the fidelity table (``fidelity_engines``); the
+    2 cm bar at 1.0 s reads the mapped MuJoCo and Bullet only: a ball dropped with e 0.7 rebounds in
+    DejaView and the mapped MuJoCo, hardly at all at MuJoCo's default contact, and stays within the bar."""
+    fid = bench_module("crossengine_fidelity")
+    assert fid.fidelity_engines(("mujoco",)) == ("mujoco", "bullet")
+    assert fid.fidelity_engines(("bullet", "mujoco-default")) == ("mujoco", "bullet", "mujoco-default")
+    lines = []
+    rows = crossengine.fidelity(print_fn=lines.append, names=["bounce high"], times=(1.0,),
+                                engines=("mujoco", "mujoco-default"))
+    (row,) = rows
+    assert row["gap_1s_m"] <= crossengine.FIDELITY_TOL < row["mujoco_default_gap_1s_m"], row
+    assert row["within_2cm_at_1s"] is True
+    assert "md 1s" in lines[0]
