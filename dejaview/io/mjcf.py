@@ -361,13 +361,13 @@ def export_mjcf(scene, state: dict | None = None, timestep: float = MJ_TIMESTEP,
     asset = ("\n  <asset>\n    " + "\n    ".join(assets) + "\n  </asset>") if assets else ""
     body = "\n    ".join(world)
     pairs = _contact_pairs(scene, geoms, timestep, contact)
-    contact = ("\n  <contact>\n    " + "\n    ".join(pairs) + "\n  </contact>") if pairs else ""
+    contact_xml = ("\n  <contact>\n    " + "\n    ".join(pairs) + "\n  </contact>") if pairs else ""
     return f"""<mujoco model="{_xml(scene.name or 'dejaview-scene')}">{comment}
   <compiler angle="radian"/>
   <option timestep="{_num(timestep)}" gravity="{_vec(scene.gravity)}" {option}/>{asset}
   <worldbody>
     {body}
-  </worldbody>{contact}{keyframe}
+  </worldbody>{contact_xml}{keyframe}
 </mujoco>
 """
 
@@ -399,12 +399,12 @@ def _contact_pairs(scene, geoms: list[tuple], timestep: float, contact: str = "m
             if owner_a == owner_b:  # one body's own geoms, or two world geoms
                 continue
             mu = math.sqrt(mu_a * mu_b)
+            pair, friction = f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}"', f'friction="{_num(mu)} {_num(mu)} 0 0 0"'
             if contact == "mujoco":  # MuJoCo's default contact, DejaView's combined friction
-                out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" friction="{_num(mu)} {_num(mu)} 0 0 0"/>')
+                out.append(f"{pair} {friction}/>")
                 continue
             c = contact_parameters(mu, 0.5 * (e_a + e_b), frequency, timestep)
-            out.append(f'<pair geom1="{_xml(name_a)}" geom2="{_xml(name_b)}" condim="{c["condim"]}" '
-                       f'friction="{_num(mu)} {_num(mu)} 0 0 0" solref="{c["solref"]}" '
+            out.append(f'{pair} condim="{c["condim"]}" {friction} solref="{c["solref"]}" '
                        f'solimp="{c["solimp"]}" solreffriction="0 {_num(-FRICTION_DAMPING * frequency)}"/>')
     return out
 
